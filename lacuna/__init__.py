@@ -1,0 +1,2 @@
+"""Lacuna: real-time gap filling for live motion capture."""
+__version__ = "0.1.0"

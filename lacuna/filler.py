@@ -1,0 +1,132 @@
+"""The one seam: every method that fills frames answers this interface.
+
+A *model* is an immutable object (trained, or loaded from a file).  ``model.stream()`` gives a
+fresh per-stream state whose ``step(frame, observed)`` is causal: it sees frame t and the past
+only, and returns a :class:`Fill`.  ``model.step_batch(states, frames, observed)`` steps many
+streams at once (the daemon's hot path); the default loops, models override it to vectorise.
+Offline methods (smoothing over a whole recording) implement ``fill_offline`` and set
+``causal = False``.
+
+Frames are always in the model's *raw* channel space: plain joint angles in degrees (and root
+translation in ASF length units), one float per entry of ``model.channels``.  Representation
+(unwrapping, root motion, normalisation) happens inside the model (see ``mocap.representation``);
+callers never see it.
+
+Arrays
+------
+frame : (n_channels,) float64, values of unobserved channels are ignored (may be NaN)
+observed : (n_channels,) bool, True where the value was measured this frame
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Sequence
+
+import numpy as np
+
+
+class FillerError(ValueError):
+    """A frame or a model that a filler cannot use (wrong width, non-finite observed value)."""
+
+
+@dataclass
+class Fill:
+    """One filled frame.
+
+    Attributes
+    ----------
+    frame : (n_channels,) completed frame; observed channels are returned exactly as given.
+    std : (n_channels,) predictive standard deviation of each value; 0 where observed.
+    filled : (n_channels,) bool, True where the value was filled in (i.e. not observed).
+    extras : model extras, e.g. ``{"style": (n_styles,) posterior, "phase": float in [0, 1)}``.
+    degraded : True when the filler took a cheaper path than asked (daemon under load).
+    """
+
+    frame: np.ndarray
+    std: np.ndarray
+    filled: np.ndarray
+    extras: dict[str, Any] = field(default_factory=dict)
+    degraded: bool = False
+
+
+def check_frame(frame: Any, observed: Any, n_channels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Validate one frame and its mask; returns float64 frame and bool mask copies.
+
+    Raises FillerError naming what arrived when the width is wrong or an observed value is
+    not finite (NaN in an *unobserved* slot is the normal way to say "missing").
+    """
+    f = np.asarray(frame, dtype=np.float64)
+    if f.ndim != 1 or f.shape[0] != n_channels:
+        raise FillerError(f"frame must have {n_channels} channels (got shape {f.shape})")
+    if observed is None:
+        obs = np.isfinite(f)
+    else:
+        obs = np.asarray(observed, dtype=bool)
+        if obs.shape != (n_channels,):
+            raise FillerError(f"observed mask must have {n_channels} entries (got shape {obs.shape})")
+        bad = obs & ~np.isfinite(f)
+        if bad.any():
+            idx = np.flatnonzero(bad)[:5].tolist()
+            raise FillerError(f"observed values must be finite (got NaN/inf at channels {idx})")
+    return f.copy(), obs.copy()
+
+
+class FillerState(abc.ABC):
+    """Per-stream state.  O(1) memory and time per frame for causal models."""
+
+    @abc.abstractmethod
+    def step(self, frame: np.ndarray | None, observed: np.ndarray | None = None) -> Fill:
+        """Consume frame t (``None`` = the frame never arrived: a pure prediction step)."""
+
+    def predict(self) -> Fill:
+        """A frame that never arrived: everything is missing."""
+        return self.step(None, None)
+
+
+class Model(abc.ABC):
+    """A trained filler.  Subclasses set ``method`` and ``channels`` and implement ``stream``."""
+
+    method: ClassVar[str] = "?"
+    causal: ClassVar[bool] = True
+    channels: list[str]
+
+    @property
+    def n_channels(self) -> int:
+        return len(self.channels)
+
+    @abc.abstractmethod
+    def stream(self) -> FillerState:
+        """A fresh per-stream state."""
+
+    def step_batch(
+        self,
+        states: Sequence[FillerState],
+        frames: np.ndarray,
+        observed: np.ndarray,
+    ) -> list[Fill]:
+        """Step many streams at once.  frames, observed: (n_streams, n_channels)."""
+        return [s.step(f, o) for s, f, o in zip(states, frames, observed)]
+
+    def fill_offline(self, frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fill a whole recording.  frames, observed: (n_frames, n_channels).
+
+        Returns (filled frames, std), both (n_frames, n_channels).  The default runs the causal
+        stream over the recording; non-causal models override this.
+        """
+        st = self.stream()
+        out = np.empty_like(frames, dtype=np.float64)
+        std = np.zeros_like(out)
+        for t in range(frames.shape[0]):
+            fill = st.step(frames[t], observed[t])
+            out[t] = fill.frame
+            std[t] = fill.std
+        return out, std
+
+    def info(self) -> dict[str, Any]:
+        """Short description for `lacuna status` / `list models`."""
+        return {"method": self.method, "channels": len(self.channels), "causal": self.causal}
+
+    # Persistence: models that can be saved implement these (see lacuna.modelfile).
+    def save(self, path: str) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError(f"{type(self).__name__} cannot be saved")

@@ -1,0 +1,317 @@
+"""ASF skeletons and AMC motions (Acclaim format, as used by the CMU database).
+
+Channels are named ``bone.dof`` and ordered as the ASF declares them: the root's ``order``
+first, then every bone with dofs in ``:bonedata`` order.  AMC lines are read *by bone name*:
+CMU's own files and the rebuilt subject-35 files order bones differently within a frame.
+
+References
+----------
+Acclaim ASF/AMC file format, as documented with the CMU Graphics Lab Motion Capture Database.
+"""
+from __future__ import annotations
+
+import glob
+import io
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lacuna.errors import ParseError
+from mocap.motion import Motion
+
+AMC_FPS = 120.0
+_VALID_DOFS = ("tx", "ty", "tz", "rx", "ry", "rz", "l")
+
+
+@dataclass
+class Bone:
+    name: str
+    dofs: list[str]
+    direction: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    length: float = 0.0
+    axis: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    axis_order: str = "XYZ"
+    limits: list[tuple[float, float]] = field(default_factory=list)
+
+
+@dataclass
+class Skeleton:
+    """An ASF skeleton: root dofs, bones in file order, the hierarchy, and the raw text."""
+
+    name: str
+    root_order: list[str]
+    root_axis: str
+    bones: list[Bone]
+    hierarchy: dict[str, list[str]]
+    units: dict[str, str]
+    source: str = ""
+    text: str = ""
+
+    @property
+    def channels(self) -> list[str]:
+        out = [f"root.{d}" for d in self.root_order]
+        for b in self.bones:
+            out += [f"{b.name}.{d}" for d in b.dofs]
+        return out
+
+    def dofs_by_bone(self) -> dict[str, list[str]]:
+        d = {"root": list(self.root_order)}
+        for b in self.bones:
+            if b.dofs:
+                d[b.name] = list(b.dofs)
+        return d
+
+
+def _floats(path: str, lineno: int, parts: list[str], n: int | None, what: str) -> list[float]:
+    if n is not None and len(parts) != n:
+        raise ParseError(path, lineno, f"{what} needs {n} numbers (got {len(parts)}: {' '.join(parts)!r})")
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        raise ParseError(path, lineno, f"{what}: not a number in {' '.join(parts)!r}") from None
+    return vals
+
+
+def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
+    """Parse ASF text.  Raises ParseError naming the file and line."""
+    lines = text.splitlines()
+    section = None
+    name = ""
+    units: dict[str, str] = {}
+    root_order: list[str] = []
+    root_axis = "XYZ"
+    bones: list[Bone] = []
+    hierarchy: dict[str, list[str]] = {}
+    cur: Bone | None = None
+    in_limits = False
+    for i, raw in enumerate(lines, 1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        if line.startswith(":"):
+            parts = line.split()
+            key = parts[0][1:].lower()
+            section = key
+            in_limits = False
+            if key == "name" and len(parts) > 1:
+                name = parts[1]
+            continue
+        parts = line.split()
+        key = parts[0].lower()
+        if section == "units":
+            if len(parts) >= 2:
+                units[key] = parts[1]
+        elif section == "root":
+            if key == "order":
+                root_order = [p.lower() for p in parts[1:]]
+                bad = [p for p in root_order if p not in _VALID_DOFS]
+                if bad:
+                    raise ParseError(path, i, f"root order has unknown dof {bad[0]!r}")
+            elif key == "axis" and len(parts) > 1:
+                root_axis = parts[1].upper()
+        elif section == "bonedata":
+            if key == "begin":
+                cur = Bone(name="", dofs=[])
+                in_limits = False
+            elif key == "end":
+                if cur is None:
+                    raise ParseError(path, i, "'end' without 'begin'")
+                if not cur.name:
+                    raise ParseError(path, i, "bone without a name")
+                if cur.dofs and cur.limits and len(cur.limits) != len(cur.dofs):
+                    raise ParseError(path, i, f"bone {cur.name}: {len(cur.dofs)} dofs but {len(cur.limits)} limits")
+                bones.append(cur)
+                cur = None
+                in_limits = False
+            elif cur is None:
+                raise ParseError(path, i, f"{parts[0]!r} outside a begin/end block")
+            elif key == "name":
+                if len(parts) != 2:
+                    raise ParseError(path, i, "bone name must be one word")
+                cur.name = parts[1]
+            elif key == "direction":
+                cur.direction = tuple(_floats(path, i, parts[1:], 3, "direction"))  # type: ignore[assignment]
+            elif key == "length":
+                cur.length = _floats(path, i, parts[1:], 1, "length")[0]
+            elif key == "axis":
+                cur.axis = tuple(_floats(path, i, parts[1:4], 3, "axis"))  # type: ignore[assignment]
+                cur.axis_order = parts[4].upper() if len(parts) > 4 else "XYZ"
+            elif key == "dof":
+                cur.dofs = [p.lower() for p in parts[1:]]
+                bad = [p for p in cur.dofs if p not in _VALID_DOFS]
+                if bad:
+                    raise ParseError(path, i, f"bone {cur.name}: unknown dof {bad[0]!r}")
+            elif key == "limits" or in_limits:
+                in_limits = True
+                body = line[len("limits"):] if key == "limits" else line
+                body = body.replace("(", " ").replace(")", " ").split()
+                vals = []
+                for p in body:
+                    try:
+                        vals.append(float(p.replace("inf", "inf")))
+                    except ValueError:
+                        raise ParseError(path, i, f"bone {cur.name}: bad limit {p!r}") from None
+                if len(vals) != 2:
+                    raise ParseError(path, i, f"bone {cur.name}: a limit is a pair (min max)")
+                cur.limits.append((vals[0], vals[1]))
+            elif key == "id" or key == "bodymass" or key == "cofmass":
+                pass
+            else:
+                raise ParseError(path, i, f"unknown bone attribute {parts[0]!r}")
+        elif section == "hierarchy":
+            if key in ("begin", "end"):
+                continue
+            hierarchy.setdefault(parts[0], []).extend(parts[1:])
+    if cur is not None:
+        raise ParseError(path, len(lines), f"bone {cur.name or '?'} not closed with 'end' (file truncated?)")
+    if not root_order:
+        raise ParseError(path, None, "no ':root' section with an 'order' line")
+    if not bones:
+        raise ParseError(path, None, "no bones in ':bonedata'")
+    seen = set()
+    for b in bones:
+        if b.name in seen or b.name == "root":
+            raise ParseError(path, None, f"bone name {b.name!r} appears twice")
+        seen.add(b.name)
+    return Skeleton(name, root_order, root_axis, bones, hierarchy, units, path, text)
+
+
+def read_asf(path: str | os.PathLike) -> Skeleton:
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            text = fh.read()
+    except OSError as e:
+        raise ParseError(path, None, f"cannot read ({e.strerror or e})") from None
+    return parse_asf(text, path)
+
+
+def find_asf(amc_path: str | os.PathLike) -> str:
+    """CMU's layout: ``subjects/07/07_01.amc`` beside ``subjects/07/07.asf``."""
+    amc_path = os.fspath(amc_path)
+    d = os.path.dirname(os.path.abspath(amc_path))
+    stem = os.path.basename(amc_path).split(".")[0]
+    subj = stem.split("_")[0]
+    for cand in (os.path.join(d, f"{subj}.asf"), os.path.join(d, f"{stem}.asf")):
+        if os.path.exists(cand):
+            return cand
+    found = sorted(glob.glob(os.path.join(d, "*.asf")))
+    if len(found) == 1:
+        return found[0]
+    raise ParseError(amc_path, None, f"no ASF skeleton beside it (looked for {subj}.asf in {d}); pass --asf")
+
+
+def parse_amc(text: str, skeleton: Skeleton, path: str = "<amc>", fps: float = AMC_FPS) -> Motion:
+    """Parse AMC text against a skeleton; bone lines are matched by name, in any order."""
+    dofs = skeleton.dofs_by_bone()
+    channels = skeleton.channels
+    col0: dict[str, int] = {}
+    c = 0
+    for b, ds in dofs.items():
+        col0[b] = c
+        c += len(ds)
+    n_ch = len(channels)
+    rows: list[np.ndarray] = []
+    cur: np.ndarray | None = None
+    seen: set[str] = set()
+    cur_line = 0
+    frame_no = 0
+
+    def close(lineno: int) -> None:
+        missing = [b for b in dofs if b not in seen]
+        if missing:
+            raise ParseError(path, cur_line, f"frame {frame_no} lacks bone {missing[0]!r} (and {len(missing) - 1} more)")
+        rows.append(cur)  # type: ignore[arg-type]
+
+    for i, raw in enumerate(io.StringIO(text), 1):
+        line = raw.strip()
+        if not line or line.startswith("#") or line.startswith(":"):
+            continue
+        parts = line.split()
+        if len(parts) == 1 and parts[0].isdigit():
+            if cur is not None:
+                close(i)
+            cur = np.full(n_ch, np.nan)
+            seen = set()
+            cur_line = i
+            frame_no = int(parts[0])
+            continue
+        if cur is None:
+            raise ParseError(path, i, f"bone line before the first frame number: {line[:40]!r}")
+        bone = parts[0]
+        if bone not in dofs:
+            if bone in {b.name for b in skeleton.bones}:
+                continue  # a bone with no dofs; tolerate an empty line for it
+            raise ParseError(path, i, f"bone {bone!r} is not in skeleton {skeleton.source or skeleton.name}")
+        want = len(dofs[bone])
+        vals = parts[1:]
+        if len(vals) != want:
+            raise ParseError(path, i, f"bone {bone} needs {want} values (got {len(vals)})")
+        try:
+            v = [float(x) for x in vals]
+        except ValueError:
+            raise ParseError(path, i, f"bone {bone}: not a number in {' '.join(vals)!r}") from None
+        if not all(math.isfinite(x) for x in v):
+            raise ParseError(path, i, f"bone {bone}: NaN or infinity")
+        if bone in seen:
+            raise ParseError(path, i, f"bone {bone} appears twice in frame {frame_no}")
+        seen.add(bone)
+        cur[col0[bone] : col0[bone] + want] = v
+    if cur is not None:
+        close(cur_line)
+    if not rows:
+        raise ParseError(path, None, "no frames")
+    return Motion(np.vstack(rows), channels, fps, skeleton, path)
+
+
+def read_amc(path: str | os.PathLike, asf: str | os.PathLike | Skeleton | None = None, fps: float = AMC_FPS) -> Motion:
+    """Read an AMC file; its ASF is found beside it (CMU layout) unless given."""
+    path = os.fspath(path)
+    if isinstance(asf, Skeleton):
+        skel = asf
+    else:
+        skel = read_asf(asf if asf is not None else find_asf(path))
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            text = fh.read()
+    except OSError as e:
+        raise ParseError(path, None, f"cannot read ({e.strerror or e})") from None
+    return parse_amc(text, skel, path, fps)
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x)) if x != 0 else "0"
+
+
+def format_amc(motion: Motion, skeleton: Skeleton | None = None) -> str:
+    """AMC text in the skeleton's bone order, full float precision (round trips exactly)."""
+    skel = skeleton or motion.skeleton
+    if not isinstance(skel, Skeleton):
+        raise ValueError("writing AMC needs an ASF skeleton (pass skeleton=)")
+    idx = motion.index(skel.channels)
+    out = [":FULLY-SPECIFIED", ":DEGREES"]
+    dofs = skel.dofs_by_bone()
+    for t in range(motion.n_frames):
+        row = motion.frames[t, idx]
+        out.append(str(t + 1))
+        c = 0
+        for b, ds in dofs.items():
+            vals = row[c : c + len(ds)]
+            c += len(ds)
+            out.append(b + " " + " ".join(_fmt(v) for v in vals))
+    return "\n".join(out) + "\n"
+
+
+def write_amc(path: str | os.PathLike, motion: Motion, skeleton: Skeleton | None = None) -> None:
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(format_amc(motion, skeleton))
+
+
+def write_asf(path: str | os.PathLike, skeleton: Skeleton) -> None:
+    """Write the skeleton back out (verbatim text when it was read from a file)."""
+    if not skeleton.text:
+        raise ValueError("this skeleton was not read from a file; nothing to write")
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(skeleton.text)

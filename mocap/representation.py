@@ -1,0 +1,402 @@
+"""The representation models learn in, and its exact causal inverse.  One place for all of it.
+
+Raw channels (what the studio sends) -> features (what models see):
+
+* constant channels (clavicles, fingers in CMU data) are dropped and restored on the way out;
+* angles (``*.rx|ry|rz``) are unwrapped along time: the first frame is mapped into
+  (centre - 180, centre + 180] around the training circular mean, later frames continue
+  continuously (``u_t = u_{t-1} + wrap(x_t - u_{t-1})``);
+* root motion (``root_mode="relative"``, Taylor et al. 2006 section 3): ground-plane
+  translation becomes a displacement in the heading frame of the previous frame
+  (``root.dside``, ``root.dfwd``), height stays absolute (``root.ty``), orientation about the
+  vertical becomes a yaw rate (``root.dyaw``) and the other two rotations absolute pitch and
+  roll relative to the heading (``root.pitch``, ``root.roll``);
+* optional per-channel normalisation to zero mean and unit variance (stored with the model).
+
+The encoder/decoder pair is a *stream*: arrays of shape (n_streams, ...) so the daemon can
+code many streams in one call.  ``encode`` maps frame t to features using the previous
+*completed* frame; the model fills the missing features; ``decode`` maps them back, passes the
+observed raw channels through exactly, and commits the completed frame as the new state.
+``transform`` (whole recording, everything observed) equals running the stream, tested.
+
+Conventions for the root (CMU ASF, Y up): orientation matrix R = Rz(rz) Ry(ry) Rx(rx) and the
+heading decomposition R = Ry(yaw) Rx(pitch) Rz(roll).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+ROOT_ROT = ("root.rx", "root.ry", "root.rz")
+ROOT_POS = ("root.tx", "root.ty", "root.tz")
+ROOT_FEATURES = ("root.dside", "root.ty", "root.dfwd", "root.dyaw", "root.pitch", "root.roll")
+CONST_TOL = 1e-6  # degrees: a channel whose range is below this is constant
+
+
+def wrap180(x: np.ndarray) -> np.ndarray:
+    """Wrap angles in degrees into [-180, 180)."""
+    return (np.asarray(x) + 180.0) % 360.0 - 180.0
+
+
+def is_angle(name: str) -> bool:
+    return name.rsplit(".", 1)[-1] in ("rx", "ry", "rz")
+
+
+def circular_mean_deg(x: np.ndarray, axis: int = 0) -> np.ndarray:
+    r = np.deg2rad(x)
+    return np.rad2deg(np.arctan2(np.sin(r).mean(axis), np.cos(r).mean(axis)))
+
+
+# ---- root rotation algebra (vectorised over rows) ----------------------------------------------
+def _rxyz_to_matrix(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """R = Rz(c) Ry(b) Rx(a), angles in radians, shape (n,) -> (n, 3, 3)."""
+    ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
+    R = np.empty(a.shape + (3, 3))
+    R[..., 0, 0] = cc * cb
+    R[..., 0, 1] = cc * sb * sa - sc * ca
+    R[..., 0, 2] = cc * sb * ca + sc * sa
+    R[..., 1, 0] = sc * cb
+    R[..., 1, 1] = sc * sb * sa + cc * ca
+    R[..., 1, 2] = sc * sb * ca - cc * sa
+    R[..., 2, 0] = -sb
+    R[..., 2, 1] = cb * sa
+    R[..., 2, 2] = cb * ca
+    return R
+
+
+def _matrix_to_ypr(R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """R = Ry(yaw) Rx(pitch) Rz(roll): row 1 is (cp sr, cp cr, -sp); column 2 is (sy cp, ., cy cp)."""
+    pitch = np.arcsin(np.clip(-R[..., 1, 2], -1.0, 1.0))
+    roll = np.arctan2(R[..., 1, 0], R[..., 1, 1])
+    yaw = np.arctan2(R[..., 0, 2], R[..., 2, 2])
+    return yaw, pitch, roll
+
+
+def _ypr_to_matrix(y: np.ndarray, p: np.ndarray, r: np.ndarray) -> np.ndarray:
+    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    R = np.empty(y.shape + (3, 3))
+    R[..., 0, 0] = cy * cr + sy * sp * sr
+    R[..., 0, 1] = -cy * sr + sy * sp * cr
+    R[..., 0, 2] = sy * cp
+    R[..., 1, 0] = cp * sr
+    R[..., 1, 1] = cp * cr
+    R[..., 1, 2] = -sp
+    R[..., 2, 0] = -sy * cr + cy * sp * sr
+    R[..., 2, 1] = sy * sr + cy * sp * cr
+    R[..., 2, 2] = cy * cp
+    return R
+
+
+def _matrix_to_rxyz(R: np.ndarray, prev: np.ndarray) -> np.ndarray:
+    """Both Euler solutions of R = Rz Ry Rx; pick the one nearer ``prev`` (n, 3) degrees."""
+    b1 = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    a1 = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    c1 = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    s1 = np.rad2deg(np.stack([a1, b1, c1], -1))
+    s2 = np.stack([s1[..., 0] + 180.0, 180.0 - s1[..., 1], s1[..., 2] + 180.0], -1)
+    d1 = np.abs(wrap180(s1 - prev)).sum(-1)
+    d2 = np.abs(wrap180(s2 - prev)).sum(-1)
+    return wrap180(np.where((d2 < d1)[..., None], s2, s1))
+
+
+@dataclass
+class Representation:
+    """Fitted description of the feature space.  Plain data; JSON round trip via to_dict."""
+
+    channels: list[str]                  # raw channels, the model's input/output
+    keep: list[bool]                      # raw channel kept (False = constant, restored)
+    const_value: list[float]              # value restored for dropped channels
+    center: list[float]                   # unwrap centre per raw channel (angles only)
+    root_mode: str = "relative"           # "relative" (Taylor) or "raw"
+    normalize: bool = True
+    mean: list[float] = field(default_factory=list)   # per feature
+    std: list[float] = field(default_factory=list)    # per feature
+    features: list[str] = field(default_factory=list)
+
+    # ---- construction -------------------------------------------------------------------------
+    @classmethod
+    def fit(cls, sequences: Sequence[np.ndarray], channels: Sequence[str], root_mode: str = "relative",
+            normalize: bool = True, drop_constant: bool = True) -> "Representation":
+        """sequences: list of (n_frames, n_channels) raw frames."""
+        if root_mode not in ("relative", "raw"):
+            raise ValueError(f"root_mode must be 'relative' or 'raw' (got {root_mode!r})")
+        channels = list(channels)
+        allf = np.vstack([np.asarray(s, dtype=np.float64) for s in sequences])
+        if allf.shape[1] != len(channels):
+            raise ValueError(f"training frames have {allf.shape[1]} columns for {len(channels)} channels")
+        ang = np.array([is_angle(c) for c in channels])
+        rng = np.where(ang, np.abs(wrap180(allf - allf[:1])).max(0), np.ptp(allf, 0))
+        keep = (rng > CONST_TOL) if drop_constant else np.ones(len(channels), bool)
+        if root_mode == "relative":
+            missing = [c for c in ROOT_ROT + ROOT_POS if c not in channels]
+            if missing:
+                raise ValueError(f"root_mode 'relative' needs channels {missing}")
+            for c in ROOT_ROT + ROOT_POS:
+                keep[channels.index(c)] = True
+        center = np.where(ang, circular_mean_deg(allf), 0.0)
+        rep = cls(channels, keep.tolist(), allf[0].tolist(), center.tolist(), root_mode, normalize)
+        rep.features = rep._feature_names()
+        rep.mean = [0.0] * len(rep.features)
+        rep.std = [1.0] * len(rep.features)
+        if normalize:
+            feats = np.vstack([rep.transform(s, normalized=False) for s in sequences])
+            mu = feats.mean(0)
+            sd = feats.std(0)
+            sd = np.where(sd > 1e-8, sd, 1.0)
+            rep.mean, rep.std = mu.tolist(), sd.tolist()
+            rep.__dict__.pop("_plan_cache", None)  # the plan caches mean/std as arrays
+        return rep
+
+    def _feature_names(self) -> list[str]:
+        names = []
+        root_done = False
+        for c, k in zip(self.channels, self.keep):
+            if self.root_mode == "relative" and c.startswith("root."):
+                if not root_done:
+                    names += list(ROOT_FEATURES)
+                    root_done = True
+                continue
+            if k:
+                names.append(c)
+        return names
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in ("channels", "keep", "const_value", "center", "root_mode",
+                                               "normalize", "mean", "std", "features")}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Representation":
+        rep = cls(**{k: d[k] for k in ("channels", "keep", "const_value", "center", "root_mode", "normalize",
+                                        "mean", "std", "features")})
+        n, f = len(rep.channels), len(rep.features)
+        for k, want in (("keep", n), ("const_value", n), ("center", n), ("mean", f), ("std", f)):
+            if len(getattr(rep, k)) != want:
+                raise ValueError(f"representation {k} has {len(getattr(rep, k))} entries, expected {want}")
+        if rep.features != rep._feature_names():
+            raise ValueError("representation feature names do not match its channels")
+        if rep.root_mode not in ("relative", "raw"):
+            raise ValueError(f"representation root_mode {rep.root_mode!r} is unknown")
+        if not all(np.isfinite(rep.std)) or min(rep.std, default=1.0) <= 0:
+            raise ValueError("representation std must be positive and finite")
+        return rep
+
+    # ---- index plumbing -----------------------------------------------------------------------
+    @property
+    def n_features(self) -> int:
+        return len(self.features)
+
+    def _plan(self) -> dict[str, Any]:
+        if not hasattr(self, "_plan_cache"):
+            ch = self.channels
+            pos = {c: i for i, c in enumerate(ch)}
+            direct_raw, direct_feat = [], []
+            for j, f in enumerate(self.features):
+                if f in pos and not (self.root_mode == "relative" and f.startswith("root.")):
+                    direct_raw.append(pos[f])
+                    direct_feat.append(j)
+            angle = np.array([is_angle(c) for c in ch])
+            self._plan_cache = {
+                "direct_raw": np.array(direct_raw, int),
+                "direct_feat": np.array(direct_feat, int),
+                "direct_angle": angle[np.array(direct_raw, int)] if direct_raw else np.zeros(0, bool),
+                "dropped": np.flatnonzero(~np.asarray(self.keep)),
+                "rot": np.array([pos[c] for c in ROOT_ROT], int) if self.root_mode == "relative" else None,
+                "pos": np.array([pos[c] for c in ROOT_POS], int) if self.root_mode == "relative" else None,
+                "rootf": np.array([self.features.index(c) for c in ROOT_FEATURES], int)
+                if self.root_mode == "relative" else None,
+                "center": np.asarray(self.center),
+                "mean": np.asarray(self.mean),
+                "std": np.asarray(self.std),
+            }
+        return self._plan_cache
+
+    def feature_source(self) -> list[list[int]]:
+        """For each feature, the raw channels it is computed from at the current frame."""
+        pos = {c: i for i, c in enumerate(self.channels)}
+        out = []
+        for f in self.features:
+            if self.root_mode == "relative" and f.startswith("root."):
+                out.append({"root.dside": [pos["root.tx"], pos["root.tz"]],
+                            "root.dfwd": [pos["root.tx"], pos["root.tz"]],
+                            "root.ty": [pos["root.ty"]]}.get(f, [pos[c] for c in ROOT_ROT]))
+            else:
+                out.append([pos[f]])
+        return out
+
+    def feature_observed(self, observed: np.ndarray) -> np.ndarray:
+        """(n, n_channels) raw mask -> (n, n_features) mask: a feature is observed when all its sources are."""
+        observed = np.atleast_2d(observed)
+        return np.stack([observed[:, src].all(1) for src in self.feature_source()], 1)
+
+    def normalize_features(self, f: np.ndarray) -> np.ndarray:
+        p = self._plan()
+        return (f - p["mean"]) / p["std"]
+
+    def denormalize_features(self, z: np.ndarray) -> np.ndarray:
+        p = self._plan()
+        return z * p["std"] + p["mean"]
+
+    # ---- whole recordings ---------------------------------------------------------------------
+    def transform(self, frames: np.ndarray, normalized: bool | None = None) -> np.ndarray:
+        """(n_frames, n_channels) fully observed raw -> (n_frames, n_features)."""
+        st = self.new_state(1)
+        frames = np.asarray(frames, dtype=np.float64)
+        out = np.empty((frames.shape[0], self.n_features))
+        obs = np.ones((1, frames.shape[1]), bool)
+        for t in range(frames.shape[0]):
+            f, _ = st.encode(frames[t : t + 1], obs, normalized=False)
+            out[t] = f[0]
+            st.commit(frames[t : t + 1])
+        norm = self.normalize if normalized is None else normalized
+        return self.normalize_features(out) if norm else out
+
+    def inverse(self, feats: np.ndarray, first: np.ndarray | None = None, normalized: bool | None = None) -> np.ndarray:
+        """(n_frames, n_features) -> raw frames, integrating root motion from ``first`` (raw frame 0)."""
+        norm = self.normalize if normalized is None else normalized
+        feats = self.denormalize_features(feats) if norm else np.asarray(feats, dtype=np.float64)
+        st = self.new_state(1)
+        if first is not None:
+            st.commit(np.asarray(first, dtype=np.float64)[None])
+            st.started[:] = False  # frame 0 still encodes as zero motion relative to itself
+        out = np.empty((feats.shape[0], len(self.channels)))
+        none = np.zeros((1, len(self.channels)), bool)
+        for t in range(feats.shape[0]):
+            out[t] = st.decode(feats[t : t + 1], np.full((1, len(self.channels)), np.nan), none, normalized=False)[0]
+            st.commit(out[t : t + 1])
+        return out
+
+    def new_state(self, n_streams: int = 1) -> "ReprState":
+        return ReprState(self, n_streams)
+
+
+class ReprState:
+    """Causal encoder/decoder state for n streams: the previous completed frame's unwrapped angles,
+    root position and yaw."""
+
+    def __init__(self, rep: Representation, n: int):
+        self.rep = rep
+        self.n = n
+        C = len(rep.channels)
+        self.prev_u = np.tile(np.asarray(rep.center, dtype=np.float64), (n, 1))  # unwrapped angles
+        self.prev_raw = np.tile(np.asarray(rep.const_value, dtype=np.float64), (n, 1))
+        self.prev_yaw = np.zeros(n)          # radians, unwrapped
+        self.started = np.zeros(n, bool)     # has a completed frame been committed
+        self._C = C
+
+    def reset(self, i: int) -> None:
+        rep = self.rep
+        self.prev_u[i] = rep.center
+        self.prev_raw[i] = rep.const_value
+        self.prev_yaw[i] = 0.0
+        self.started[i] = False
+
+    def _unwrap(self, x: np.ndarray) -> np.ndarray:
+        """Raw angles (n, C) -> continuous with the previous frame (or the centre at the start)."""
+        ref = np.where(self.started[:, None], self.prev_u, np.asarray(self.rep.center)[None, :])
+        return ref + wrap180(x - ref)
+
+    def encode(self, frames: np.ndarray, observed: np.ndarray, normalized: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(n, C) raw frames + mask -> (n, F) features + (n, F) feature mask.  Unobserved features are NaN."""
+        rep, p = self.rep, self.rep._plan()
+        frames = np.asarray(frames, dtype=np.float64)
+        observed = np.asarray(observed, dtype=bool)
+        x = np.where(observed, frames, np.nan)
+        F = np.full((self.n, rep.n_features), np.nan)
+        dr, df = p["direct_raw"], p["direct_feat"]
+        vals = x[:, dr]
+        ang = p["direct_angle"]
+        if ang.any():
+            u = self._unwrap(np.where(np.isnan(x), 0.0, x))
+            vals = np.where(ang[None, :], np.where(np.isnan(vals), np.nan, u[:, dr]), vals)
+        F[:, df] = vals
+        if rep.root_mode == "relative":
+            F[:, p["rootf"]] = self._encode_root(x, p)
+        fobs = rep.feature_observed(observed) & ~np.isnan(F)
+        F = np.where(fobs, F, np.nan)
+        norm = rep.normalize if normalized is None else normalized
+        if norm:
+            F = rep.normalize_features(F)
+        return F, fobs
+
+    def _encode_root(self, x: np.ndarray, p: dict[str, Any]) -> np.ndarray:
+        rot, pos = x[:, p["rot"]], x[:, p["pos"]]
+        out = np.full((self.n, 6), np.nan)
+        r = np.deg2rad(rot)
+        yaw, pitch, roll = _matrix_to_ypr(_rxyz_to_matrix(r[:, 0], r[:, 1], r[:, 2]))
+        yaw_u = self.prev_yaw + np.deg2rad(wrap180(np.rad2deg(yaw - self.prev_yaw)))
+        dyaw = np.where(self.started, np.rad2deg(yaw_u - self.prev_yaw), 0.0)
+        prev_pos = self.prev_raw[:, p["pos"]]
+        d = np.where(self.started[:, None], pos - prev_pos, 0.0)
+        cy, sy = np.cos(self.prev_yaw), np.sin(self.prev_yaw)
+        # local = Ry(yaw_prev)^T d  (ground plane x, z)
+        side = cy * d[:, 0] - sy * d[:, 2]
+        fwd = sy * d[:, 0] + cy * d[:, 2]
+        out[:, 0], out[:, 1], out[:, 2] = side, pos[:, 1], fwd
+        out[:, 3], out[:, 4], out[:, 5] = dyaw, np.rad2deg(pitch), np.rad2deg(roll)
+        return out
+
+    def decode(self, feats: np.ndarray, frames: np.ndarray, observed: np.ndarray, normalized: bool | None = None) -> np.ndarray:
+        """Completed features (n, F) -> raw (n, C); observed raw channels are passed through exactly.
+        Does not commit: call ``commit`` with the result."""
+        rep, p = self.rep, self.rep._plan()
+        norm = rep.normalize if normalized is None else normalized
+        Fv = rep.denormalize_features(feats) if norm else np.asarray(feats, dtype=np.float64)
+        out = np.tile(np.asarray(rep.const_value), (self.n, 1))
+        dr, df = p["direct_raw"], p["direct_feat"]
+        vals = Fv[:, df]
+        ang = p["direct_angle"]
+        vals = np.where(ang[None, :], wrap180(vals), vals)
+        out[:, dr] = vals
+        if rep.root_mode == "relative":
+            self._decode_root(Fv[:, p["rootf"]], out, p)
+        observed = np.asarray(observed, dtype=bool)
+        return np.where(observed, frames, out)
+
+    def _decode_root(self, rf: np.ndarray, out: np.ndarray, p: dict[str, Any]) -> None:
+        side, height, fwd, dyaw, pitch, roll = (rf[:, i] for i in range(6))
+        yaw = np.where(self.started, self.prev_yaw + np.deg2rad(dyaw), self.prev_yaw)
+        cy, sy = np.cos(self.prev_yaw), np.sin(self.prev_yaw)
+        dx = cy * side + sy * fwd
+        dz = -sy * side + cy * fwd
+        prev_pos = self.prev_raw[:, p["pos"]]
+        st = self.started
+        out[:, p["pos"][0]] = np.where(st, prev_pos[:, 0] + dx, prev_pos[:, 0])
+        out[:, p["pos"][1]] = height
+        out[:, p["pos"][2]] = np.where(st, prev_pos[:, 2] + dz, prev_pos[:, 2])
+        R = _ypr_to_matrix(yaw, np.deg2rad(pitch), np.deg2rad(roll))
+        out[:, p["rot"]] = _matrix_to_rxyz(R, self.prev_raw[:, p["rot"]])
+
+    def commit(self, completed: np.ndarray, rows: np.ndarray | None = None) -> None:
+        """Make the completed raw frames (n, C) the new previous frame."""
+        rep, p = self.rep, self.rep._plan()
+        completed = np.asarray(completed, dtype=np.float64)
+        sel = slice(None) if rows is None else rows
+        u = self._unwrap(completed)
+        self.prev_u[sel] = u[sel] if rows is not None else u
+        self.prev_raw[sel] = completed[sel] if rows is not None else completed
+        if rep.root_mode == "relative":
+            r = np.deg2rad(completed[:, p["rot"]])
+            yaw, _, _ = _matrix_to_ypr(_rxyz_to_matrix(r[:, 0], r[:, 1], r[:, 2]))
+            yaw_u = self.prev_yaw + np.deg2rad(wrap180(np.rad2deg(yaw - self.prev_yaw)))
+            self.prev_yaw[sel] = yaw_u[sel] if rows is not None else yaw_u
+        self.started[sel] = True
+
+
+def resample(frames: np.ndarray, src_fps: float, dst_fps: float, channels: Sequence[str] | None = None) -> np.ndarray:
+    """Change the frame rate.  An integer ratio keeps every k-th frame, as Taylor et al. do
+    (120 -> 30 Hz: frames 0, 4, 8, ...); otherwise angles are unwrapped and linearly interpolated."""
+    ratio = src_fps / dst_fps
+    if abs(ratio - round(ratio)) < 1e-9 and round(ratio) >= 1:
+        return np.asarray(frames)[:: int(round(ratio))].copy()
+    frames = np.asarray(frames, dtype=np.float64)
+    n = frames.shape[0]
+    t_src = np.arange(n) / src_fps
+    t_dst = np.arange(0.0, t_src[-1] + 1e-12, 1.0 / dst_fps)
+    ang = np.array([is_angle(c) for c in channels]) if channels is not None else np.zeros(frames.shape[1], bool)
+    src = frames.copy()
+    src[:, ang] = np.rad2deg(np.unwrap(np.deg2rad(src[:, ang]), axis=0))
+    out = np.stack([np.interp(t_dst, t_src, src[:, j]) for j in range(frames.shape[1])], 1)
+    out[:, ang] = wrap180(out[:, ang])
+    return out
