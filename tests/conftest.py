@@ -1,0 +1,46 @@
+"""Shared fixtures.  Tests that need the real CMU data take the ``data`` fixture: it skips with a
+clear message only when no data directory exists (and .ci/run turns any such skip into a
+failure, because CI always has ../shared/data)."""
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+import pytest
+
+from mocap.datasets import data_dir
+
+
+def pytest_report_header(config):
+    return [f"lacuna data dir: {data_dir()}", f"LACUNA_TEST_SEED={_seed()}"]
+
+
+def _seed() -> int:
+    return int(os.environ.get("LACUNA_TEST_SEED", "1234"))
+
+
+@pytest.fixture
+def seed() -> int:
+    return _seed()
+
+
+@pytest.fixture
+def rng(seed) -> np.random.Generator:
+    return np.random.default_rng(seed)
+
+
+@pytest.fixture(scope="session")
+def data():
+    d = data_dir()
+    if d is None:
+        pytest.skip("REAL DATA MISSING: no CMU data directory ($LACUNA_DATA or ../shared/data)")
+    return d
+
+
+@pytest.fixture(autouse=True)
+def _float_warnings():
+    with np.errstate(over="raise", invalid="raise", divide="raise"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            yield
