@@ -32,7 +32,7 @@ import numpy as np
 ROOT_ROT = ("root.rx", "root.ry", "root.rz")
 ROOT_POS = ("root.tx", "root.ty", "root.tz")
 ROOT_FEATURES = ("root.dside", "root.ty", "root.dfwd", "root.dyaw", "root.pitch", "root.roll")
-CONST_TOL = 1e-6  # degrees: a channel whose range is below this is constant
+CONST_TOL = 1e-2  # degrees: range below this is constant (the rebuilt subject-35 files differ by ~1e-4)
 
 
 def wrap180(x: np.ndarray) -> np.ndarray:

@@ -34,6 +34,8 @@ def rng(seed) -> np.random.Generator:
 def data():
     d = data_dir()
     if d is None:
+        if os.environ.get("LACUNA_REQUIRE_DATA"):
+            pytest.fail("REAL DATA MISSING and LACUNA_REQUIRE_DATA is set (CI must run the real-data tests)")
         pytest.skip("REAL DATA MISSING: no CMU data directory ($LACUNA_DATA or ../shared/data)")
     return d
 
