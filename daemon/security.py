@@ -40,15 +40,16 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from lacuna.errors import LacunaError
+from daemon.config import ConfigError
 
 ZAP_DOMAIN = "lacuna"
 LOOPBACK_NAMES = ("localhost", "localhost.localdomain", "ip6-localhost")
 SECURITY_KEYS = ("server_secret_key", "authorized_keys", "osc_allow", "sub_server_key")
 
 
-class SecurityError(LacunaError, ValueError):
-    """Keys missing, unreadable or too open; a non-loopback bind without authentication."""
+class SecurityError(ConfigError):
+    """Keys missing, unreadable or too open; a non-loopback bind without authentication.  A
+    ConfigError, so a reload that meets one keeps the old config like any other bad config."""
 
 
 # ---- configuration ----------------------------------------------------------------------------
@@ -102,6 +103,14 @@ def _network(where: str, a: str) -> ipaddress.IPv4Network | ipaddress.IPv6Networ
     except ValueError:
         raise SecurityError(f"{where}: security.osc_allow entry {a!r} is not an IP address or network "
                             f"(like 192.168.10.7 or 192.168.10.0/24)") from None
+
+
+def apply_config(cfg: Any, raw: Any, where: str = "<config>", base: str | None = None) -> None:
+    """Config validation hook: parse ``[security]`` into ``cfg.security`` and refuse exposure
+    without authentication (``cfg`` is a daemon.config.Config with its endpoints parsed)."""
+    cfg.security = parse_config(raw, where, base)
+    check_exposure({"zmq.router": cfg.zmq_router, "zmq.pull": cfg.zmq_pull, "zmq.pub": cfg.zmq_pub},
+                   cfg.osc_listen, cfg.security, where)
 
 
 # ---- the exposure rule ------------------------------------------------------------------------
