@@ -65,6 +65,7 @@ class Config:
     osc_listen: tuple[str, int] | None = None
     osc_send: tuple[str, int] | None = None
     metrics_http: tuple[str, int] | None = None
+    security: Any = None  # daemon.security.SecuritySpec, set by security.apply_config
 
     def summary(self) -> dict[str, Any]:
         return {"path": self.path, "budget_ms": self.budget_ms, "default_model": self.default_model,
@@ -134,7 +135,7 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
     """Validate a parsed TOML document.  Raises ConfigError naming the key and what arrived."""
     where = path or "<config>"
     base = os.path.dirname(os.path.abspath(path)) if path else os.getcwd()
-    known = set(_SCHEMA) | {"models", "streams"}
+    known = set(_SCHEMA) | {"models", "streams", "security"}
     for top in raw:
         if top not in known:
             raise ConfigError(f"{where}: unknown section [{top}] (known: {', '.join(sorted(known))})")
@@ -221,6 +222,9 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
         raise ConfigError(f"{where}: no input configured (set zmq.router, zmq.pull, zmq.sub or osc.listen)")
     if (cfg.zmq_pull or cfg.zmq_sub) and not cfg.zmq_pub:
         raise ConfigError(f"{where}: zmq.pull/zmq.sub need zmq.pub for the filled frames to go somewhere")
+    from daemon import security  # imported here: it imports ConfigError from this module
+
+    security.apply_config(cfg, raw.get("security"), where, base)  # refuses non-loopback binds without CURVE
     return cfg
 
 
