@@ -22,7 +22,7 @@ from typing import Any
 import zmq
 
 from daemon import config as config_mod
-from daemon import osc, wire
+from daemon import osc, security, wire
 from daemon.metrics import Metrics, MetricsHTTP
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
@@ -69,6 +69,7 @@ class Daemon:
         self.router = self.pull = self.sub = self.pub = None
         self.udp: socket.socket | None = None
         self.http: MetricsHTTP | None = None
+        self.guard: security.Guard | None = None
         self._prom = ""
         self.flag_reload = False
         self.flag_stop = False
@@ -96,6 +97,7 @@ class Daemon:
         self._install(table)
         self.ctx = zmq.Context()
         c = self.cfg
+        self.guard = security.Guard(self.ctx, c.security)  # CURVE + ZAP allow list when keys are configured
         hwm = c.zmq_hwm
 
         def sock(kind: int) -> zmq.Socket:
@@ -106,6 +108,7 @@ class Daemon:
             # beyond this ZeroMQ disconnects the peer without reading the message into memory;
             # between max_message_bytes and this the daemon reads it and answers `too_large`
             s.setsockopt(zmq.MAXMSGSIZE, max(ZMQ_MAXMSG_FLOOR, 4 * c.max_message_bytes))
+            (self.guard.client if kind == zmq.SUB else self.guard.server)(s)  # type: ignore[union-attr]
             return s
 
         self.poller = zmq.Poller()
@@ -231,6 +234,9 @@ class Daemon:
                     self.metrics.inc("osc_recv_errors")
                     self.log("debug", "osc_recv_error", error=str(e))
                     continue
+                if not self.guard.osc_allowed(addr):  # type: ignore[union-attr]
+                    self.metrics.reject("source_not_allowed")  # counted, never answered (no reflection)
+                    continue
                 self._handle(data, ("osc", addr), time.perf_counter())
 
     def _handle(self, data: bytes, origin: Origin, arrived: float) -> None:
@@ -348,6 +354,7 @@ class Daemon:
             "streams": {sid: s.info() for sid, s in self.sessions.sessions.items()},
             "expired": self.sessions.expired, "step_errors": self.sched.step_errors,
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
+            "security": self.guard.info() if self.guard is not None else None,
         }
 
     def _status_line(self) -> str:
@@ -398,6 +405,10 @@ class Daemon:
             self.sched.max_gap, self.sched.max_batch = new_cfg.max_gap_frames, new_cfg.max_batch
             self.sessions.max_streams = new_cfg.max_streams
             self.log = Log(new_cfg.log_level, self.log.stream)
+            if self.guard is not None:
+                skipped = self.guard.reload(new_cfg.security)  # re-reads the authorized keys
+                if skipped:
+                    self.log("warning", "reload_needs_restart", keys=skipped, detail="key pairs change only on restart")
         self._install(table)
         ok = not errors
         self.last_reload = {"at": time.time(), "ok": ok, "errors": errors,
@@ -453,6 +464,9 @@ class Daemon:
         if self.http is not None:
             self.http.close()
             self.http = None
+        if self.guard is not None:
+            self.guard.close()  # its ZAP thread holds sockets of ctx: stop it before ctx.term()
+            self.guard = None
         if self.ctx is not None:
             self.ctx.term()
             self.ctx = None
