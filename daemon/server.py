@@ -259,6 +259,10 @@ class Daemon:
         except SessionError as e:
             sid = getattr(msg, "stream", None)
             self._reject(origin, e.reason, e.detail, sid, getattr(msg, "seq", None))
+        except Exception as e:  # a bug must cost one message, never the loop
+            self.log("error", "internal_error", where="handle", error=f"{type(e).__name__}: {e}"[:300])
+            self._reject(origin, "internal", f"{type(e).__name__} while handling the message",
+                         getattr(msg, "stream", None), getattr(msg, "seq", None))
 
     def _reject(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
         self.metrics.reject(reason)
@@ -284,9 +288,17 @@ class Daemon:
         for s, fill, status in results:
             p = s.pending
             now = time.perf_counter()
-            msg = fill_message(s, fill, status, now)
-            s.last_seq = p.frame.seq
-            s.pending = None
+            try:
+                msg = fill_message(s, fill, status, now)  # reads s.pending and s.last_seq (for gap)
+            except Exception as e:  # a fill the wire cannot carry: answer with an error, keep serving
+                self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
+                self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
+                msg = None
+            finally:
+                s.last_seq = p.frame.seq
+                s.pending = None
+            if msg is None:
+                continue
             s.counts["frames_out"] += 1
             if status == "degraded":
                 s.counts["degraded"] += 1
