@@ -120,6 +120,7 @@ class LoadResult:
     dropped: int = 0
     errors: int = 0
     lost: int = 0  # requests never answered within the timeout
+    unsent: int = 0  # frames the generator could not queue (socket at its high-water mark)
     seconds: float = 0.0
     cpu_s: float = 0.0  # this process's CPU time
 
@@ -129,7 +130,7 @@ class LoadResult:
         return {"p50_ms": round(float(q[0]), 4), "p90_ms": round(float(q[1]), 4), "p99_ms": round(float(q[2]), 4),
                 "p999_ms": round(float(q[3]), 4), "max_ms": round(float(a.max()), 4) if a.size else None,
                 "served": self.served, "degraded": self.degraded, "dropped": self.dropped, "errors": self.errors,
-                "lost": self.lost, "sent": self.sent, "seconds": round(self.seconds, 3),
+                "lost": self.lost, "unsent": self.unsent, "sent": self.sent, "seconds": round(self.seconds, 3),
                 "daemon_proc_p50_ms": round(float(np.median(self.proc_us)) / 1e3, 4) if self.proc_us else None,
                 "daemon_proc_p99_ms": round(float(np.percentile(self.proc_us, 99)) / 1e3, 4) if self.proc_us else None}
 
@@ -226,7 +227,11 @@ def run_load(endpoint: str, n_streams: int, rate_hz: float, seconds: float, fram
             measured = k >= warm_ticks
             for i, s in enumerate(socks):
                 f = frames[k % nf]
-                s.send(wire.encode(wire.Frame(sid[i], k, tick, f)), copy=False)
+                try:  # never block the generator: a full queue is counted, like a dropped frame
+                    s.send(wire.encode(wire.Frame(sid[i], k, tick, f)), zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    res.unsent += measured
+                    continue
                 sent_at[(i, k)] = time.perf_counter() if measured else -1.0
                 res.sent += measured
             read(t_start + (k + 1) * period)

@@ -45,8 +45,10 @@ class Log:
         self.level = LEVELS[level]
         self.stream = stream or sys.stderr
 
-    def __call__(self, level: str, event: str, **fields: Any) -> None:
-        if LEVELS[level] < self.level:
+    def __call__(self, level: str, event: str, always: bool = False, **fields: Any) -> None:
+        # lifecycle events (ready, reload_done, stopped) are logged whatever the level: tools
+        # and tests wait for them
+        if LEVELS[level] < self.level and not always:
             return
         rec = {"ts": round(time.time(), 6), "level": level, "event": event, **fields}
         try:
@@ -138,7 +140,7 @@ class Daemon:
         if c.metrics_http:
             self.http = MetricsHTTP(c.metrics_http[0], c.metrics_http[1], lambda: self._prom)
         self._prom = self.metrics.prometheus(self.status())
-        self.log("info", "ready", pid=os.getpid(), config=c.path, endpoints=self.endpoints(),
+        self.log("info", "ready", always=True, pid=os.getpid(), config=c.path, endpoints=self.endpoints(),
                  models={n: m.info() for n, m in self.models.items()})
         self.notify.ready(self._status_line())
 
@@ -263,6 +265,10 @@ class Daemon:
         except SessionError as e:
             sid = getattr(msg, "stream", None)
             self._reject(origin, e.reason, e.detail, sid, getattr(msg, "seq", None))
+        except Exception as e:  # a bug must cost one message, never the loop
+            self.log("error", "internal_error", where="handle", error=f"{type(e).__name__}: {e}"[:300])
+            self._reject(origin, "internal", f"{type(e).__name__} while handling the message",
+                         getattr(msg, "stream", None), getattr(msg, "seq", None))
 
     def _reject(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
         self.metrics.reject(reason)
@@ -288,9 +294,17 @@ class Daemon:
         for s, fill, status in results:
             p = s.pending
             now = time.perf_counter()
-            msg = fill_message(s, fill, status, now)
-            s.last_seq = p.frame.seq
-            s.pending = None
+            try:
+                msg = fill_message(s, fill, status, now)  # reads s.pending and s.last_seq (for gap)
+            except Exception as e:  # a fill the wire cannot carry: answer with an error, keep serving
+                self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
+                self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
+                msg = None
+            finally:
+                s.last_seq = p.frame.seq
+                s.pending = None
+            if msg is None:
+                continue
             s.counts["frames_out"] += 1
             if status == "degraded":
                 s.counts["degraded"] += 1
@@ -416,7 +430,7 @@ class Daemon:
         self.metrics.inc("reloads" if ok else "reload_failures")
         for name, err in errors.items():
             self.log("error", "reload_refused", model=name, error=err, detail="the old model keeps serving")
-        self.log("info", "reload_done", ok=ok, models=list(self.models))
+        self.log("info", "reload_done", always=True, ok=ok, models=list(self.models))
         self.notify.ready(self._status_line())
         for o in self._reload_waiters:
             self._send(o, wire.ControlReply("reload", ok, {"models": {n: m.info() for n, m in self.models.items()},
@@ -449,7 +463,7 @@ class Daemon:
             self._serve()
         self._serve()
         c = self.metrics.counters
-        self.log("info", "stopped", frames_in=c.get("frames_in", 0), frames_out=c.get("frames_out", 0),
+        self.log("info", "stopped", always=True, frames_in=c.get("frames_in", 0), frames_out=c.get("frames_out", 0),
                  dropped=sum(v for k, v in c.items() if k.startswith("dropped_")))
 
     def close(self) -> None:

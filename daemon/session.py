@@ -23,8 +23,7 @@ from lacuna.filler import FillerState, Model
 Origin = tuple  # (transport name, address): ("router", envelope) | ("pull", None) | ("osc", (host, port))
 Out = list[tuple[Origin, wire.Message]]
 
-COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate",
-            "dropped_draining", "rejected", "degraded", "held", "predicted", "restarts")
+COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "rejected", "degraded", "held", "predicted", "restarts")
 
 
 @dataclass

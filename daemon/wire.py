@@ -107,7 +107,7 @@ class FillMsg:
 @dataclass
 class Drop:
     """A frame received but not served: ``conflated`` (a newer frame of the stream replaced it),
-    ``late`` (older than one already served), ``duplicate``, ``draining`` (daemon stopping)."""
+    ``late`` (older than one already served), ``duplicate``."""
 
     stream: str
     seq: int

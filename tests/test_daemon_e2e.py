@@ -469,3 +469,82 @@ def test_over_budget_steps_degrade_to_hold_and_say_so(tmp_path, daemons, ctx):
     assert m0.status == "degraded" and set(statuses) == {"degraded"}
     st = loadgen_status(d)
     assert st["counters"]["degraded"] == 6 and st["streams"]["slow"]["held"] == 6
+
+
+# ---- SUB ingest, expiry, control reload, real data --------------------------------------------------
+def test_sub_ingest_from_a_capture_pub_and_idle_expiry(tmp_path, daemons, ctx):
+    cap = ctx(zmq.PUB)  # the capture system's publisher; the daemon connects to it
+    port = cap.bind_to_random_port("tcp://127.0.0.1")
+    cfg = write_config(tmp_path, {"floor": {"builtin": "passthrough"}},
+                       extra=f'sub = ["tcp://127.0.0.1:{port}"]\n')
+    cfg_text = open(cfg).read().replace("idle_timeout_s = 60", "idle_timeout_s = 0.5")
+    open(cfg, "w").write(cfg_text)
+    d = daemons(cfg)
+    out = ctx(zmq.SUB)
+    out.setsockopt(zmq.SUBSCRIBE, b"")
+    out.connect(d.endpoints["pub"])
+    got = None
+    for seq in range(100):  # until both subscriptions are up (slow joiner), at most 10 s
+        cap.send_multipart([b"mocap", frame("stage", seq, [1.0, 2.0])])
+        if out.poll(100):
+            topic, body = out.recv_multipart()
+            got = wire.decode(body)
+            break
+    assert isinstance(got, wire.FillMsg) and topic == b"stage" and got.angles.tolist() == [1.0, 2.0]
+    time.sleep(1.5)  # idle longer than idle_timeout_s: the stream expires
+    st = loadgen_status(d)
+    assert "stage" not in st["streams"] and st["expired"] == 1
+    assert any(r.get("event") == "stream_expired" and r.get("stream") == "stage" for r in d.log)
+
+
+def test_control_reload_answers_when_done_and_bad_config_keeps_serving(tmp_path, daemons, ctx):
+    cfg = write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 1.0)}})
+    d = daemons(cfg)
+    s = dealer(ctx, d)
+    s.send(frame("c", 0, np.full(len(CH), np.nan)))
+    assert recv(s).angles[0] == 1.0
+    hold_file(tmp_path / "h.npz", 2.0)
+    s.send(wire.encode(wire.Control("reload")))
+    r = recv(s, 30000)
+    assert r.cmd == "reload" and r.ok and r.result["errors"] == {}
+    s.send(frame("c", 1, np.full(len(CH), np.nan)))
+    assert recv(s).angles[0] == 2.0
+    open(cfg, "a").write("\n[daemon]\nbudget_ms = -3\n")  # a broken config (duplicate table too)
+    s.send(wire.encode(wire.Control("reload")))
+    r = recv(s, 30000)
+    assert not r.ok and "config" in r.result["errors"] and str(cfg) in r.error
+    s.send(frame("c", 2, np.full(len(CH), np.nan)))
+    m = recv(s)
+    assert isinstance(m, wire.FillMsg) and m.angles[0] == 2.0
+
+
+def test_real_walk_through_daemon_matches_in_process_filler(tmp_path, daemons, ctx, data):
+    """A real CMU walk with the left arm missing, through the daemon frame by frame, gives the
+    same fill as the same model run in-process (float32 on the wire)."""
+    from mocap.protocols import get_protocol
+
+    proto = get_protocol("pan2009")
+    ts = proto.training_set()
+    model = HoldModel.fit(ts.sequences, ts.channels)
+    model.save(str(tmp_path / "hold.npz"))
+    case = proto.cases()[0]
+    truth = case.truth[:240].astype(np.float32)
+    miss = np.array([c.startswith(("lhumerus", "lradius", "lwrist")) for c in ts.channels])
+    d = daemons(write_config(tmp_path, {"hold": {"file": str(tmp_path / "hold.npz")}}))
+    s = dealer(ctx, d)
+    s.send(wire.encode(wire.Hello("walk", list(ts.channels))))
+    assert isinstance(recv(s), wire.HelloAck)
+    sent = truth.copy()
+    sent[:, miss] = np.nan
+    got = []
+    for t in range(sent.shape[0]):
+        s.send(frame("walk", t, sent[t]))
+        m = recv(s)
+        assert isinstance(m, wire.FillMsg), m
+        got.append(m)
+    ref, ref_std = model.fill_offline(sent.astype(np.float64), ~np.isnan(sent))
+    out = np.stack([m.angles for m in got])
+    assert np.array_equal(out[:, ~miss], truth[:, ~miss])  # observed values come back exactly
+    np.testing.assert_allclose(out, ref.astype(np.float32), rtol=0, atol=1e-4)
+    assert all(m.filled[miss].all() and not m.filled[~miss].any() for m in got)
+    np.testing.assert_allclose(np.stack([m.std for m in got]), ref_std.astype(np.float32), atol=1e-4)
