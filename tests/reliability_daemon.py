@@ -263,3 +263,76 @@ def udp_queue(port: int) -> tuple[int, int]:
             if f[1] == want:
                 return int(f[4].split(":")[1], 16), int(f[-1])
     raise LookupError(f"no UDP socket on 127.0.0.1:{port}")
+
+
+class LockStep(threading.Thread):
+    """A capture plugin in a thread: send frame n, wait for its answer, send n+1.
+
+    With ``reconnect_ms``, a request unanswered that long is sent again on a fresh socket (what
+    a plugin does when the daemon restarts); ``retries`` counts those.  ``answers`` maps seq ->
+    the answer finally received; ``sent_at``/``got_at`` are perf_counter stamps.
+    """
+
+    def __init__(self, endpoint: str, sid: str, frames, reconnect_ms: int | None = None, timeout_ms: int = 20_000,
+                 hello: list[str] | None = None, curve: tuple[str, str] | None = None):
+        super().__init__(name=f"lockstep-{sid}", daemon=True)
+        self.endpoint, self.sid, self.frames = endpoint, sid, frames
+        self.reconnect_ms, self.timeout_ms, self.hello = reconnect_ms, timeout_ms, hello
+        self.stop_flag = threading.Event()
+        self.answers: dict[int, wire.Message] = {}
+        self.got_at: dict[int, float] = {}
+        self.retries = 0
+        self.problems: list[str] = []
+        self.t_of: dict[int, float] = {}  # capture timestamp sent with each seq
+        self.t_fn = lambda seq: seq / 120.0
+
+    def _socket(self, ctx: zmq.Context) -> zmq.Socket:
+        s = ctx.socket(zmq.DEALER)
+        s.setsockopt(zmq.LINGER, 0)
+        s.connect(self.endpoint)
+        return s
+
+    def run(self) -> None:
+        ctx = zmq.Context()
+        s = self._socket(ctx)
+        try:
+            if self.hello is not None:
+                s.send(wire.encode(wire.Hello(self.sid, self.hello)))
+                if not s.poll(self.timeout_ms) or not isinstance(wire.decode(s.recv()), wire.HelloAck):
+                    self.problems.append("hello not acknowledged")
+                    return
+            seq = 0
+            while not self.stop_flag.is_set():
+                f = self.frames[seq % len(self.frames)]
+                t = self.t_fn(seq)
+                self.t_of[seq] = t
+                body = wire.encode(wire.Frame(self.sid, seq, t, f))
+                s.send(body)
+                wait = self.reconnect_ms or self.timeout_ms
+                deadline = time.monotonic() + self.timeout_ms / 1000
+                while True:
+                    if s.poll(wait):
+                        m = wire.decode(s.recv(), 64 << 20)
+                        if getattr(m, "seq", None) != seq:
+                            continue  # a late answer to an earlier retry
+                        self.answers[seq] = m
+                        self.got_at[seq] = time.perf_counter()
+                        break
+                    if self.reconnect_ms is None or time.monotonic() > deadline:
+                        self.problems.append(f"seq {seq}: no answer")
+                        return
+                    s.close(0)
+                    s = self._socket(ctx)
+                    if self.hello is not None:
+                        s.send(wire.encode(wire.Hello(self.sid, self.hello)))
+                    s.send(body)
+                    self.retries += 1
+                seq += 1
+        finally:
+            s.close(0)
+            ctx.term()
+
+    def finish(self, timeout_s: float = 30.0) -> None:
+        self.stop_flag.set()
+        self.join(timeout_s)
+        assert not self.is_alive(), f"{self.name} did not stop"
