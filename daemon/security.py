@@ -14,7 +14,7 @@ The rule
   list of source addresses/networks; datagrams from other sources are counted and dropped without
   an answer (answering would make the daemon a reflector).
 
-Config (all paths relative to the config file)::
+Config (paths relative to the config file; ``$VARS`` expanded, e.g. ``$CREDENTIALS_DIRECTORY``)::
 
     [security]
     server_secret_key = "keys/server.key_secret"  # lacuna keys keys --name server
@@ -84,6 +84,9 @@ def parse_config(raw: Any, where: str = "<config>", base: str | None = None) -> 
             v = raw[k]
             if not isinstance(v, str) or not v:
                 raise SecurityError(f"{where}: security.{k} must be a file path string (got {v!r:.60})")
+            # $CREDENTIALS_DIRECTORY: under systemd, LoadCredential= hands the secret key to the
+            # DynamicUser service as a 0400 file it owns (see docs/RELIABILITY.md)
+            v = os.path.expandvars(v)
             setattr(spec, k, v if os.path.isabs(v) else os.path.join(base, v))
     if (spec.server_secret_key is None) != (spec.authorized_keys is None):
         raise SecurityError(f"{where}: security.server_secret_key and security.authorized_keys go together "
