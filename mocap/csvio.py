@@ -132,7 +132,7 @@ def parse_csv(text: str, path: str = "<csv>", fps: float | None = None, allow_mi
             dt = np.diff(t)
             if (dt <= 0).any():
                 k = int(np.flatnonzero(dt <= 0)[0]) + 1
-                raise ParseError(path, row_lines[k], f"time {t[k]!r} does not increase (previous row {t[k - 1]!r})")
+                raise ParseError(path, row_lines[k], f"time {float(t[k])!r} does not increase (previous row {float(t[k - 1])!r})")
             period = 1.0 / file_fps if file_fps else float(np.median(dt))
             grid = t[0] + period * np.arange(len(t))
             off = np.abs(t - grid)
@@ -140,7 +140,7 @@ def parse_csv(text: str, path: str = "<csv>", fps: float | None = None, allow_mi
                 k = int(np.argmax(off > TIME_JITTER_FRAC * period))
                 raise ParseError(
                     path, row_lines[k],
-                    f"time {t[k]!r} is off the frame grid (expected {grid[k]!r} for {1 / period:g} fps); "
+                    f"time {float(t[k])!r} is off the frame grid (expected {float(grid[k])!r} for {1 / period:g} fps); "
                     "frames must be evenly spaced",
                 )
             if file_fps is None:

@@ -56,12 +56,13 @@ def read_motion(path: str | os.PathLike, asf: str | os.PathLike | Skeleton | Non
         skel = _skeleton(asf)
         want, have = set(skel.channels), set(m.channels)
         if want != have:
-            missing, extra = sorted(want - have), sorted(have - want)
+            missing = [c for c in skel.channels if c not in have]
+            extra = [c for c in m.channels if c not in want]
             raise ParseError(
                 path, None,
                 f"channels do not match skeleton {skel.source or skel.name}: "
-                f"missing {missing[:4]}{' ...' if len(missing) > 4 else ''}, "
-                f"extra {extra[:4]}{' ...' if len(extra) > 4 else ''}",
+                f"missing {len(missing)} ({', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''}), "
+                f"extra {len(extra)} ({', '.join(extra[:4])}{' ...' if len(extra) > 4 else ''})",
             )
         m.skeleton = skel
     return m
