@@ -38,6 +38,10 @@ CHUNK_BYTES = 64 * 1024
 # Seconds between progress updates on a terminal.
 PROGRESS_EVERY_S = 0.2
 USER_AGENT = f"lacuna/{__version__} (+data fetch)"
+CMU_CREDIT = (
+    "The data used in this project was obtained from mocap.cs.cmu.edu. "
+    "The database was created with funding from NSF EIA-0196217."
+)
 
 # The trials the development data set (../shared/data) holds, fetched when no --trials is given.
 CMU_TRIALS: dict[str, list[str]] = {
@@ -266,6 +270,8 @@ def fetch_cmu(
         f"fetched {len(rep.fetched)} files ({rep.n_bytes / 1e3:.1f} kB), {len(rep.skipped)} already here, "
         f"{len(rep.failed)} failed, into {dest}\n"
     )
+    if rep.fetched:
+        out.write(f"CMU data terms: free to use, not to resell; credit: {CMU_CREDIT}\n")
     if rep.failed:
         shown = [r for _, r in rep.failed if "not tried" not in r]
         more = len(rep.failed) - len(shown)
