@@ -329,7 +329,7 @@ def format_amc(motion: Motion, skeleton: Skeleton | None = None, bone_order: lis
     """
     skel = skeleton or motion.skeleton
     if not isinstance(skel, Skeleton):
-        raise ValueError(f"writing AMC needs an ASF skeleton ({motion.source or 'this motion'} has none; pass asf=/--asf)")
+        raise ValueError(f"writing AMC needs an ASF skeleton ({motion.source or 'this motion'} has none; pass asf=/--asf)")  # noqa: TRY004 (a user-facing error the CLI prints as one line)
     want = skel.channels
     have = set(motion.channels)
     missing = [ch for ch in want if ch not in have]

@@ -289,7 +289,7 @@ def format_bvh(motion: Motion, hierarchy: Hierarchy | None = None) -> str:
     """
     hier = hierarchy or motion.skeleton
     if not isinstance(hier, Hierarchy):
-        raise ValueError(f"writing BVH needs a BVH hierarchy ({motion.source or 'this motion'} has none)")
+        raise ValueError(f"writing BVH needs a BVH hierarchy ({motion.source or 'this motion'} has none)")  # noqa: TRY004 (a user-facing error the CLI prints as one line)
     want = hier.channels
     extra = sorted(set(motion.channels) - set(want))
     if extra:

@@ -170,7 +170,7 @@ def _download(item: Item, timeout: float, on_bytes) -> bytes:
         if isinstance(r, (TimeoutError, socket.timeout)):
             raise _Unreachable(f"{item.url}: timed out after {timeout:g} s (server not answering)") from None
         raise _Unreachable(f"{item.url}: cannot connect ({getattr(r, 'strerror', None) or r})") from None
-    except (TimeoutError, socket.timeout):
+    except TimeoutError:
         raise _Unreachable(f"{item.url}: timed out after {timeout:g} s while reading") from None
     except http.client.IncompleteRead as e:
         raise DataError(f"{item.url}: connection closed after {len(e.partial)} bytes (truncated download)") from None
@@ -247,7 +247,7 @@ def fetch_cmu(
                 rep.skipped.append(item.path)
                 prog.done(k, item, "already here")
                 continue
-            body = _download(item, timeout, lambda got, size: prog.update(k, item, got, size))
+            body = _download(item, timeout, lambda got, size, k=k, item=item: prog.update(k, item, got, size))
             skel = _verify(item, body, skeletons.get(item.subject))
             if item.is_asf:
                 skeletons[item.subject] = skel

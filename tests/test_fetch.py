@@ -53,7 +53,7 @@ def site(data, tmp_path):
     d.mkdir(parents=True)
     for fn in ("07.asf", "07_01.amc", "07_02.amc", "07_09.amc"):
         shutil.copy(data / "cmu" / "07" / fn, d / fn)
-    handler = lambda *a, **kw: _Handler(*a, directory=str(root), **kw)  # noqa: E731
+    handler = lambda *a, **kw: _Handler(*a, directory=str(root), **kw)
     srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     srv.root, srv.requests, srv.hang, srv.truncate = str(root), [], set(), set()
     srv.release = threading.Event()
@@ -72,7 +72,7 @@ def site(data, tmp_path):
 def _fetch(site_url: str, dest: Path, *args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, XDG_CACHE_HOME=str(dest.parent / "xdg-cache"))
     cmd = [sys.executable, "-m", "lacuna.cli", "data", "fetch", "cmu", "--base-url", site_url, "--dest", str(dest), *args]
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=RUN_TIMEOUT_S)
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=RUN_TIMEOUT_S, check=False)
 
 
 def _leftovers(dest: Path) -> list[str]:
@@ -204,6 +204,6 @@ def test_data_where_without_data(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     monkeypatch.chdir(tmp_path)
     import mocap.datasets as ds
-    monkeypatch.setattr(ds, "_shared_candidates", lambda: [])  # pretend no checkout beside shared data
+    monkeypatch.setattr(ds, "_shared_candidates", list)  # pretend no checkout beside shared data
     assert main(["data", "where"]) == 1
     assert "lacuna data fetch cmu --subjects 07 35" in capsys.readouterr().err

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lacuna.errors import ParseError
-from mocap.asf import format_amc, parse_amc, parse_asf, read_amc, read_asf, write_amc
+from mocap.asf import format_amc, parse_amc, parse_asf, read_amc, write_amc
 from mocap.io import read_motion, write_motion
 
 ASF = """\
