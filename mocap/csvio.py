@@ -69,6 +69,8 @@ def parse_csv(text: str, path: str = "<csv>", fps: float | None = None, allow_mi
     if not names:
         raise ParseError(path, header_line, "header names no channels")
     for k, n in enumerate(names):
+        if n.lower() == TIME_COLUMN:
+            raise ParseError(path, header_line, f"a {TIME_COLUMN!r} column must be the first column (found it in column {k + 1 + has_time})")
         if not n or not _NAME.match(n):
             raise ParseError(path, header_line, f"bad channel name {n!r} in column {k + 1 + has_time} of the header")
         try:

@@ -35,6 +35,8 @@ CMU_BASE_URL = "http://mocap.cs.cmu.edu/subjects"
 # Seconds to wait for the connection and for each read from it.
 TIMEOUT_S = 30.0
 CHUNK_BYTES = 64 * 1024
+# A temporary file older than this (seconds) was left by a killed fetch and may be removed.
+STALE_PART_S = 600.0
 # Seconds between progress updates on a terminal.
 PROGRESS_EVERY_S = 0.2
 USER_AGENT = f"lacuna/{__version__} (+data fetch)"
@@ -196,6 +198,17 @@ def _verify(item: Item, body: bytes, skeleton: Skeleton | None) -> Skeleton | No
         raise DataError(f"downloaded file does not parse, not kept: {e}") from None
 
 
+def _remove_stale_parts(item: Item) -> None:
+    """Delete temporary files a killed fetch left for this file (recent ones may be another fetch's)."""
+    now = time.time()
+    for p in item.path.parent.glob(f".{item.filename}.*.part"):
+        try:
+            if now - p.stat().st_mtime > STALE_PART_S:
+                p.unlink()
+        except FileNotFoundError:
+            pass
+
+
 def _keep(item: Item, body: bytes) -> None:
     """Write atomically: temp file in the same directory, fsync, rename."""
     item.path.parent.mkdir(parents=True, exist_ok=True)
@@ -247,6 +260,8 @@ def fetch_cmu(
                 rep.skipped.append(item.path)
                 prog.done(k, item, "already here")
                 continue
+            if item.path.parent.is_dir():
+                _remove_stale_parts(item)
             body = _download(item, timeout, lambda got, size, k=k, item=item: prog.update(k, item, got, size))
             skel = _verify(item, body, skeletons.get(item.subject))
             if item.is_asf:

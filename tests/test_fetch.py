@@ -109,6 +109,18 @@ def test_fetch_resumes_after_an_interrupted_run(site, tmp_path):
     assert site.requests == ["/subjects/07/07_02.amc", "/subjects/07/07_09.amc"]
 
 
+def test_fetch_removes_what_a_killed_fetch_left(site, tmp_path):
+    d = tmp_path / "dest" / "cmu" / "07"
+    d.mkdir(parents=True)
+    stale, fresh = d / ".07_01.amc.abc123.part", d / ".07_01.amc.def456.part"
+    stale.write_text("half a file")
+    fresh.write_text("another fetch, still running")
+    os.utime(stale, (1e9, 1e9))
+    r = _fetch(site.base_url, tmp_path / "dest", "--trials", "07_01")
+    assert r.returncode == 0, r.stderr
+    assert not stale.exists() and fresh.exists()
+
+
 def test_fetch_404_is_a_clear_error_and_leaves_no_file(site, tmp_path):
     dest = tmp_path / "dest"
     r = _fetch(site.base_url, dest, "--subjects", "07", "--trials", "07_99", "07_01")

@@ -56,6 +56,7 @@ CSV_ERRORS = [
     ("empty_name", "# fps=30\na.rx,,b.rx\n1,2,3\n", 2, "bad channel name '' in column 2"),
     ("duplicate_name", "# fps=30\na.rx,b.rx,a.rx\n1,2,3\n", 2, "channel 'a.rx' appears twice"),
     ("time_only", "time\n0\n", 1, "header names no channels"),
+    ("time_not_first", "a.rx,time\n1,0\n", 1, "a 'time' column must be the first column (found it in column 2)"),
     ("no_frames", "# fps=30\na.rx,b.rx\n\n", None, "no frames after the header"),
     ("too_few_values", CSV.replace("1.25,-20", "1.25"), 5, "2 values, the header has 3 columns"),
     ("too_many_values", CSV.replace("1,30.125", "1,30.125,7"), 6, "4 values, the header has 3 columns"),
