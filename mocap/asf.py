@@ -111,6 +111,8 @@ def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
                 bad = [p for p in root_order if p not in _VALID_DOFS]
                 if bad:
                     raise ParseError(path, i, f"root order has unknown dof {bad[0]!r}")
+                if len(set(root_order)) != len(root_order):
+                    raise ParseError(path, i, f"root order names a dof twice: {' '.join(parts[1:])}")
             elif key == "axis" and len(parts) > 1:
                 root_axis = parts[1].upper()
         elif section == "bonedata":
@@ -145,6 +147,8 @@ def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
                 bad = [p for p in cur.dofs if p not in _VALID_DOFS]
                 if bad:
                     raise ParseError(path, i, f"bone {cur.name}: unknown dof {bad[0]!r}")
+                if len(set(cur.dofs)) != len(cur.dofs):
+                    raise ParseError(path, i, f"bone {cur.name}: a dof appears twice in {' '.join(parts[1:])!r}")
             elif key == "limits" or in_limits:
                 in_limits = True
                 body = line[len("limits"):] if key == "limits" else line

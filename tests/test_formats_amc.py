@@ -126,6 +126,8 @@ def test_raises_on_malformed_amc(skel, name, text, line, fragment):
 
 ASF_ERRORS = [
     ("unknown_dof", ASF.replace("dof rx\n", "dof rw\n"), 38, "bone ltibia: unknown dof 'rw'"),
+    ("dof_twice", ASF.replace("dof rx ry rz", "dof rx ry rx"), 27, "bone lfemur: a dof appears twice in 'rx ry rx'"),
+    ("root_order_twice", ASF.replace("order TX TY TZ", "order TX TY TX"), 9, "root order names a dof twice"),
     ("root_order_dof", ASF.replace("order TX TY", "order TX TQ"), 9, "root order has unknown dof 'tq'"),
     ("direction_count", ASF.replace("direction 0 -1 0\n     length 5\n     axis 0 0 20", "direction 0 -1\n     length 5\n     axis 0 0 20"), 24, "direction needs 3 numbers (got 2"),
     ("length_not_number", ASF.replace("length 5\n     axis 0 0 20", "length five\n     axis 0 0 20"), 25, "length: not a number"),
