@@ -191,7 +191,7 @@ def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
 def read_asf(path: str | os.PathLike) -> Skeleton:
     path = os.fspath(path)
     try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
             text = fh.read()
     except OSError as e:
         raise ParseError(path, None, f"cannot read ({e.strerror or e})") from None
@@ -312,7 +312,7 @@ def read_amc(path: str | os.PathLike, asf: str | os.PathLike | Skeleton | None =
     else:
         skel = read_asf(asf if asf is not None else find_asf(path))
     try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
             text = fh.read()
     except OSError as e:
         raise ParseError(path, None, f"cannot read ({e.strerror or e})") from None

@@ -269,7 +269,7 @@ def read_bvh(path: str | os.PathLike) -> Motion:
     """Read a BVH file (see ``parse_bvh``)."""
     path = os.fspath(path)
     try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
             text = fh.read()
     except OSError as e:
         raise ParseError(path, None, f"cannot read ({e.strerror or e})") from None

@@ -164,7 +164,7 @@ def read_csv(path: str | os.PathLike, fps: float | None = None, allow_missing: b
     """Read a CSV motion file (see ``parse_csv``)."""
     path = os.fspath(path)
     try:
-        with open(path, encoding="utf-8", errors="replace", newline="") as fh:
+        with open(path, encoding="utf-8-sig", errors="replace", newline="") as fh:
             text = fh.read()
     except OSError as e:
         raise ParseError(path, None, f"cannot read ({e.strerror or e})") from None

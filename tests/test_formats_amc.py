@@ -233,3 +233,10 @@ def test_amc_to_csv_to_amc(data, tmp_path):
     back = read_motion(tmp_path / "07_01.amc", asf=data / "cmu" / "07" / "07.asf")
     np.testing.assert_array_equal(back.frames, m.frames)
     assert back.channels == m.channels
+
+
+def test_windows_line_endings_and_byte_order_mark(skel, tmp_path):
+    (tmp_path / "t.asf").write_bytes(b"\xef\xbb\xbf" + ASF.replace("\n", "\r\n").encode())
+    (tmp_path / "t.amc").write_bytes(b"\xef\xbb\xbf" + AMC.replace("\n", "\r\n").encode())
+    m = read_amc(tmp_path / "t.amc")
+    np.testing.assert_array_equal(m.frames, parse_amc(AMC, skel).frames)

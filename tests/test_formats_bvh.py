@@ -140,3 +140,10 @@ def test_bvh_to_csv_to_values(data, tmp_path):
     c = read_motion(tmp_path / "09_11.csv")
     assert c.channels == m.channels and c.fps == m.fps
     np.testing.assert_array_equal(c.frames, m.frames)
+
+
+def test_windows_line_endings_and_byte_order_mark(tmp_path):
+    p = tmp_path / "crlf.bvh"
+    p.write_bytes(b"\xef\xbb\xbf" + BVH.replace("\n", "\r\n").encode())
+    m = read_bvh(p)
+    np.testing.assert_array_equal(m.frames, parse_bvh(BVH).frames)

@@ -114,3 +114,11 @@ def test_csv_with_wrong_skeleton_is_refused(data, tmp_path):
 def test_unknown_extension_is_named(tmp_path):
     with pytest.raises(ValueError, match=r"x.c3d: unknown motion format '.c3d' \(expected .amc, .bvh, .csv\)"):
         read_motion(tmp_path / "x.c3d")
+
+
+def test_windows_line_endings_and_byte_order_mark(tmp_path):
+    p = tmp_path / "crlf.csv"
+    p.write_bytes(b"\xef\xbb\xbf" + CSV.replace("\n", "\r\n").encode())
+    m = read_csv(p)
+    np.testing.assert_array_equal(m.frames, parse_csv(CSV).frames)
+    assert m.fps == 30.0
