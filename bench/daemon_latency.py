@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--models", default="floor,hold,nn", help="models to measure (floor = pass-through)")
     ap.add_argument("--model", action="append", default=[], metavar="NAME=FILE", help="extra model file")
     ap.add_argument("--budget-ms", type=float, default=4.0)
-    ap.add_argument("--overload", action="store_true", help="also offer 4x what the nn model serves within budget")
+    ap.add_argument("--overload", action="store_true", help="also offer 64 streams at 4x the rate with the hold model")
     ap.add_argument("--json", dest="json_out", help="write results here")
     args = ap.parse_args(argv)
 
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         pid = d.proc.pid
         scenarios = [(int(n), args.rate, m) for n in args.streams.split(",") for m in models]
         if args.overload:
-            scenarios.append((256, 4 * args.rate, "nn"))
+            scenarios.append((64, 4 * args.rate, "hold"))
         k = 0
         for n, rate, model in scenarios:
             for rep in range(args.repeats):
@@ -100,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
                 res = loadgen.run_load(ep, n, rate, args.seconds, frames, channels=channels, model=model,
                                        prefix=f"{model}-{n}-{rep}-")
                 row = {"streams": n, "rate_hz": rate, "model": model, "repeat": rep, **res.summary(),
+                       "offered_fps": round(res.sent / max(res.seconds, 1e-9), 1),
+                       "served_fps": round(res.served / max(res.seconds, 1e-9), 1),
+                       "load_average": os.getloadavg()[0],
                        "daemon_cpu_percent": round(100 * (cpu_s(pid) - cpu0) / res.seconds, 1),
                        "daemon_rss_kib_before": rss0, "daemon_rss_kib_after": rss_kib(pid)}
                 results.append(row)
@@ -119,8 +122,10 @@ def main(argv: list[str] | None = None) -> int:
         rows = [r for r in results if (r["streams"], r["rate_hz"], r["model"]) == (n, rate, model)]
         summary.append({"streams": n, "rate_hz": rate, "model": model,
                         **{k: float(np.median([r[k] for r in rows])) for k in ("p50_ms", "p90_ms", "p99_ms", "p999_ms", "max_ms",
-                                                                                "daemon_cpu_percent")},
-                        "served": sum(r["served"] for r in rows), "degraded": sum(r["degraded"] for r in rows),
+                                                                                "daemon_cpu_percent", "offered_fps", "served_fps",
+                                                                                "load_average")},
+                        "daemon_proc_p99_ms": float(np.median([r["daemon_proc_p99_ms"] or np.nan for r in rows])),
+                        "served": sum(r["served"] for r in rows), "unsent": sum(r["unsent"] for r in rows), "degraded": sum(r["degraded"] for r in rows),
                         "dropped": sum(r["dropped"] for r in rows), "lost": sum(r["lost"] for r in rows),
                         "rss_kib_first": rows[0]["daemon_rss_kib_before"], "rss_kib_last": rows[-1]["daemon_rss_kib_after"]})
     out = {"machine": machine, "seconds": args.seconds, "repeats": args.repeats, "budget_ms": args.budget_ms,

@@ -29,7 +29,9 @@ from lacuna.filler import Fill, Model
 
 SAFETY = 1.25  # multiply cost estimates: better to degrade a little early than overrun
 DISCOUNT = 0.97  # per observation, for the cost fit
-REPLY_COST_S = 30e-6  # first guess of encode+send per reply, refined online
+OUTLIER = 4.0  # clip a cost observation at this multiple of the current fit
+REPLY_COST_S = 30e-6
+HOLD_COST_S = 20e-6  # per stream, what hold-last-value costs in the session (numpy overhead)  # first guess of encode+send per reply, refined online
 
 
 class CostModel:
@@ -40,6 +42,12 @@ class CostModel:
         self.seen = False
 
     def observe(self, n: int, t: float) -> None:
+        if self.seen:
+            # one step stretched by the OS (preemption on a busy machine) must not make the
+            # scheduler degrade for the next hundred frames: clip outliers to OUTLIER x the fit;
+            # a model that really got slower still moves the fit by that factor per step
+            a, b = self.coef()
+            t = min(t, OUTLIER * max(a + b * n, 1e-6))
         self.s *= DISCOUNT
         self.s += (1.0, n, n * n, t, n * t)
         self.seen = True
@@ -120,6 +128,10 @@ class Scheduler:
         avail = deadline - now - self.reply_cost * len(group)
         rounds = 1 + max(min(self._gap(s), self.max_gap) for s in group)
         levels = levels_of(model)
+        # a model about as cheap as holding gains nothing from degrading: frames already late
+        # (queued while the daemon was busy) are better served in full
+        if self.cost(model, levels[0]).estimate(len(group), rounds) <= HOLD_COST_S * len(group):
+            return StepPlan(group, [], levels[0], False)
         for lv in levels:
             cm = self.cost(model, lv)
             if not cm.seen or cm.estimate(len(group), rounds) <= avail:

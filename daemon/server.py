@@ -116,6 +116,9 @@ class Daemon:
         self.poller = zmq.Poller()
         if c.zmq_router:
             self.router = sock(zmq.ROUTER)
+            # an answer that cannot be queued (peer gone, or not reading: at its high-water
+            # mark) raises instead of vanishing silently, so it is counted
+            self.router.setsockopt(zmq.ROUTER_MANDATORY, 1)
             self.router.bind(c.zmq_router)
             self.poller.register(self.router, zmq.POLLIN)
         if c.zmq_pull:
@@ -254,7 +257,9 @@ class Daemon:
                 for o, m in self.sessions.frame(msg, origin, arrived):
                     self._send(o, m)
             elif isinstance(msg, wire.Hello):
-                ack = self.sessions.hello(msg)
+                ack, orphans = self.sessions.hello(msg)
+                for o, m in orphans:
+                    self._send(o, m)
                 self.log("info", "stream_hello", stream=msg.stream, model=ack.model, channels=len(ack.channels),
                          passthrough=len(ack.passthrough), missing=len(ack.missing))
                 self._send(origin, ack)
@@ -351,7 +356,9 @@ class Daemon:
                                                                          "default": self.cfg.default_model}))
         elif msg.cmd == "reset":
             assert msg.stream is not None
-            ok = self.sessions.reset(msg.stream)
+            ok, orphans = self.sessions.reset(msg.stream)
+            for o, m in orphans:
+                self._send(o, m)
             self.log("info", "stream_reset", stream=msg.stream, existed=ok)
             self._send(origin, wire.ControlReply("reset", ok, {"stream": msg.stream},
                                                  None if ok else f"no open stream {msg.stream!r}"))

@@ -548,3 +548,17 @@ def test_real_walk_through_daemon_matches_in_process_filler(tmp_path, daemons, c
     np.testing.assert_allclose(out, ref.astype(np.float32), rtol=0, atol=1e-4)
     assert all(m.filled[miss].all() and not m.filled[~miss].any() for m in got)
     np.testing.assert_allclose(np.stack([m.std for m in got]), ref_std.astype(np.float32), atol=1e-4)
+
+
+def test_serve_check_validates_config_and_models(tmp_path):
+    good = write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}})
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--check", "--config", good],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "model walk: ok" in r.stdout, r.stderr
+    (tmp_path / "h.npz").write_bytes(b"PK\x03\x04 not really a zip")
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--check", "--config", good],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "h.npz" in r.stderr and "model walk" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--config", str(tmp_path / "missing.toml")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.startswith("lacuna: error:") and "missing.toml" in r.stderr
