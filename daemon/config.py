@@ -237,4 +237,6 @@ def load(path: str) -> Config:
         raise ConfigError(f"{path}: cannot read config ({e.strerror or e})") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: not valid TOML ({e})") from None
+    except UnicodeDecodeError as e:  # e.g. saved as UTF-16 by an editor: TOML is UTF-8
+        raise ConfigError(f"{path}: not UTF-8 text (byte {e.start}: {e.reason})") from None
     return from_dict(raw, path)
