@@ -401,7 +401,14 @@ class Daemon:
             except config_mod.ConfigError as e:
                 self._reload_result = (None, old, {"config": str(e)})
                 return
-            table, errors = load_all(new_cfg, old)
+            except Exception as e:  # a thread that dies sets no result: the reload would vanish unlogged
+                self._reload_result = (None, old, {"config": f"{path}: {type(e).__name__}: {e}"[:500]})
+                return
+            try:
+                table, errors = load_all(new_cfg, old)
+            except Exception as e:  # same: refuse the reload, keep the old models, say why
+                self._reload_result = (None, old, {"models": f"{type(e).__name__}: {e}"[:500]})
+                return
             self._reload_result = (new_cfg, table, errors)
 
         self._reload_thread = threading.Thread(target=work, name="reload", daemon=True)
