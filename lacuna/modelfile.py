@@ -65,6 +65,8 @@ def load_arrays(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, np.n
             arrays = {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
         raise ModelFileError(f"{path}: not a readable model file (truncated or corrupt: {e})") from None
+    except Exception as e:  # zlib.error, struct.error, MemoryError...: corrupt bytes raise assorted errors
+        raise ModelFileError(f"{path}: not a readable model file (truncated or corrupt: {type(e).__name__}: {e})") from None
     if "__meta__" not in arrays:
         raise ModelFileError(f"{path}: no __meta__ entry; not a lacuna model file")
     try:
@@ -79,6 +81,8 @@ def load_arrays(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, np.n
     if not isinstance(meta.get("channels"), list) or not all(isinstance(c, str) for c in meta["channels"]):
         raise ModelFileError(f"{path}: metadata 'channels' must be a list of channel names")
     for k, a in arrays.items():
+        if a.dtype.kind not in "biuf":  # complex, strings, void...: no model stores those
+            raise ModelFileError(f"{path}: array {k!r} has dtype {a.dtype}; model files hold real numbers and booleans")
         if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
             raise ModelFileError(f"{path}: array {k!r} holds NaN or infinity")
     return meta, arrays
