@@ -366,3 +366,46 @@ def test_timestamp_and_sequence_jumps(tmp_path, walk):
     finally:
         S.close()
         d.stop()
+
+
+def test_broken_config_on_sighup_keeps_the_old_config_serving(tmp_path, walk):
+    frames, channels, model = walk
+    model.save(str(tmp_path / "walk.npz"))
+    cfg = tmp_path / "lacuna.toml"
+    ep = write_config(cfg, {"walk": {"file": "walk.npz"}})
+    good_text = cfg.read_text()
+    d = Daemon(cfg, tmp_path / "daemon.log").start()
+    S = Sockets()
+    ls = LockStep(ep["router"], "take2", frames)
+    breakers = [
+        ("UTF-16", lambda: cfg.write_bytes(good_text.encode("utf-16")), "not UTF-8"),
+        ("not TOML", lambda: cfg.write_text(good_text + "\n[daemon\n"), "not valid TOML"),
+        ("bad value", lambda: cfg.write_text(good_text.replace("budget_ms = 50.0", "budget_ms = -1")), "budget_ms"),
+        ("exposed without keys", lambda: cfg.write_text(good_text.replace("[zmq]", "[osc]\nlisten = \"0.0.0.0:9\"\n[zmq]")),
+         "osc_allow"),
+        ("deleted", lambda: cfg.unlink(), "cannot read"),
+    ]
+    try:
+        ls.start()
+        for what, breaker, words in breakers:
+            breaker()
+            n0 = len(ls.answers)
+            d.signal(signal.SIGHUP)
+            rec = d.wait_for("reload_done", 15)
+            assert rec["ok"] is False, what
+            st = status(S, ep["router"])
+            assert words in st["reload"]["errors"]["config"], (what, st["reload"])
+            deadline = time.monotonic() + 10
+            while len(ls.answers) < n0 + 5 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert len(ls.answers) >= n0 + 5, what
+        cfg.write_text(good_text)
+        d.signal(signal.SIGHUP)
+        assert d.wait_for("reload_done", 15)["ok"] is True
+        ls.finish()
+        all_filled(ls, "walk")
+        assert d.alive()
+    finally:
+        ls.stop_flag.set()
+        S.close()
+        d.stop()
