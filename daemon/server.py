@@ -26,6 +26,7 @@ from daemon import osc, security, wire
 from daemon.metrics import Metrics, MetricsHTTP
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
+from daemon.ratelimit import EventLimiter
 from daemon.scheduler import Scheduler, fill_message
 from daemon.session import Origin, Out, SessionError, SessionTable
 
@@ -79,6 +80,7 @@ class Daemon:
         self._reload_result: tuple[config_mod.Config | None, dict[str, Loaded], dict[str, str]] | None = None
         self._reload_waiters: list[Origin] = []
         self.last_reload: dict[str, Any] = {}
+        self.reject_log = EventLimiter()  # a flood of bad input must not flood the log (counters stay exact)
         self.started = time.time()
 
     # ---- models -----------------------------------------------------------------------------
@@ -280,8 +282,9 @@ class Daemon:
         s = self.sessions.sessions.get(sid) if sid else None
         if s is not None:
             s.counts["rejected"] += 1
-        self.log("warning", "rejected", reason=reason, detail=detail[:300], stream=sid, seq=seq,
-                 transport=origin[0] if origin else None)
+        if self.reject_log.allow(reason):
+            self.log("warning", "rejected", reason=reason, detail=detail[:300], stream=sid, seq=seq,
+                     transport=origin[0] if origin else None)
         if origin is not None:
             self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
 
@@ -458,6 +461,9 @@ class Daemon:
         for sid in gone:
             self.log("info", "stream_expired", stream=sid)
             self.metrics.inc("expired")
+        for reason, n in self.reject_log.flush():
+            self.log("warning", "rejected_suppressed", reason=reason, count=n,
+                     detail=f"{n} more rejections not logged one by one (see `lacuna status`)")
         if self.http is not None:
             self._prom = self.metrics.prometheus(self.status())
         self.notify.status(self._status_line())
