@@ -21,6 +21,8 @@ def add_commands(cli) -> None:
     g.add_argument("--config", metavar="FILE", help="read the ROUTER endpoint from this config")
     p.add_argument("--json", action="store_true", help="print the raw status map as JSON")
     p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the answer (5)")
+    p.add_argument("--key", metavar="FILE", help="CURVE: this client's NAME.key_secret (daemon with [security] keys)")
+    p.add_argument("--server-key", metavar="FILE", help="CURVE: the daemon's public server.key")
     p.set_defaults(func=_status)
 
 
@@ -47,7 +49,10 @@ def _status(args: argparse.Namespace) -> int:
         if not cfg.zmq_router:
             raise ValueError(f"{args.config}: zmq.router is not set, so the daemon takes no control requests")
         ep = cfg.zmq_router
-    rep = server.control(ep or DEFAULT_ENDPOINT, "status", timeout_s=args.timeout)
+    if bool(args.key) != bool(args.server_key):
+        raise ValueError("--key and --server-key go together (CURVE needs both)")
+    curve = (args.key, args.server_key) if args.key else None
+    rep = server.control(ep or DEFAULT_ENDPOINT, "status", timeout_s=args.timeout, curve=curve)
     if args.json:
         print(json.dumps(rep.result, indent=2, default=str))
     else:

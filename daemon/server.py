@@ -521,12 +521,16 @@ def serve(path: str) -> int:
     return 0
 
 
-def control(endpoint: str, cmd: str, stream: str | None = None, timeout_s: float = 5.0) -> wire.ControlReply:
-    """One control request over a DEALER socket (what `lacuna status` uses)."""
+def control(endpoint: str, cmd: str, stream: str | None = None, timeout_s: float = 5.0,
+            curve: tuple[str, str] | None = None) -> wire.ControlReply:
+    """One control request over a DEALER socket (what `lacuna status` uses).  ``curve`` =
+    (client .key_secret file, daemon's public .key file) for a daemon with [security] keys."""
     ctx = zmq.Context()
     s = ctx.socket(zmq.DEALER)
     s.setsockopt(zmq.LINGER, 0)
     try:
+        if curve is not None:
+            security.configure_client(s, *curve)
         s.connect(endpoint)
         s.send(wire.encode(wire.Control(cmd, stream)))
         if not s.poll(int(timeout_s * 1000)):
