@@ -139,6 +139,12 @@ def test_sighup_rereads_the_authorized_keys(tmp_path, keys):
         m = recv_msg(stranger)
         assert isinstance(m, wire.FillMsg) and m.stream == "late-comer"
         assert control(stranger, "status")["security"]["authorized_keys"] == 2
+        # `lacuna status` against a CURVE daemon: with a listed key it answers, without one it times out
+        r = lacuna("status", "--connect", ep["router"], "--json", "--key", str(kd / "stranger.key_secret"),
+                   "--server-key", str(kd / "server.key"))
+        assert r.returncode == 0 and '"late-comer"' in r.stdout, r.stderr
+        r = lacuna("status", "--connect", ep["router"], "--timeout", "1")
+        assert r.returncode == 2 and "no answer" in r.stderr
     finally:
         S.close()
         d.stop()
