@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     tmp = tempfile.mkdtemp(prefix="lacuna-hot-")
     HoldModel.fit(ts.sequences, ch).save(f"{tmp}/hold.npz")
     NearestNeighbourModel.fit(ts.sequences, ch).save(f"{tmp}/nn.npz")
-    cfg = config.from_dict({"daemon": {"budget_ms": 1000.0, "max_streams": 100000},
+    cfg = config.from_dict({"daemon": {"budget_ms": 1000.0, "max_streams": 100000, "log_level": "warning"},
                             "models": {"floor": {"builtin": "passthrough"}, "hold": {"file": f"{tmp}/hold.npz"},
                                        "nn": {"file": f"{tmp}/nn.npz"}},
                             "zmq": {"router": "tcp://127.0.0.1:*"}})
