@@ -561,3 +561,25 @@ def test_serve_check_validates_config_and_models(tmp_path):
     r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--config", str(tmp_path / "missing.toml")],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.startswith("lacuna: error:") and "missing.toml" in r.stderr
+
+
+def test_osc_answers_go_to_the_configured_send_address(tmp_path, daemons):
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    out.bind(("127.0.0.1", 0))
+    out.settimeout(5.0)
+    src = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    src.bind(("127.0.0.1", 0))
+    src.settimeout(0.5)
+    try:
+        cfg = write_config(tmp_path, {"floor": {"builtin": "passthrough"}}, osc=True,
+                           extra=f'send = "127.0.0.1:{out.getsockname()[1]}"\n')
+        d = daemons(cfg)
+        host, port = d.endpoints["osc"].rsplit(":", 1)
+        src.sendto(_osc_frame("o2", 3, [0.5, 0.25]), (host, int(port)))
+        msgs = {m.address: m.params for m in OscBundle(out.recv(65535))}
+        assert msgs["/lacuna/fill"][:2] == ["o2", 3] and msgs["/lacuna/fill"][7:] == [0.5, 0.25]
+        with pytest.raises(socket.timeout):
+            src.recv(65535)  # nothing goes back to the sender when osc.send is set
+    finally:
+        out.close()
+        src.close()
