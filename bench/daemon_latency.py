@@ -54,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", action="append", default=[], metavar="NAME=FILE", help="extra model file")
     ap.add_argument("--budget-ms", type=float, default=4.0)
     ap.add_argument("--overload", action="store_true", help="also offer 64 streams at 4x the rate with the hold model")
+    ap.add_argument("--max-in-flight", type=int, default=4,
+                    help="unanswered frames per stream before the generator skips one (a plugin's bound)")
     ap.add_argument("--json", dest="json_out", help="write results here")
     args = ap.parse_args(argv)
 
@@ -98,12 +100,16 @@ def main(argv: list[str] | None = None) -> int:
                 k += 1
                 rss0, cpu0 = rss_kib(pid), cpu_s(pid)
                 res = loadgen.run_load(ep, n, rate, args.seconds, frames, channels=channels, model=model,
-                                       prefix=f"{model}-{n}-{rep}-")
+                                       prefix=f"{model}-{n}-{rep}-", max_in_flight=args.max_in_flight)
                 row = {"streams": n, "rate_hz": rate, "model": model, "repeat": rep, **res.summary(),
                        "offered_fps": round(res.sent / max(res.seconds, 1e-9), 1),
                        "served_fps": round(res.served / max(res.seconds, 1e-9), 1),
                        "load_average": os.getloadavg()[0],
                        "daemon_cpu_percent": round(100 * (cpu_s(pid) - cpu0) / res.seconds, 1),
+                       # CPU the daemon spent per frame it answered (fills and drops, warm-up
+                       # included): a cost figure that scheduling noise on a shared machine hardly moves
+                       "daemon_cpu_us_per_frame": round(1e6 * (cpu_s(pid) - cpu0) / max(1, res.served + res.dropped + int(
+                           0.5 * rate * n)), 1),
                        "daemon_rss_kib_before": rss0, "daemon_rss_kib_after": rss_kib(pid)}
                 results.append(row)
                 print(f"[{k}/{len(scenarios) * args.repeats}] {model:>6} {n:>3} streams @ {rate:g} Hz: "
@@ -122,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = [r for r in results if (r["streams"], r["rate_hz"], r["model"]) == (n, rate, model)]
         summary.append({"streams": n, "rate_hz": rate, "model": model,
                         **{k: float(np.median([r[k] for r in rows])) for k in ("p50_ms", "p90_ms", "p99_ms", "p999_ms", "max_ms",
-                                                                                "daemon_cpu_percent", "offered_fps", "served_fps",
+                                                                                "daemon_cpu_percent", "daemon_cpu_us_per_frame", "offered_fps", "served_fps",
                                                                                 "load_average")},
                         "daemon_proc_p99_ms": float(np.median([r["daemon_proc_p99_ms"] or np.nan for r in rows])),
                         "served": sum(r["served"] for r in rows), "unsent": sum(r["unsent"] for r in rows), "degraded": sum(r["degraded"] for r in rows),

@@ -99,6 +99,7 @@ class Scheduler:
         self.max_batch = max_batch
         self.costs: dict[tuple[int, int | None], CostModel] = {}
         self.reply_cost = REPLY_COST_S
+        self.hold_cost = CostModel()
         self.step_errors = 0
         self.last_error = ""
 
@@ -130,7 +131,9 @@ class Scheduler:
         levels = levels_of(model)
         # a model about as cheap as holding gains nothing from degrading: frames already late
         # (queued while the daemon was busy) are better served in full
-        if self.cost(model, levels[0]).estimate(len(group), rounds) <= HOLD_COST_S * len(group):
+        # (holding's own cost is measured alongside, under the same load as the model's)
+        hold = self.hold_cost.estimate(len(group)) if self.hold_cost.seen else HOLD_COST_S * len(group)
+        if self.cost(model, levels[0]).estimate(len(group), rounds) <= 2.0 * max(hold, HOLD_COST_S * len(group)):
             return StepPlan(group, [], levels[0], False)
         for lv in levels:
             cm = self.cost(model, lv)
@@ -152,7 +155,10 @@ class Scheduler:
             for i in range(0, len(sessions), self.max_batch):
                 chunk = sessions[i : i + self.max_batch]
                 plan = self.plan(model, chunk, time.perf_counter())
-                results.extend(self._hold(s) for s in plan.hold)
+                if plan.hold:
+                    t0 = time.perf_counter()
+                    results.extend(self._hold(s) for s in plan.hold)
+                    self.hold_cost.observe(len(plan.hold), time.perf_counter() - t0)
                 if plan.step:
                     results.extend(self._step(model, plan))
         return results
