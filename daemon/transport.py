@@ -14,7 +14,7 @@ from typing import Any, Callable
 
 import zmq
 
-from daemon import osc, wire
+from daemon import osc, security, wire
 from daemon.config import Config
 from daemon.metrics import Metrics
 from daemon.session import Origin
@@ -38,6 +38,7 @@ class Transports:
         self.sub: zmq.Socket | None = None
         self.pub: zmq.Socket | None = None
         self.udp: socket.socket | None = None
+        self.guard: security.Guard | None = None
         self.poller = zmq.Poller()
 
     def _sock(self, kind: int) -> zmq.Socket:
@@ -50,6 +51,8 @@ class Transports:
         # beyond this ZeroMQ disconnects the peer without reading the message into memory;
         # between max_message_bytes and this the daemon reads it and answers `too_large`
         s.setsockopt(zmq.MAXMSGSIZE, max(ZMQ_MAXMSG_FLOOR, 4 * c.max_message_bytes))
+        assert self.guard is not None
+        (self.guard.client if kind == zmq.SUB else self.guard.server)(s)  # CURVE when keys are configured
         return s
 
     def open(self) -> None:
@@ -57,6 +60,7 @@ class Transports:
         c = self.cfg
         self.ctx = zmq.Context()
         try:
+            self.guard = security.Guard(self.ctx, c.security)  # ZAP allow list of client keys, OSC sources
             if c.zmq_router:
                 self.router = self._sock(zmq.ROUTER)
                 # an answer that cannot be queued (peer gone, or not reading: at its high-water
@@ -137,6 +141,9 @@ class Transports:
                     self.metrics.inc("osc_recv_errors")
                     self.log("debug", "osc_recv_error", error=str(e))
                     continue
+                if self.guard is not None and not self.guard.osc_allowed(addr):
+                    self.metrics.reject("source_not_allowed")  # counted, never answered (no reflection)
+                    continue
                 self.on_message(data, ("osc", addr), time.perf_counter())
 
     def send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
@@ -171,6 +178,9 @@ class Transports:
         if self.udp is not None:
             self.udp.close()
             self.udp = None
+        if self.guard is not None:
+            self.guard.close()  # its ZAP thread holds sockets of ctx: stop it before ctx.term()
+            self.guard = None
         if self.ctx is not None:
             self.ctx.term()
             self.ctx = None
