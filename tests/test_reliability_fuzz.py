@@ -292,3 +292,36 @@ def test_fuzz_100k_malformed_messages_over_zmq_and_osc_while_a_good_stream_is_se
         good.join(30)
         S.close()
         d.stop()
+
+
+def test_message_far_over_the_cap_costs_the_sender_its_connection_not_the_daemon(tmp_path):
+    """Past ZeroMQ's own limit (MAXMSGSIZE, 1 MiB or 4x max_message_bytes) the message is never
+    read into the daemon's memory: libzmq drops that peer's connection.  The daemon cannot count
+    what it never saw; it stays up and the other clients are served."""
+    ep = write_config(tmp_path / "lacuna.toml", {"floor": {"builtin": "passthrough"}},
+                      daemon={"max_message_bytes": MAX_BYTES})
+    d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
+    S = Sockets()
+    try:
+        ok = S.make(zmq.DEALER, ep["router"])
+        ok.send(wire.encode(wire.Frame("ok", 0, 0.0, np.ones(4, np.float32))))
+        assert isinstance(recv_msg(ok), wire.FillMsg)
+        rss0 = d.rss_kib()
+        huge = S.make(zmq.DEALER, ep["router"])
+        for _ in range(20):
+            huge.send(b"\x00" * (8 << 20))  # 160 MiB offered in total
+        huge.send(wire.encode(wire.Frame("huge", 0, 0.0, np.ones(4, np.float32))))
+        got = []
+        while huge.poll(1500):  # nothing about the 8 MiB messages comes back: they were never read
+            got.append(wire.decode(huge.recv()))
+        assert not any(isinstance(m, wire.ErrorMsg) for m in got), got
+        for seq in range(1, 50):
+            ok.send(wire.encode(wire.Frame("ok", seq, 0.0, np.ones(4, np.float32))))
+            assert isinstance(recv_msg(ok), wire.FillMsg)
+        st = status(S, ep["router"])
+        assert st["counters"].get("rejected", 0) == 0  # (libzmq may reconnect and deliver the small frame)
+        assert d.rss_kib() - rss0 < 32 * 1024  # nowhere near 8 MiB per message buffered
+        assert d.alive()
+    finally:
+        S.close()
+        d.stop()
