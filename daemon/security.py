@@ -162,6 +162,9 @@ def check_exposure(bound: dict[str, str | None], osc_listen: tuple[str, int] | N
             f"authentication: set security.osc_allow to the senders' addresses (e.g. [\"192.168.10.0/24\"]), "
             f"or listen on 127.0.0.1")
     if spec.curve:
+        if not zmq.has("curve"):
+            raise SecurityError(f"{where}: [security] keys are set but this libzmq was built without CURVE "
+                                f"(zmq.has('curve') is False); install a pyzmq wheel, which bundles it")
         load_server_key(spec.server_secret_key)  # type: ignore[arg-type]
         load_authorized(spec.authorized_keys)  # type: ignore[arg-type]
     if spec.sub_server_key:
