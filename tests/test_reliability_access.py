@@ -19,7 +19,6 @@ import zmq
 
 import fuzzgen
 from daemon import security, wire
-from daemon.keys_cli import make_keys
 from reliability_daemon import Daemon, Sockets, control, free_port, recv_msg, write_config
 
 NO_ANSWER_MS = 1500  # "gets nothing": a CURVE handshake on loopback takes ~1 ms
