@@ -46,8 +46,11 @@ N_UNKNOWN_MODEL = 100  # hellos naming a model the daemon does not have
 MAX_BYTES = 4096
 MAX_STREAMS = 16
 HWM = 100  # the daemon's ZeroMQ high-water mark (its default), set explicitly here
-WINDOW = HWM  # unanswered DEALER messages at most: the daemon's answers to us never exceed its send hwm
-BATCH = 50
+# unanswered DEALER messages at most.  libzmq's writer sees a pipe's free space only in steps of
+# half the hwm (the reader acknowledges every hwm/2 messages), so a burst of more than ~hwm/2
+# answers can find the pipe "full" and the daemon would (rightly) count send_dropped
+WINDOW = HWM * 2 // 5
+BATCH = 20
 RCVBUF = 212992  # /proc/sys/net/core/rmem_default: the daemon does not set SO_RCVBUF
 SETTLE_S = 60.0
 
@@ -220,8 +223,15 @@ def test_fuzz_100k_malformed_messages_over_zmq_and_osc_while_a_good_stream_is_se
 
         # ---- settle: all DEALER answers in, all counters final
         deadline = time.monotonic() + SETTLE_S
+        next_check = time.monotonic() + 2
         while n_answers < len(dealer_items) and time.monotonic() < deadline:
             read_answers(500)
+            if time.monotonic() > next_check:  # answers the daemon could not deliver will never come
+                next_check = time.monotonic() + 2
+                c = status(S, ep["router"])["counters"]
+                if n_answers + sum(c.get(k, 0) - before["counters"].get(k, 0)
+                                   for k in ("send_dropped", "send_errors")) >= len(dealer_items):
+                    break
         kernel_drops = udp_queue(osc_port)[1] - drops0
         want_total = before["counters"].get("rejected", 0) + n_total - kernel_drops
         while True:
@@ -250,7 +260,7 @@ def test_fuzz_100k_malformed_messages_over_zmq_and_osc_while_a_good_stream_is_se
         print(f"\nfuzz: sent {n_total} malformed ({len(dealer_items)} DEALER, {len(push_items)} PUSH, "
               f"{len(osc_items)} OSC); generated in {t_gen:.1f} s, sent in {t_send:.1f} s, all counted after "
               f"{t_all:.1f} s ({n_total / t_all:.0f} msg/s); daemon rejected {rejected}; OSC kernel drops "
-              f"{kernel_drops}; good stream {good.sent} frames, {len(good.answers)} answered; "
+              f"{kernel_drops}; DEALER answers {n_answers}; good stream {good.sent} frames, {len(good.answers)} answered; "
               f"daemon RSS {d.rss_kib()} KiB; by reason {dict(sorted(got_reason.items()))}")
         assert rejected == n_total - kernel_drops
         if kernel_drops == 0:
@@ -261,8 +271,11 @@ def test_fuzz_100k_malformed_messages_over_zmq_and_osc_while_a_good_stream_is_se
         # the daemon could not deliver (our queue over its hwm) would be counted as send_dropped
         undelivered = sum(after["counters"].get(k, 0) - before["counters"].get(k, 0) for k in ("send_dropped", "send_errors"))
         assert n_answers + undelivered == len(dealer_items)
-        assert undelivered == 0  # the window keeps our backlog under the hwm
-        assert answers == collections.Counter(r for _, r, _ in dealer_items)
+        want_answers = collections.Counter(r for _, r, _ in dealer_items)
+        if undelivered == 0:  # the usual case: the window keeps our backlog under the hwm
+            assert answers == want_answers
+        else:  # which answers were dropped is not known; each count is at most what was sent
+            assert all(answers[k] <= v for k, v in want_answers.items())
         # rejections charged to the streams they named; the good stream still served every frame
         for sid, n in expect_stream.items():
             if kernel_drops == 0:
