@@ -1,0 +1,180 @@
+"""The online forward filter of the HLM over the joint (style, phase) state, batched over streams.
+
+Per frame (O(C M J + C M F), independent of how long the stream has run):
+
+  predict   p(c, m | x_<t) = sum_j d_j p(c, m - j | x_<t)        eq. (1); the first frame uses
+            tau_c / M (the style prior and the uniform start of step 4c)
+  update    p(c, m | x_<=t) ~ p(c, m | x_<t) exp(ell_t(c, m))   ell over the observed features only
+  fill      eq. (18) with the joint posterior: x_dag = (sum_c P(c) Lambda^c)^-1 sum_cm P(c,m) Lambda^c mu^{c,m}
+  std       sqrt of the predictive mixture second moment about the fill: within-state 1/lambda,
+            Q(Z) variance, and the spread of the state means (between-state) plus the offset of the
+            precision-weighted fill from the mixture mean
+  extras    style posterior P(c) and phase = circular mean of m / M under P(m)
+
+The posterior is kept as probabilities normalised every frame, the emission enters as
+exp(ell - max ell) so nothing underflows as a whole; this is the normalised log-space forward
+recursion of ``hlm.hmm.forward`` (tested equal).  A frame that never arrives (nothing observed)
+is a pure prediction step.
+
+Transition adaptation (``adapt_rate > 0``): each frame adds the filtered expected jump
+probabilities P(jump = j | x_<=t) to exponentially forgotten counts n_j <- (1 - rate) n_j + xi_j,
+and d = (prior_strength d_pop + n) / (prior_strength + sum n).  A performer who walks faster
+than the training population moves probability to longer jumps within a second or two; with
+``adapt_rate = 0`` d stays at the population value d_pop (the mean of the training d^k).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hlm.emissions import EmissionTables
+
+
+@dataclass
+class FilterTables:
+    """Everything the per-frame step reads, precomputed once per model.  Shapes: C styles,
+    M phases, F features, J jumps."""
+
+    em: EmissionTables
+    mu: np.ndarray        # (C*M, F)
+    q2: np.ndarray        # (C*M, F) mu^2 + var + 1/lam: second moment of x given (c, m)
+    log_prior: np.ndarray  # (C, M) log tau_c - log M
+    d_pop: np.ndarray     # (J,)
+    cos: np.ndarray       # (M,) cos(2 pi m / M)
+    sin: np.ndarray
+    adapt_rate: float = 0.0
+    prior_strength: float = 240.0
+
+    @classmethod
+    def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray, tau: np.ndarray, d_pop: np.ndarray,
+              adapt_rate: float = 0.0, prior_strength: float = 240.0) -> "FilterTables":
+        C, M, F = mu.shape
+        ang = 2.0 * np.pi * np.arange(M) / M
+        with np.errstate(divide="ignore"):  # a style with tau = 0 is impossible: log 0 = -inf
+            lp = np.log(tau)[:, None] - np.log(M) + np.zeros((C, M))
+        return cls(EmissionTables.build(mu, var, lam), np.ascontiguousarray(mu.reshape(C * M, F)),
+                   np.ascontiguousarray((mu ** 2 + var + 1.0 / lam[:, None, :]).reshape(C * M, F)),
+                   lp, np.asarray(d_pop, dtype=np.float64), np.cos(ang), np.sin(ang), float(adapt_rate),
+                   float(prior_strength))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.em.C, self.em.M
+
+
+def init_state(tab: FilterTables, n: int) -> dict[str, np.ndarray]:
+    C, M = tab.shape
+    J = tab.d_pop.shape[0]
+    return {
+        "post": np.zeros((n, C, M)),          # filtered p(c, m | x_<=t); unused before frame 0
+        "t": np.zeros(n, dtype=np.int64),     # frames consumed
+        "d": np.tile(tab.d_pop, (n, 1)),      # current transition probabilities
+        "counts": np.zeros((n, J)),           # forgotten expected jump counts (adaptation)
+    }
+
+
+def predict(post: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(n, C, M) filtered -> (n, C, M) one-step prediction with per-stream d (n, J); eq. (1)."""
+    out = np.zeros_like(post)
+    for j in range(1, d.shape[1] + 1):
+        out[..., j:] += post[..., :-j] * d[:, j - 1, None, None]
+        out[..., :j] += post[..., -j:] * d[:, j - 1, None, None]
+    return out
+
+
+def prior(tab: FilterTables, state: dict[str, np.ndarray]) -> np.ndarray:
+    """p(c, m | x_<t) for every stream (n, C, M)."""
+    pr = predict(state["post"], state["d"])
+    first = state["t"] == 0
+    if first.any():
+        pr[first] = np.exp(tab.log_prior)
+    return pr
+
+
+def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> np.ndarray:
+    """Consume one frame per stream (z: (n, F) NaN where missing; zobs: (n, F) bool) and return
+    the emission log-likelihoods ell (n, C, M) it used.  Updates ``state`` in place."""
+    post, d = state["post"], state["d"]
+    first = state["t"] == 0
+    n = z.shape[0]
+    anyobs = zobs.any(1)
+    ll = tab.em.loglik(z, zobs) if anyobs.any() else np.zeros((n,) + tab.shape)
+    w = np.exp(ll - ll.max(axis=(1, 2), keepdims=True))
+    if tab.adapt_rate > 0.0:
+        # P(jump = j | x_<=t) needs the per-jump split of the prediction
+        parts = np.zeros((d.shape[1], n) + tab.shape)
+        for j in range(1, d.shape[1] + 1):
+            parts[j - 1][..., j:] = post[..., :-j] * d[:, j - 1, None, None]
+            parts[j - 1][..., :j] = post[..., -j:] * d[:, j - 1, None, None]
+        pr = parts.sum(0)
+    else:
+        pr = predict(post, d)
+    if first.any():
+        pr[first] = np.exp(tab.log_prior)
+    new = pr * w
+    tot = new.sum(axis=(1, 2))
+    bad = ~(tot > 0.0)
+    if bad.any():
+        # every predicted state got an emission weight that underflowed: redo those rows in logs
+        with np.errstate(divide="ignore"):  # log 0 = -inf for states the prediction excludes
+            lg = np.log(pr[bad]) + ll[bad]
+        lg -= lg.max(axis=(1, 2), keepdims=True)
+        new[bad] = np.exp(lg)
+        tot[bad] = new[bad].sum(axis=(1, 2))
+    new /= tot[:, None, None]
+    if tab.adapt_rate > 0.0:
+        xi = (parts * w[None]).sum(axis=(2, 3)).T                         # (n, J)
+        xi /= np.maximum(xi.sum(1, keepdims=True), 1e-300)
+        xi[first | bad | ~anyobs] = 0.0    # no information about the jump in these frames
+        state["counts"] *= 1.0 - tab.adapt_rate
+        state["counts"] += xi
+        dn = tab.prior_strength * tab.d_pop[None] + state["counts"]
+        state["d"] = dn / dn.sum(1, keepdims=True)
+    state["post"][...] = new
+    state["t"] += 1
+    return ll
+
+
+def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fill the missing features from a joint posterior P (n, C, M).  Returns (z completed, std),
+    both (n, F); std is 0 where observed."""
+    if zobs.all():
+        return z.copy(), np.zeros_like(z)
+    n = P.shape[0]
+    Pf = P.reshape(n, -1)
+    Pc = P.sum(2)
+    # eq. (18) with the joint posterior in place of psi(c) gamma(m)
+    val = (Pf @ tab.em.lam_mu) / (Pc @ tab.em.lam)
+    mean = Pf @ tab.mu
+    m2 = Pf @ tab.q2
+    var = np.maximum(m2 - mean * mean, 0.0) + (mean - val) ** 2
+    return np.where(zobs, z, val), np.where(zobs, 0.0, np.sqrt(var))
+
+
+def extras(tab: FilterTables, P: np.ndarray) -> list[dict]:
+    """Style posterior and circular-mean phase in [0, 1) for each row of P (n, C, M)."""
+    Pc = P.sum(2)
+    Pm = P.sum(1)
+    ph = np.arctan2(Pm @ tab.sin, Pm @ tab.cos) / (2.0 * np.pi) % 1.0
+    return [{"style": Pc[i].tolist(), "phase": float(ph[i])} for i in range(P.shape[0])]
+
+
+def smooth_lag(post_buf: np.ndarray, ll_buf: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Fixed-lag smoothing: the posterior of the oldest buffered frame given all buffered frames.
+
+    post_buf : (L+1, n, C, M) filtered posteriors, oldest first.  ll_buf : (L+1, n, C, M) their
+    emission log-likelihoods.  d : (n, J).  Returns (n, C, M).  O(L C M J): constant per frame.
+    """
+    L1 = post_buf.shape[0]
+    beta = np.ones(post_buf.shape[1:])
+    for u in range(L1 - 1, 0, -1):
+        w = np.exp(ll_buf[u] - ll_buf[u].max(axis=(1, 2), keepdims=True)) * beta
+        nb = np.zeros_like(beta)
+        for j in range(1, d.shape[1] + 1):
+            # beta_{u-1}(m) = sum_j d_j w_u(m + j) beta_u(m + j)
+            nb[..., :-j] += w[..., j:] * d[:, j - 1, None, None]
+            nb[..., -j:] += w[..., :j] * d[:, j - 1, None, None]
+        beta = nb / np.maximum(nb.max(axis=(1, 2), keepdims=True), 1e-300)
+    sm = post_buf[0] * beta
+    return sm / np.maximum(sm.sum(axis=(1, 2), keepdims=True), 1e-300)
