@@ -37,16 +37,17 @@ class EmissionTables:
     lam_mu: np.ndarray
     lam_q: np.ndarray
     log_norm: np.ndarray
+    fused: np.ndarray | None = None   # (C*M, 2F) = [lam_mu, -lam_q / 2]: one GEMM for both terms
 
     @classmethod
     def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray) -> "EmissionTables":
         """mu, var: (C, M, F); lam: (C, F)."""
         C, M, F = mu.shape
         lam3 = lam[:, None, :]
-        return cls(C, M, np.ascontiguousarray(lam),
-                   np.ascontiguousarray((lam3 * mu).reshape(C * M, F)),
-                   np.ascontiguousarray((lam3 * (mu * mu + var)).reshape(C * M, F)),
-                   0.5 * (np.log(lam) - LOG2PI))
+        lam_mu = np.ascontiguousarray((lam3 * mu).reshape(C * M, F))
+        lam_q = np.ascontiguousarray((lam3 * (mu * mu + var)).reshape(C * M, F))
+        return cls(C, M, np.ascontiguousarray(lam), lam_mu, lam_q, 0.5 * (np.log(lam) - LOG2PI),
+                   np.ascontiguousarray(np.hstack([lam_mu, -0.5 * lam_q]).T))
 
     def loglik(self, x: np.ndarray, obs: np.ndarray | None = None) -> np.ndarray:
         """x: (n, F) features (NaN allowed where unobserved); obs: (n, F) bool or None (all).
@@ -61,5 +62,5 @@ class EmissionTables:
             o = obs.astype(np.float64)
             xo = np.where(obs, x, 0.0)
         per_c = -0.5 * ((xo * xo) @ self.lam.T) + o @ self.log_norm.T          # (n, C)
-        per_cm = xo @ self.lam_mu.T - 0.5 * (o @ self.lam_q.T)                  # (n, C*M)
+        per_cm = np.hstack([xo, o]) @ self.fused                                 # (n, C*M)
         return per_cm.reshape(n, self.C, self.M) + per_c[:, :, None]

@@ -1,8 +1,14 @@
 """Registers the HLM methods with ``lacuna eval`` and the model-file loader.
 
-hlm          the online forward filter (causal, constant time per frame)
-hlm-offline  eq. (18) with the smoothed posteriors of the whole recording (not causal)
-hlm-lag      the fixed-lag smoother, ``lag`` frames late (default 15; not causal)
+hlm                    the online forward filter (causal, constant time per frame), with the
+                       stream-cycle adaptation (kappa; see hlm.online) switched on
+hlm-offline            eq. (18) with the smoothed posteriors of the whole recording (not causal)
+hlm-lag                the fixed-lag smoother, ``lag`` frames late (default 15; not causal)
+hlm-faithful           the paper's model and filler as written: no stream-cycle adaptation
+hlm-faithful-offline   the paper's section 4.3 procedure (smoothed posteriors, eq. 18)
+
+All train the same model (the faithful section 3-4 training); they differ in inference options,
+which live in the model file and can be changed without retraining (``HLMModel.with_options``).
 """
 from __future__ import annotations
 
@@ -27,6 +33,7 @@ DEFAULTS: dict[str, Any] = {
     "n_iter": 15,
     "n_var": 3,
     "restarts": 3,
+    "screen_iters": 2,
     "seed": 0,
     "root_mode": "raw",
     "normalize": False,
@@ -35,7 +42,10 @@ DEFAULTS: dict[str, Any] = {
     "zbar_frac": 0.01,
     "adapt_rate": 0.0,
     "lag": 15,
+    "kappa": 0.1,
+    "width": 5,
 }
+FAITHFUL = {"kappa": 0.0}
 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
@@ -46,7 +56,8 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
     rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]))
     feats = [rep.transform(s) for s in sequences]
     res = fit(feats, int(o["styles"]), int(o["cycle_frames"]), n_restarts=int(o["restarts"]), seed=int(o["seed"]),
-              n_iter=int(o["n_iter"]), n_var=int(o["n_var"]), progress=progress, n_jumps=int(o["jumps"]),
+              n_iter=int(o["n_iter"]), n_var=int(o["n_var"]), progress=progress,
+              screen_iters=None if o["screen_iters"] is None else int(o["screen_iters"]), n_jumps=int(o["jumps"]),
               lam_s=float(o["lam_s"]), zbar_frac=float(o["zbar_frac"]), eta=float(o["eta"]),
               n_states=o["n_states"])
     secs = time.perf_counter() - t0
@@ -62,7 +73,8 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
             "best_seed": res.seed, "psi": res.psi.tolist(),
         },
     }
-    return HLMModel(rep, res.params, HLMOptions(adapt_rate=float(o["adapt_rate"]), lag=int(o["lag"])), meta)
+    opts = HLMOptions(adapt_rate=float(o["adapt_rate"]), lag=int(o["lag"]), kappa=float(o["kappa"]), width=int(o["width"]))
+    return HLMModel(rep, res.params, opts, meta)
 
 
 def _train(training_set, **options: Any) -> HLMModel:
@@ -77,7 +89,26 @@ def _fill_lag(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
     return model.fill_lagged(frames, observed)
 
 
-register_method(MethodSpec("hlm", _train, "HLM online forward filter (Pan & Torresani 2009)", None, True, dict(DEFAULTS)))
-register_method(MethodSpec("hlm-offline", _train, "HLM, eq. (18) with smoothed posteriors (offline)", _fill_offline,
-                           False, dict(DEFAULTS)))
-register_method(MethodSpec("hlm-lag", _train, "HLM fixed-lag smoother (lag frames late)", _fill_lag, False, dict(DEFAULTS)))
+def _train_faithful(training_set, **options: Any) -> HLMModel:
+    return _train(training_set, **{**options, **FAITHFUL})
+
+
+def _faithful_online(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
+    # a model file trained for `hlm` carries kappa > 0: the faithful methods switch it off
+    return model.with_options(**FAITHFUL).fill_offline(frames, observed)
+
+
+def _faithful_offline(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
+    return model.with_options(**FAITHFUL).fill_smoothed(frames, observed)
+
+
+# spec.defaults only carry what distinguishes the methods: protocol options (cycle_frames, fps)
+# must reach train_model unchanged.
+register_method(MethodSpec("hlm", _train, "HLM online forward filter with stream-cycle adaptation (causal)", None, True))
+register_method(MethodSpec("hlm-offline", _train, "HLM, eq. (18) with smoothed posteriors and the recording's own cycle",
+                           _fill_offline, False))
+register_method(MethodSpec("hlm-lag", _train, "HLM fixed-lag smoother (lag frames late)", _fill_lag, False))
+register_method(MethodSpec("hlm-faithful", _train_faithful, "HLM online filter exactly as the paper's model",
+                           _faithful_online, True, dict(FAITHFUL)))
+register_method(MethodSpec("hlm-faithful-offline", _train_faithful, "HLM section 4.3 as published: smoothed posteriors, eq. (18)",
+                           _faithful_offline, False, dict(FAITHFUL)))

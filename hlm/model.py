@@ -30,18 +30,24 @@ class HLMOptions:
     prior_strength : pseudo-count of the population d in that adaptation.
     n_iter_d : EM steps re-estimating d for a whole recording offline.
     lag : frames of look-ahead of the fixed-lag stream.
+    kappa, width : stream-cycle adaptation (pseudo-count in frames, phase spread in states);
+        kappa = 0 is the paper's filler.  See ``hlm.online``.
     """
 
     adapt_rate: float = 0.0
     prior_strength: float = 240.0
     n_iter_d: int = 3
     lag: int = 15
+    kappa: float = 0.0
+    width: int = 5
 
     def check(self) -> None:
         if not (0.0 <= self.adapt_rate < 1.0):
             raise ValueError(f"adapt_rate must be in [0, 1) (got {self.adapt_rate})")
         if self.prior_strength <= 0:
             raise ValueError(f"prior_strength must be positive (got {self.prior_strength})")
+        if self.kappa < 0 or self.width < 0:
+            raise ValueError(f"kappa and width must be >= 0 (got {self.kappa}, {self.width})")
         if self.n_iter_d < 0 or self.lag < 0:
             raise ValueError(f"n_iter_d and lag must be >= 0 (got {self.n_iter_d}, {self.lag})")
 
@@ -69,7 +75,8 @@ class HLMModel(FeatureModel):
         if params.mu.shape[2] != F:
             raise ValueError(f"HLM parameters have {params.mu.shape[2]} features, representation has {F}")
         self.tables = online.FilterTables.build(params.mu, params.var, params.lam, params.tau, params.d_population(),
-                                                self.options.adapt_rate, self.options.prior_strength)
+                                                self.options.adapt_rate, self.options.prior_strength,
+                                                self.options.kappa, self.options.width)
 
     def with_options(self, **kw) -> "HLMModel":
         """A copy with other inference options (the learned parameters are shared, read-only)."""
@@ -82,7 +89,8 @@ class HLMModel(FeatureModel):
 
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> CoreOut:
         online.update(self.tables, state, z, zobs)
-        zf, sd = online.fill(self.tables, state["post"], z, zobs)
+        online.accumulate(self.tables, state, z, zobs)
+        zf, sd = online.fill(self.tables, state["post"], z, zobs, state.get("R"), state.get("W"))
         return CoreOut(zf, sd, online.extras(self.tables, state["post"]))
 
     # ---- offline ----------------------------------------------------------------------------------
@@ -233,7 +241,7 @@ class LagStream:
 
     def _emit(self, P: np.ndarray, slot: int) -> Fill:
         m = self.model
-        zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot])
+        zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot], self.core.get("R"), self.core.get("W"))
         f = np.where(self.rawobs[slot], self.raw[slot], np.nan)[None]
         done = self.dec.decode(zf, f, self.rawobs[slot][None])
         self.dec.commit(done)
@@ -249,7 +257,8 @@ class LagStream:
             f, obs = check_frame(frame, observed, C)
         z, zo = self.enc.encode(f[None], obs[None])
         ll = online.update(m.tables, self.core, z, zo)
-        zf, _ = online.fill(m.tables, self.core["post"], z, zo)
+        online.accumulate(m.tables, self.core, z, zo)
+        zf, _ = online.fill(m.tables, self.core["post"], z, zo, self.core.get("R"), self.core.get("W"))
         self.enc.commit(self.enc.decode(zf, np.where(obs, f, np.nan)[None], obs[None]))
         slot = self.n % (self.lag + 1)
         self.post[slot], self.ll[slot], self.z[slot], self.zobs[slot] = self.core["post"], ll, z, zo

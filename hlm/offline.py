@@ -15,7 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from hlm import hmm
-from hlm.online import FilterTables, fill
+from hlm.online import FilterTables, fill, phase_spread
 
 
 @dataclass
@@ -60,8 +60,20 @@ def infer(tab: FilterTables, z: np.ndarray, zobs: np.ndarray, n_iter_d: int = 3,
 
 def fill_features(tab: FilterTables, z: np.ndarray, zobs: np.ndarray, n_iter_d: int = 3) -> tuple[np.ndarray, np.ndarray, Posterior]:
     """Fill a whole recording in feature space by eq. (18) with the smoothed posteriors.
-    Returns (z completed (T, F), std (T, F), posterior)."""
+    Returns (z completed (T, F), std (T, F), posterior).  With ``tab.kappa > 0`` the recording's
+    own cycle (see ``hlm.online``) is estimated from all its observed frames and the smoothed
+    posteriors, then used in (18)."""
     post = infer(tab, z, zobs, n_iter_d)
+    if tab.kappa > 0.0:
+        T = z.shape[0]
+        Pw = phase_spread(post.P, tab.width).reshape(T, -1)
+        o = zobs.astype(np.float64)
+        R = (Pw.T @ np.where(zobs, z, 0.0))[None]
+        W = (Pw.T @ o)[None]
+        zf, sd = np.empty_like(z), np.empty_like(z)
+        for t in range(T):
+            zf[t], sd[t] = (a[0] for a in fill(tab, post.P[t : t + 1], z[t : t + 1], zobs[t : t + 1], R, W))
+        return zf, sd, post
     zf, sd = fill(tab, post.P, z, zobs)
     return zf, sd, post
 

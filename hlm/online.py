@@ -16,6 +16,18 @@ exp(ell - max ell) so nothing underflows as a whole; this is the normalised log-
 recursion of ``hlm.hmm.forward`` (tested equal).  A frame that never arrives (nothing observed)
 is a pure prediction step.
 
+Stream cycle adaptation (``kappa > 0``; an extension beyond the paper, off in the faithful
+configuration): the stream gets its own latent cycle, drawn around the style's cycle,
+z^{s,c}_{mf} ~ N(mu^c_{mf}, 1/(kappa lambda^c_f)), observed through the frames assigned to
+(c, m) by the filtered posterior.  Its posterior mean is (kappa mu + R) / (kappa + W) with
+R = sum_t P_t(c, m) o_tf x_tf and W = sum_t P_t(c, m) o_tf: a performer whose arms swing wider
+than the training population's, or whose neck is held higher, is filled with their own motion
+once a cycle of it has been seen.  P is first spread over +-``width`` neighbouring phases (a box
+filter on the cycle) so one pass over the cycle informs every state, which stands in for the
+temporal smoothing prior lambda_s of the latent cycle.  Only states holding posterior mass are
+touched (sparse update), so the cost stays O(k F) for the k live states.  The emission keeps
+the style cycle (alignment stays that of the trained model).
+
 Transition adaptation (``adapt_rate > 0``): each frame adds the filtered expected jump
 probabilities P(jump = j | x_<=t) to exponentially forgotten counts n_j <- (1 - rate) n_j + xi_j,
 and d = (prior_strength d_pop + n) / (prior_strength + sum n).  A performer who walks faster
@@ -27,6 +39,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from scipy.ndimage import correlate1d
 
 from hlm.emissions import EmissionTables
 
@@ -45,10 +59,16 @@ class FilterTables:
     sin: np.ndarray
     adapt_rate: float = 0.0
     prior_strength: float = 240.0
+    kappa: float = 0.0     # stream-cycle adaptation pseudo-count (frames); 0 = off
+    width: int = 5         # phase smoothing half-width of that adaptation (states)
+    var: np.ndarray | None = None   # (C*M, F) Q(Z) variances, for the adapted second moment
+    inv_lam: np.ndarray | None = None  # (C, F)
+    style_of: np.ndarray | None = None  # (C*M,) style index of each flat state
 
     @classmethod
     def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray, tau: np.ndarray, d_pop: np.ndarray,
-              adapt_rate: float = 0.0, prior_strength: float = 240.0) -> "FilterTables":
+              adapt_rate: float = 0.0, prior_strength: float = 240.0, kappa: float = 0.0,
+              width: int = 5) -> "FilterTables":
         C, M, F = mu.shape
         ang = 2.0 * np.pi * np.arange(M) / M
         with np.errstate(divide="ignore"):  # a style with tau = 0 is impossible: log 0 = -inf
@@ -56,7 +76,8 @@ class FilterTables:
         return cls(EmissionTables.build(mu, var, lam), np.ascontiguousarray(mu.reshape(C * M, F)),
                    np.ascontiguousarray((mu ** 2 + var + 1.0 / lam[:, None, :]).reshape(C * M, F)),
                    lp, np.asarray(d_pop, dtype=np.float64), np.cos(ang), np.sin(ang), float(adapt_rate),
-                   float(prior_strength))
+                   float(prior_strength), float(kappa), int(width), np.ascontiguousarray(var.reshape(C * M, F)),
+                   1.0 / lam, np.repeat(np.arange(C), M))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -66,12 +87,57 @@ class FilterTables:
 def init_state(tab: FilterTables, n: int) -> dict[str, np.ndarray]:
     C, M = tab.shape
     J = tab.d_pop.shape[0]
-    return {
+    st = {
         "post": np.zeros((n, C, M)),          # filtered p(c, m | x_<=t); unused before frame 0
         "t": np.zeros(n, dtype=np.int64),     # frames consumed
         "d": np.tile(tab.d_pop, (n, 1)),      # current transition probabilities
         "counts": np.zeros((n, J)),           # forgotten expected jump counts (adaptation)
     }
+    if tab.kappa > 0.0:
+        F = tab.mu.shape[1]
+        st["R"] = np.zeros((n, C * M, F))     # stream-cycle statistics (see module doc)
+        st["W"] = np.zeros((n, C * M, F))
+    return st
+
+
+def phase_spread(P: np.ndarray, width: int) -> np.ndarray:
+    """Box filter of half-width ``width`` along the (cyclic) phase axis of P (..., M)."""
+    if width <= 0:
+        return P
+    M = P.shape[-1]
+    ext = np.concatenate([P[..., M - width - 1 :], P, P[..., :width]], axis=-1)
+    cs = np.cumsum(ext, axis=-1)
+    return (cs[..., 2 * width + 1 :] - cs[..., : M]) / (2 * width + 1)
+
+
+LIVE = 1e-10      # fill: states below this fraction of the largest posterior are skipped
+LIVE_STATS = 1e-4  # stream-cycle statistics: contributions below this fraction are skipped
+
+
+def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
+               P: np.ndarray | None = None) -> None:
+    """Add this frame to the stream-cycle statistics R, W (only when ``kappa > 0``)."""
+    if tab.kappa <= 0.0:
+        return
+    P = state["post"] if P is None else P
+    Pw = phase_spread(P, tab.width).reshape(P.shape[0], -1)
+    o = zobs.astype(np.float64)
+    xo = np.where(zobs, z, 0.0)
+    for i in range(P.shape[0]):
+        if not zobs[i].any():
+            continue
+        rows = np.flatnonzero(Pw[i] > LIVE_STATS * Pw[i].max())
+        w = Pw[i, rows, None]
+        state["R"][i, rows] += w * xo[i]
+        state["W"][i, rows] += w * o[i]
+
+
+def predict_shared(post: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``predict`` when every stream uses the same d (J,): one cyclic correlation in C."""
+    J = d.shape[0]
+    w = np.zeros(2 * J + 1)
+    w[:J] = d[::-1]          # out[m] = sum_j d_j post[m - j]: weight d_j sits at offset -j
+    return correlate1d(post, w, axis=-1, mode="wrap")
 
 
 def predict(post: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -108,6 +174,8 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
             parts[j - 1][..., j:] = post[..., :-j] * d[:, j - 1, None, None]
             parts[j - 1][..., :j] = post[..., -j:] * d[:, j - 1, None, None]
         pr = parts.sum(0)
+    elif tab.adapt_rate == 0.0:
+        pr = predict_shared(post, tab.d_pop)      # d never leaves d_pop without adaptation
     else:
         pr = predict(post, d)
     if first.any():
@@ -136,20 +204,41 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
     return ll
 
 
-def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: np.ndarray | None = None,
+         W: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fill the missing features from a joint posterior P (n, C, M).  Returns (z completed, std),
-    both (n, F); std is 0 where observed."""
-    if zobs.all():
-        return z.copy(), np.zeros_like(z)
+    both (n, F); std is 0 where observed.  R, W (n, C*M, F): stream-cycle statistics, if adapting.
+
+    Eq. (18) with the joint posterior in place of psi(c) gamma(m):
+    x_dag = (sum_c P(c) Lambda^c)^-1 sum_cm P(c, m) Lambda^c mu^{c,m}.  Only states holding more
+    than LIVE of the largest posterior enter the sums (the rest carry < C M LIVE of the mass), and
+    only the missing features are computed, so a frame costs O(k F_missing) for k live states.
+    """
+    out = z.copy()
+    sd = np.zeros_like(z)
     n = P.shape[0]
-    Pf = P.reshape(n, -1)
-    Pc = P.sum(2)
-    # eq. (18) with the joint posterior in place of psi(c) gamma(m)
-    val = (Pf @ tab.em.lam_mu) / (Pc @ tab.em.lam)
-    mean = Pf @ tab.mu
-    m2 = Pf @ tab.q2
-    var = np.maximum(m2 - mean * mean, 0.0) + (mean - val) ** 2
-    return np.where(zobs, z, val), np.where(zobs, 0.0, np.sqrt(var))
+    for i in range(n):
+        miss = ~zobs[i]
+        if not miss.any():
+            continue
+        Pf = P[i].reshape(-1)
+        rows = np.flatnonzero(Pf > LIVE * Pf.max())
+        p = Pf[rows] / Pf[rows].sum()
+        c = tab.style_of[rows]
+        lam = tab.em.lam[c][:, miss]                                      # (k, Fm)
+        if R is None:
+            mu = tab.mu[rows][:, miss]
+            q2 = tab.q2[rows][:, miss]
+        else:
+            # the stream's own cycle: posterior mean (kappa mu + R) / (kappa + W)
+            mu = (tab.kappa * tab.mu[rows][:, miss] + R[i, rows][:, miss]) / (tab.kappa + W[i, rows][:, miss])
+            q2 = mu * mu + tab.var[rows][:, miss] + tab.inv_lam[c][:, miss]
+        val = (p @ (lam * mu)) / (p @ lam)
+        mean = p @ mu
+        var = np.maximum(p @ q2 - mean * mean, 0.0) + (mean - val) ** 2
+        out[i, miss] = val
+        sd[i, miss] = np.sqrt(var)
+    return out, sd
 
 
 def extras(tab: FilterTables, P: np.ndarray) -> list[dict]:
