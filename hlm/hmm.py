@@ -79,21 +79,23 @@ def forward_backward(log_e: np.ndarray, log_start: np.ndarray, log_d: np.ndarray
     la = forward(log_e, log_start, log_d)
     last = la[lengths - 1, np.arange(K)]                          # (K, M)
     log_z = logsumexp(last, axis=-1)
-    lb = np.empty_like(log_e)
-    lb[-1] = 0.0
+    # gamma is formed in place of alpha, step by step, so no beta array is ever stored
+    gamma = la
+    lb = np.zeros((K, M))
     buf = np.empty((J, K, M))
     jumps = np.zeros((K, J))
-    for t in range(T - 2, -1, -1):
-        lb[t] = _lse_shift(lb[t + 1] + log_e[t + 1], log_d, -1, buf)
-        live = (t + 1) < lengths                                   # transition t -> t+1 is real
-        if live.any():
-            # xi_t(n -> n+j) = alpha_t(n) d_j e_{t+1}(n+j) beta_{t+1}(n+j) / Z; buf holds the last three
-            with np.errstate(under="ignore"):  # negligible transitions underflow to 0
+    with np.errstate(under="ignore"):  # tiny posteriors and negligible transitions underflow to 0
+        gamma[T - 1] = np.exp(np.minimum(la[T - 1] - log_z[:, None], 0.0))
+        for t in range(T - 2, -1, -1):
+            lb_next = lb
+            lb = _lse_shift(lb_next + log_e[t + 1], log_d, -1, buf)
+            live = (t + 1) < lengths                               # transition t -> t+1 is real
+            if live.any():
+                # xi_t(n -> n+j) = alpha_t(n) d_j e_{t+1}(n+j) beta_{t+1}(n+j) / Z; buf holds the last three
                 x = np.exp(np.minimum(buf + la[t] - log_z[:, None], 0.0)).sum(-1)   # (J, K)
-            jumps += np.where(live[:, None], x.T, 0.0)
+                jumps += np.where(live[:, None], x.T, 0.0)
+            gamma[t] = np.exp(np.minimum(la[t] + lb - log_z[:, None], 0.0))
     valid = np.arange(T)[:, None] < lengths[None, :]
-    with np.errstate(under="ignore"):  # tiny posteriors underflowing to 0 is fine
-        gamma = np.exp(np.minimum(la + lb - log_z[None, :, None], 0.0))
     gamma[~valid] = 0.0
     return gamma, log_z, jumps
 

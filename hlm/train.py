@@ -177,17 +177,26 @@ class VariationalEM:
         """Eq. (7)/(10): forward-backward with psi-weighted expected emissions
         e_k(i, m) = sum_c psi_kc <log N(x_i; z^c_m, Lambda^c^-1)>."""
         lam_mu, lam_q, log_norm = self._tables()
-        B = np.einsum("kc,cmf->kmf", self.psi, lam_mu)                          # (K, M, F)
-        Xk = self.X.transpose(1, 0, 2)                                            # (K, T, F)
-        x2 = np.einsum("tkf,kf->tk", self.X ** 2, self.psi @ self.lam)           # (T, K)
-        e = (Xk @ B.transpose(0, 2, 1)).transpose(1, 0, 2)                        # (T, K, M)
-        e += (-0.5 * x2)[:, :, None] - 0.5 * (self.psi @ lam_q)[None] + (self.psi @ log_norm)[None, :, None]
+        K, M, F = self.K, self.M, self.F
+        # e_k(i, m) = x_i . B_k[m] + const_k[m] - 1/2 x_i^2 . (psi_k Lambda): the (k, m) constant rides
+        # along as an extra column of the product; contiguous operands keep it on BLAS
+        Baug = np.empty((K, F + 1, M))
+        Baug[:, :F] = np.einsum("kc,cmf->kfm", self.psi, lam_mu)
+        Baug[:, F] = -0.5 * (self.psi @ lam_q) + (self.psi @ log_norm)[:, None]
+        T = self.X.shape[0]
+        Xk = np.ascontiguousarray(self.X.transpose(1, 0, 2))                      # (K, T, F)
+        Xaug = np.ones((K, T, F + 1))
+        Xaug[:, :, :F] = Xk
+        x2 = np.einsum("ktf,kf->kt", Xk ** 2, self.psi @ self.lam)              # (K, T)
+        ek = Xaug @ Baug                                                          # (K, T, M) on BLAS
+        ek -= 0.5 * x2[:, :, None]
+        e = np.ascontiguousarray(ek.transpose(1, 0, 2))                           # (T, K, M)
         e[~self.valid] = 0.0
         log_d = np.log(self.d)
         log_start = np.full((self.K, self.M), -np.log(self.M))
         G, log_z, jumps = hmm.forward_backward(e, log_start, log_d, self.lengths)
         self.G, self.jumps, self.log_z = G, jumps, log_z
-        self.GX = G.transpose(1, 2, 0) @ Xk                                       # (K, M, F)
+        self.GX = np.ascontiguousarray(G.transpose(1, 2, 0)) @ Xk                 # (K, M, F)
         self.Gs = G.sum(0)                                                        # (K, M)
         # entropy of Q(pi^k) = log Z_k - <log p(pi_1)> - <sum log d> - <sum e>, fixed with this Q
         self.H_pi = log_z + np.log(self.M) - (jumps * log_d).sum(1) - np.einsum("tkm,tkm->k", G, e)
