@@ -64,6 +64,9 @@ class FilterTables:
     var: np.ndarray | None = None   # (C*M, F) Q(Z) variances, for the adapted second moment
     inv_lam: np.ndarray | None = None  # (C, F)
     style_of: np.ndarray | None = None  # (C*M,) style index of each flat state
+    pack: np.ndarray | None = None      # (C*M, 4F) [lam mu | lam | mu | q2] per state, for fill
+    lam_rows: np.ndarray | None = None  # (C*M, F) lam of each state's style
+    var_q: np.ndarray | None = None     # (C*M, F) var + 1/lam
 
     @classmethod
     def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray, tau: np.ndarray, d_pop: np.ndarray,
@@ -78,6 +81,12 @@ class FilterTables:
                    lp, np.asarray(d_pop, dtype=np.float64), np.cos(ang), np.sin(ang), float(adapt_rate),
                    float(prior_strength), float(kappa), int(width), np.ascontiguousarray(var.reshape(C * M, F)),
                    1.0 / lam, np.repeat(np.arange(C), M))
+
+    def __post_init__(self) -> None:
+        C, M = self.em.C, self.em.M
+        self.lam_rows = np.ascontiguousarray(np.repeat(self.em.lam, M, axis=0))
+        self.var_q = np.ascontiguousarray(self.var + np.repeat(self.inv_lam, M, axis=0))
+        self.pack = np.ascontiguousarray(np.hstack([self.em.lam_mu, self.lam_rows, self.mu, self.q2]))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -116,20 +125,32 @@ LIVE_STATS = 1e-4  # stream-cycle statistics: contributions below this fraction 
 
 def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
                P: np.ndarray | None = None) -> None:
-    """Add this frame to the stream-cycle statistics R, W (only when ``kappa > 0``)."""
+    """Add this frame to the stream-cycle statistics R, W (only when ``kappa > 0``).
+
+    The live states of P (above LIVE_STATS of the largest) are spread over +-width phases (the
+    box filter of ``phase_spread``, applied to the sparse posterior), so the cost is O(k width F).
+    """
     if tab.kappa <= 0.0:
         return
     P = state["post"] if P is None else P
-    Pw = phase_spread(P, tab.width).reshape(P.shape[0], -1)
+    n = P.shape[0]
+    C, M = tab.shape
+    w = tab.width
+    offs = np.arange(-w, w + 1)
     o = zobs.astype(np.float64)
     xo = np.where(zobs, z, 0.0)
-    for i in range(P.shape[0]):
+    for i in range(n):
         if not zobs[i].any():
             continue
-        rows = np.flatnonzero(Pw[i] > LIVE_STATS * Pw[i].max())
-        w = Pw[i, rows, None]
-        state["R"][i, rows] += w * xo[i]
-        state["W"][i, rows] += w * o[i]
+        Pf = P[i].reshape(-1)
+        live = np.flatnonzero(Pf > LIVE_STATS * Pf.max())
+        c, m = np.divmod(live, M)
+        rows = (c[:, None] * M + (m[:, None] + offs[None, :]) % M).ravel()
+        acc = np.bincount(rows, np.repeat(Pf[live] / (2 * w + 1), 2 * w + 1), minlength=C * M)
+        rows = np.flatnonzero(acc)
+        wr = acc[rows, None]
+        state["R"][i, rows] += wr * xo[i]
+        state["W"][i, rows] += wr * o[i]
 
 
 def predict_shared(post: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -217,27 +238,32 @@ def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: n
     out = z.copy()
     sd = np.zeros_like(z)
     n = P.shape[0]
+    F = z.shape[1]
+    Pflat = P.reshape(n, -1)
     for i in range(n):
         miss = ~zobs[i]
         if not miss.any():
             continue
-        Pf = P[i].reshape(-1)
+        Pf = Pflat[i]
         rows = np.flatnonzero(Pf > LIVE * Pf.max())
-        p = Pf[rows] / Pf[rows].sum()
-        c = tab.style_of[rows]
-        lam = tab.em.lam[c][:, miss]                                      # (k, Fm)
+        p = Pf[rows]
+        p = p / p.sum()
         if R is None:
-            mu = tab.mu[rows][:, miss]
-            q2 = tab.q2[rows][:, miss]
+            # one gather of the packed per-state table [lam mu | lam | mu | mu^2 + var + 1/lam]
+            s4 = p @ tab.pack[rows]
+            val = s4[:F] / s4[F : 2 * F]
+            mean, m2 = s4[2 * F : 3 * F], s4[3 * F :]
         else:
             # the stream's own cycle: posterior mean (kappa mu + R) / (kappa + W)
-            mu = (tab.kappa * tab.mu[rows][:, miss] + R[i, rows][:, miss]) / (tab.kappa + W[i, rows][:, miss])
-            q2 = mu * mu + tab.var[rows][:, miss] + tab.inv_lam[c][:, miss]
-        val = (p @ (lam * mu)) / (p @ lam)
-        mean = p @ mu
-        var = np.maximum(p @ q2 - mean * mean, 0.0) + (mean - val) ** 2
-        out[i, miss] = val
-        sd[i, miss] = np.sqrt(var)
+            k = tab.kappa
+            mu = (k * tab.mu[rows] + R[i, rows]) / (k + W[i, rows])
+            lam = tab.lam_rows[rows]
+            val = (p @ (lam * mu)) / (p @ lam)
+            mean = p @ mu
+            m2 = p @ (mu * mu + tab.var_q[rows])
+        var = np.maximum(m2 - mean * mean, 0.0) + (mean - val) ** 2
+        out[i, miss] = val[miss]
+        sd[i, miss] = np.sqrt(var[miss])
     return out, sd
 
 
