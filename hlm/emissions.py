@@ -37,7 +37,7 @@ class EmissionTables:
     lam_mu: np.ndarray
     lam_q: np.ndarray
     log_norm: np.ndarray
-    fused: np.ndarray | None = None   # (C*M, 2F) = [lam_mu, -lam_q / 2]: one GEMM for both terms
+    fused: np.ndarray | None = None   # (3F, C*M): rows for [x, o, x^2]: one GEMM for every term
 
     @classmethod
     def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray) -> "EmissionTables":
@@ -46,8 +46,11 @@ class EmissionTables:
         lam3 = lam[:, None, :]
         lam_mu = np.ascontiguousarray((lam3 * mu).reshape(C * M, F))
         lam_q = np.ascontiguousarray((lam3 * (mu * mu + var)).reshape(C * M, F))
-        return cls(C, M, np.ascontiguousarray(lam), lam_mu, lam_q, 0.5 * (np.log(lam) - LOG2PI),
-                   np.ascontiguousarray(np.hstack([lam_mu, -0.5 * lam_q]).T))
+        log_norm = 0.5 * (np.log(lam) - LOG2PI)
+        per_o = -0.5 * lam_q + np.repeat(log_norm, M, axis=0)        # (C*M, F) weight of o_f
+        per_x2 = -0.5 * np.repeat(lam, M, axis=0)                      # (C*M, F) weight of x_f^2
+        return cls(C, M, np.ascontiguousarray(lam), lam_mu, lam_q, log_norm,
+                   np.ascontiguousarray(np.hstack([lam_mu, per_o, per_x2]).T))
 
     def loglik(self, x: np.ndarray, obs: np.ndarray | None = None) -> np.ndarray:
         """x: (n, F) features (NaN allowed where unobserved); obs: (n, F) bool or None (all).
@@ -61,6 +64,4 @@ class EmissionTables:
         else:
             o = obs.astype(np.float64)
             xo = np.where(obs, x, 0.0)
-        per_c = -0.5 * ((xo * xo) @ self.lam.T) + o @ self.log_norm.T          # (n, C)
-        per_cm = np.hstack([xo, o]) @ self.fused                                 # (n, C*M)
-        return per_cm.reshape(n, self.C, self.M) + per_c[:, :, None]
+        return (np.hstack([xo, o, xo * xo]) @ self.fused).reshape(n, self.C, self.M)

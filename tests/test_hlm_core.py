@@ -97,3 +97,20 @@ def test_forward_never_builds_the_transition_matrix(rng):
     le = rng.normal(size=(4, 1, M))
     la = hmm.forward(le, np.full((1, M), -np.log(M)), np.log(np.array([[0.2, 0.5, 0.3]])))
     assert np.isfinite(la).all()
+
+
+def test_emission_tables_match_the_expected_gaussian_loglik(rng):
+    from hlm.emissions import EmissionTables
+
+    C, M, F = 3, 7, 4
+    mu = rng.normal(size=(C, M, F))
+    var = rng.uniform(0.01, 0.5, (C, M, F))
+    lam = rng.uniform(0.5, 3.0, (C, F))
+    x = rng.normal(size=(5, F))
+    obs = rng.random((5, F)) > 0.4
+    got = EmissionTables.build(mu, var, lam).loglik(np.where(obs, x, np.nan), obs)
+    for i in range(5):
+        o = obs[i]
+        want = (0.5 * np.log(lam[:, None, o] / (2 * np.pi))
+                - 0.5 * lam[:, None, o] * ((x[i, o] - mu[:, :, o]) ** 2 + var[:, :, o])).sum(-1)
+        np.testing.assert_allclose(got[i], want, rtol=1e-12, atol=1e-12)
