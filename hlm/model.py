@@ -30,8 +30,8 @@ class HLMOptions:
     prior_strength : pseudo-count of the population d in that adaptation.
     n_iter_d : EM steps re-estimating d for a whole recording offline.
     lag : frames of look-ahead of the fixed-lag stream.
-    kappa, width : stream-cycle adaptation (pseudo-count in frames, phase spread in states);
-        kappa = 0 is the paper's filler.  See ``hlm.online``.
+    kappa, width : stream-cycle adaptation (prior pseudo-count of each knot of the stream's offset,
+        knots 2 width + 1 states apart); kappa = 0 is the paper's filler.  See ``hlm.online``.
     """
 
     adapt_rate: float = 0.0
@@ -90,7 +90,7 @@ class HLMModel(FeatureModel):
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> CoreOut:
         online.update(self.tables, state, z, zobs)
         online.accumulate(self.tables, state, z, zobs)
-        zf, sd = online.fill(self.tables, state["post"], z, zobs, state.get("R"), state.get("W"))
+        zf, sd = online.fill(self.tables, state["post"], z, zobs, *online.cycle_stats(state))
         return CoreOut(zf, sd, online.extras(self.tables, state["post"]))
 
     # ---- offline ----------------------------------------------------------------------------------
@@ -241,7 +241,7 @@ class LagStream:
 
     def _emit(self, P: np.ndarray, slot: int) -> Fill:
         m = self.model
-        zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot], self.core.get("R"), self.core.get("W"))
+        zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot], *online.cycle_stats(self.core))
         f = np.where(self.rawobs[slot], self.raw[slot], np.nan)[None]
         done = self.dec.decode(zf, f, self.rawobs[slot][None])
         self.dec.commit(done)
@@ -258,7 +258,7 @@ class LagStream:
         z, zo = self.enc.encode(f[None], obs[None])
         ll = online.update(m.tables, self.core, z, zo)
         online.accumulate(m.tables, self.core, z, zo)
-        zf, _ = online.fill(m.tables, self.core["post"], z, zo, self.core.get("R"), self.core.get("W"))
+        zf, _ = online.fill(m.tables, self.core["post"], z, zo, *online.cycle_stats(self.core))
         self.enc.commit(self.enc.decode(zf, np.where(obs, f, np.nan)[None], obs[None]))
         slot = self.n % (self.lag + 1)
         self.post[slot], self.ll[slot], self.z[slot], self.zobs[slot] = self.core["post"], ll, z, zo

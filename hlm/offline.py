@@ -15,7 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from hlm import hmm
-from hlm.online import FilterTables, fill, phase_spread
+from hlm.online import FilterTables, fill
 
 
 @dataclass
@@ -66,13 +66,17 @@ def fill_features(tab: FilterTables, z: np.ndarray, zobs: np.ndarray, n_iter_d: 
     post = infer(tab, z, zobs, n_iter_d)
     if tab.kappa > 0.0:
         T = z.shape[0]
-        Pw = phase_spread(post.P, tab.width).reshape(T, -1)
+        C, M = tab.shape
+        P = post.P.reshape(T, C * M)
+        A = np.zeros((C * M, C * tab.n_bins))                   # state -> knot interpolation weights
+        A[np.arange(C * M), tab.bin0] += 1.0 - tab.bin_a
+        A[np.arange(C * M), tab.bin1] += tab.bin_a
         o = zobs.astype(np.float64)
-        R = (Pw.T @ np.where(zobs, z, 0.0))[None]
-        W = (Pw.T @ o)[None]
-        zf, sd = np.empty_like(z), np.empty_like(z)
-        for t in range(T):
-            zf[t], sd[t] = (a[0] for a in fill(tab, post.P[t : t + 1], z[t : t + 1], zobs[t : t + 1], R, W))
+        Pb = P @ A
+        # D_b = sum_t sum_m P_t(m) A(m, b) o_t (x_t - mu_m);  W_b = sum_t sum_m P_t(m) A(m, b) o_t
+        D = Pb.T @ (o * np.where(zobs, z, 0.0)) - A.T @ (tab.mu * (P.T @ o))
+        W = Pb.T @ o
+        zf, sd = fill(tab, post.P, z, zobs, D[None].repeat(T, 0), W[None].repeat(T, 0))
         return zf, sd, post
     zf, sd = fill(tab, post.P, z, zobs)
     return zf, sd, post

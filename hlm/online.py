@@ -17,16 +17,16 @@ recursion of ``hlm.hmm.forward`` (tested equal).  A frame that never arrives (no
 is a pure prediction step.
 
 Stream cycle adaptation (``kappa > 0``; an extension beyond the paper, off in the faithful
-configuration): the stream gets its own latent cycle, drawn around the style's cycle,
-z^{s,c}_{mf} ~ N(mu^c_{mf}, 1/(kappa lambda^c_f)), observed through the frames assigned to
-(c, m) by the filtered posterior.  Its posterior mean is (kappa mu + R) / (kappa + W) with
-R = sum_t P_t(c, m) o_tf x_tf and W = sum_t P_t(c, m) o_tf: a performer whose arms swing wider
-than the training population's, or whose neck is held higher, is filled with their own motion
-once a cycle of it has been seen.  P is first spread over +-``width`` neighbouring phases (a box
-filter on the cycle) so one pass over the cycle informs every state, which stands in for the
-temporal smoothing prior lambda_s of the latent cycle.  Only states holding posterior mass are
-touched (sparse update), so the cost stays O(k F) for the k live states.  The emission keeps
-the style cycle (alignment stays that of the trained model).
+configuration): the stream gets its own latent cycle, its style's cycle plus a slowly varying
+offset, z^{s,c}_m = mu^c_m + delta^c(m), with delta piecewise linear over ``n_bins`` knots around
+the cycle (knots 2 ``width`` + 1 states apart) and a Gaussian prior N(0, 1/(kappa lambda^c_f)) on
+each knot.  Every observed frame adds its residual x - mu^c_m, weighted by the filtered posterior
+and split between the two neighbouring knots, to D and its weight to W; the knot's posterior mean
+is D / (kappa + W).  A performer whose arms swing wider than the training population's, or whose
+neck is held higher, is filled with their own motion once a cycle of it has been seen.  Only the
+live states of the posterior are touched (sparse), so a frame costs O(k F); the per-stream state
+is 2 C n_bins F numbers (about 90 kB at C = 4, M = 280, width 5).  The emission keeps the style
+cycle (alignment stays that of the trained model).
 
 Transition adaptation (``adapt_rate > 0``): each frame adds the filtered expected jump
 probabilities P(jump = j | x_<=t) to exponentially forgotten counts n_j <- (1 - rate) n_j + xi_j,
@@ -60,7 +60,7 @@ class FilterTables:
     adapt_rate: float = 0.0
     prior_strength: float = 240.0
     kappa: float = 0.0     # stream-cycle adaptation pseudo-count (frames); 0 = off
-    width: int = 5         # phase smoothing half-width of that adaptation (states)
+    width: int = 5         # knots of that adaptation are 2 width + 1 states apart
     var: np.ndarray | None = None   # (C*M, F) Q(Z) variances, for the adapted second moment
     inv_lam: np.ndarray | None = None  # (C, F)
     style_of: np.ndarray | None = None  # (C*M,) style index of each flat state
@@ -84,6 +84,14 @@ class FilterTables:
 
     def __post_init__(self) -> None:
         C, M = self.em.C, self.em.M
+        # stream-cycle knots: state m sits at u = m nb / M between knots floor(u) and floor(u) + 1
+        nb = max(3, int(round(M / (2 * self.width + 1)))) if self.width > 0 else M
+        u = np.arange(M) * nb / M
+        b0 = np.floor(u).astype(int)
+        self.n_bins = nb
+        self.bin0 = (np.arange(C)[:, None] * nb + b0[None]).ravel()
+        self.bin1 = (np.arange(C)[:, None] * nb + (b0[None] + 1) % nb).ravel()
+        self.bin_a = np.tile(u - b0, C)
         self.lam_rows = np.ascontiguousarray(np.repeat(self.em.lam, M, axis=0))
         self.var_q = np.ascontiguousarray(self.var + np.repeat(self.inv_lam, M, axis=0))
         self.pack = np.ascontiguousarray(np.hstack([self.em.lam_mu, self.lam_rows, self.mu, self.q2]))
@@ -104,19 +112,13 @@ def init_state(tab: FilterTables, n: int) -> dict[str, np.ndarray]:
     }
     if tab.kappa > 0.0:
         F = tab.mu.shape[1]
-        st["R"] = np.zeros((n, C * M, F))     # stream-cycle statistics (see module doc)
-        st["W"] = np.zeros((n, C * M, F))
+        st["D"] = np.zeros((n, C * tab.n_bins, F))   # stream-cycle residual sums (see module doc)
+        st["W"] = np.zeros((n, C * tab.n_bins, F))   # and their weights
     return st
 
 
-def phase_spread(P: np.ndarray, width: int) -> np.ndarray:
-    """Box filter of half-width ``width`` along the (cyclic) phase axis of P (..., M)."""
-    if width <= 0:
-        return P
-    M = P.shape[-1]
-    ext = np.concatenate([P[..., M - width - 1 :], P, P[..., :width]], axis=-1)
-    cs = np.cumsum(ext, axis=-1)
-    return (cs[..., 2 * width + 1 :] - cs[..., : M]) / (2 * width + 1)
+def cycle_stats(state: dict[str, np.ndarray]) -> tuple[np.ndarray | None, np.ndarray | None]:
+    return state.get("D"), state.get("W")
 
 
 LIVE = 1e-10      # fill: states below this fraction of the largest posterior are skipped
@@ -125,32 +127,31 @@ LIVE_STATS = 1e-4  # stream-cycle statistics: contributions below this fraction 
 
 def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
                P: np.ndarray | None = None) -> None:
-    """Add this frame to the stream-cycle statistics R, W (only when ``kappa > 0``).
-
-    The live states of P (above LIVE_STATS of the largest) are spread over +-width phases (the
-    box filter of ``phase_spread``, applied to the sparse posterior), so the cost is O(k width F).
-    """
+    """Add this frame's residuals to the stream-cycle statistics D, W (only when ``kappa > 0``)."""
     if tab.kappa <= 0.0:
         return
     P = state["post"] if P is None else P
     n = P.shape[0]
-    C, M = tab.shape
-    w = tab.width
-    offs = np.arange(-w, w + 1)
     o = zobs.astype(np.float64)
-    xo = np.where(zobs, z, 0.0)
     for i in range(n):
         if not zobs[i].any():
             continue
         Pf = P[i].reshape(-1)
-        live = np.flatnonzero(Pf > LIVE_STATS * Pf.max())
-        c, m = np.divmod(live, M)
-        rows = (c[:, None] * M + (m[:, None] + offs[None, :]) % M).ravel()
-        acc = np.bincount(rows, np.repeat(Pf[live] / (2 * w + 1), 2 * w + 1), minlength=C * M)
-        rows = np.flatnonzero(acc)
-        wr = acc[rows, None]
-        state["R"][i, rows] += wr * xo[i]
-        state["W"][i, rows] += wr * o[i]
+        rows = np.flatnonzero(Pf > LIVE_STATS * Pf.max())
+        p = Pf[rows]
+        a = tab.bin_a[rows]
+        dev = o[i] * (np.where(zobs[i], z[i], 0.0) - tab.mu[rows])                 # (k, F)
+        bins = np.concatenate([tab.bin0[rows], tab.bin1[rows]])
+        wts = np.concatenate([p * (1.0 - a), p * a])[:, None]
+        np.add.at(state["D"][i], bins, wts * np.concatenate([dev, dev]))
+        np.add.at(state["W"][i], bins, wts * o[i])
+
+
+def stream_offset(tab: FilterTables, rows: np.ndarray, D: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """delta(m) at the given flat states (k, F) from one stream's knot statistics D, W (C nb, F)."""
+    k = tab.kappa
+    b0, b1, a = tab.bin0[rows], tab.bin1[rows], tab.bin_a[rows, None]
+    return (1.0 - a) * D[b0] / (k + W[b0]) + a * D[b1] / (k + W[b1])
 
 
 def predict_shared(post: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -228,7 +229,7 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
 def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: np.ndarray | None = None,
          W: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fill the missing features from a joint posterior P (n, C, M).  Returns (z completed, std),
-    both (n, F); std is 0 where observed.  R, W (n, C*M, F): stream-cycle statistics, if adapting.
+    both (n, F); std is 0 where observed.  R, W (n, C*n_bins, F): the stream-cycle statistics D, W, if adapting.
 
     Eq. (18) with the joint posterior in place of psi(c) gamma(m):
     x_dag = (sum_c P(c) Lambda^c)^-1 sum_cm P(c, m) Lambda^c mu^{c,m}.  Only states holding more
@@ -254,9 +255,8 @@ def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: n
             val = s4[:F] / s4[F : 2 * F]
             mean, m2 = s4[2 * F : 3 * F], s4[3 * F :]
         else:
-            # the stream's own cycle: posterior mean (kappa mu + R) / (kappa + W)
-            k = tab.kappa
-            mu = (k * tab.mu[rows] + R[i, rows]) / (k + W[i, rows])
+            # the stream's own cycle: style cycle plus the stream's offset (module doc)
+            mu = tab.mu[rows] + stream_offset(tab, rows, R[i], W[i])
             lam = tab.lam_rows[rows]
             val = (p @ (lam * mu)) / (p @ lam)
             mean = p @ mu
