@@ -28,7 +28,6 @@ import numpy as np
 from hlm.methods import train_model
 from hlm.offline import purity
 from lacuna import registry
-from mocap import datasets
 from mocap.protocols import get_protocol
 
 

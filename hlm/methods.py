@@ -18,7 +18,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from hlm import model as _model  # registers the loader
+from hlm import model as _model  # noqa: F401  (registers the model-file loader)
 from hlm.model import HLMModel, HLMOptions
 from hlm.train import fit
 from lacuna.registry import MethodSpec, register_method

@@ -6,8 +6,7 @@ was trained on (``root_mode`` raw or relative, normalised or not, recorded in th
 """
 from __future__ import annotations
 
-import datetime as _dt
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -16,7 +15,7 @@ from lacuna import modelfile
 from lacuna.feature_model import CoreOut, FeatureModel
 from lacuna.filler import Fill, FillerError, check_frame
 from hlm import offline, online
-from hlm.train import HLMParams
+from hlm.params import HLMParams
 from mocap.representation import Representation
 
 METHOD = "hlm"

@@ -24,60 +24,15 @@ from __future__ import annotations
 import sys
 import time
 import warnings
-from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
 
 from hlm import cyclic, hmm
-from hlm.emissions import LOG2PI, EmissionTables
+from hlm.emissions import LOG2PI
+from hlm.params import BoundWarning, FitResult, HLMParams
 
-
-@dataclass
-class HLMParams:
-    """Learned quantities, in feature space.  C styles, M phases, F features, J jumps, K sequences.
-
-    zbar : (M, F) parent cycle.  mu, var : (C, M, F) mean and variance of Q(Z^c).
-    lam : (C, F) style noise precisions Lambda^c.  tau : (C,).  d : (K, J) per training sequence.
-    lam_s, lam_zbar : scalars.
-    """
-
-    zbar: np.ndarray
-    mu: np.ndarray
-    var: np.ndarray
-    lam: np.ndarray
-    tau: np.ndarray
-    d: np.ndarray
-    lam_s: float
-    lam_zbar: float
-
-    @property
-    def n_styles(self) -> int:
-        return self.mu.shape[0]
-
-    @property
-    def n_states(self) -> int:
-        return self.mu.shape[1]
-
-    @property
-    def n_jumps(self) -> int:
-        return self.d.shape[1]
-
-    def d_population(self) -> np.ndarray:
-        """(J,) transition probabilities for a new sequence: the mean of the training d^k."""
-        d = self.d.mean(0)
-        return d / d.sum()
-
-
-@dataclass
-class FitResult:
-    params: HLMParams
-    psi: np.ndarray            # (K, C) style posteriors of the training sequences
-    bounds: list[float]        # bound after each EM iteration (index 0: after initialisation)
-    restart_bounds: list[float]
-    seed: int
-    seconds: float
-    filled: list[np.ndarray] = field(default_factory=list)  # training sequences with (18) fills
+__all__ = ["VariationalEM", "fit", "HLMParams", "FitResult", "BoundWarning"]
 
 
 class VariationalEM:
@@ -343,10 +298,6 @@ class VariationalEM:
 
     def filled_sequences(self) -> list[np.ndarray]:
         return [self.X[: self.lengths[k], k].copy() for k in range(self.K)]
-
-
-class BoundWarning(RuntimeWarning):
-    """The variational bound went down (it should not)."""
 
 
 def fit(sequences: Sequence[np.ndarray], n_styles: int, cycle_frames: int, *, n_restarts: int = 3,

@@ -1,10 +1,7 @@
 """HLM model files: save/load round trip through lacuna.modelfile, and clear errors for bad files;
 `lacuna train hlm` on real AMC takes as a real process."""
-import json
-import os
 import subprocess
 import sys
-import zipfile
 
 import numpy as np
 import pytest
