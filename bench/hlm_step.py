@@ -3,7 +3,7 @@
 Times, over repeated frames of CMU 07_01 with the pan2009 erasure (half the frames with the
 upper body missing), the feature-space core step (predict + update + fill + extras) and the full
 Filler-seam step (representation encode/decode included), single stream and batched, for the
-faithful filler (kappa 0) and the stream-cycle adaptation (kappa 1, width 8).  Reports median, p90, p99.
+faithful filler (kappa 0) and the stream-cycle adaptation (kappa 3, kappa_global 3, width 8).  Reports median, p90, p99.
 
     .venv/bin/python bench/hlm_step.py [--model M.npz] [--frames 2000]
 
@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     p = model.params
     print(f"model: C={p.n_styles} M={p.n_states} F={model.representation.n_features}; {args.frames} frames of {case.test}")
     for kappa in (0.0, 1.0):
-        m = model.with_options(kappa=kappa, width=8)
+        m = model.with_options(kappa=3.0 if kappa else 0.0, kappa_global=3.0 if kappa else 0.0, width=8)
         # core step in feature space
         z_all, o_all = m.encode_recording(case.truth, case.observed)
         z_all = np.where(o_all, z_all, np.nan)

@@ -29,8 +29,10 @@ def add_commands(cli) -> None:
     p.add_argument("--normalize", action=argparse.BooleanOptionalAction, default=False,
                    help="scale features to unit variance before training (default off, as the paper)")
     p.add_argument("--fps", type=float, help="resample every file to this rate first")
-    p.add_argument("--kappa", type=float, default=1.0,
-                   help="stream-cycle adaptation pseudo-count at inference (0 = the paper's filler; default 1)")
+    p.add_argument("--kappa", type=float, default=3.0,
+                   help="stream-cycle adaptation pseudo-count per knot at inference (0 = the paper's filler; default 3)")
+    p.add_argument("--kappa-global", type=float, default=3.0,
+                   help="pseudo-count of the stream's constant offset (0 = knots only; default 3)")
     p.add_argument("--width", type=int, default=8,
                    help="stream-cycle knots are 2 width + 1 latent states apart (default 8)")
     p.add_argument("--lag", type=int, default=15, help="frames of look-ahead of the fixed-lag filler (default 15)")
@@ -82,6 +84,7 @@ def _run_train(args: argparse.Namespace) -> int:
                         styles=args.styles, cycle_frames=args.cycle_frames, n_states=args.states, jumps=args.jumps,
                         n_iter=args.iterations, n_var=args.sweeps, restarts=args.restarts, seed=args.seed,
                         root_mode=args.root_mode, normalize=args.normalize, kappa=args.kappa, width=args.width,
+                        kappa_global=args.kappa_global,
                         lag=args.lag)
     model.meta["training"]["fps"] = fps
     model.save(args.output)

@@ -42,10 +42,11 @@ DEFAULTS: dict[str, Any] = {
     "zbar_frac": 0.01,
     "adapt_rate": 0.0,
     "lag": 15,
-    "kappa": 1.0,          # stream-cycle adaptation (hlm.online); chosen on pan2009 and checked on gaps
+    "kappa": 3.0,          # stream-cycle adaptation (hlm.online); chosen on pan2009 and gaps
     "width": 8,
+    "kappa_global": 3.0,
 }
-FAITHFUL = {"kappa": 0.0}
+FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0}
 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
@@ -73,7 +74,8 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
             "best_seed": res.seed, "psi": res.psi.tolist(),
         },
     }
-    opts = HLMOptions(adapt_rate=float(o["adapt_rate"]), lag=int(o["lag"]), kappa=float(o["kappa"]), width=int(o["width"]))
+    opts = HLMOptions(adapt_rate=float(o["adapt_rate"]), lag=int(o["lag"]), kappa=float(o["kappa"]), width=int(o["width"]),
+                       kappa_global=float(o["kappa_global"]))
     return HLMModel(rep, res.params, opts, meta)
 
 

@@ -31,6 +31,7 @@ class HLMOptions:
     lag : frames of look-ahead of the fixed-lag stream.
     kappa, width : stream-cycle adaptation (prior pseudo-count of each knot of the stream's offset,
         knots 2 width + 1 states apart); kappa = 0 is the paper's filler.  See ``hlm.online``.
+    kappa_global : pseudo-count of the stream's constant offset under the knots (0 = none).
     """
 
     adapt_rate: float = 0.0
@@ -39,14 +40,16 @@ class HLMOptions:
     lag: int = 15
     kappa: float = 0.0
     width: int = 5
+    kappa_global: float = 0.0
 
     def check(self) -> None:
         if not (0.0 <= self.adapt_rate < 1.0):
             raise ValueError(f"adapt_rate must be in [0, 1) (got {self.adapt_rate})")
         if self.prior_strength <= 0:
             raise ValueError(f"prior_strength must be positive (got {self.prior_strength})")
-        if self.kappa < 0 or self.width < 0:
-            raise ValueError(f"kappa and width must be >= 0 (got {self.kappa}, {self.width})")
+        if self.kappa < 0 or self.width < 0 or self.kappa_global < 0:
+            raise ValueError(f"kappa, width and kappa_global must be >= 0 "
+                             f"(got {self.kappa}, {self.width}, {self.kappa_global})")
         if self.n_iter_d < 0 or self.lag < 0:
             raise ValueError(f"n_iter_d and lag must be >= 0 (got {self.n_iter_d}, {self.lag})")
 
@@ -75,7 +78,7 @@ class HLMModel(FeatureModel):
             raise ValueError(f"HLM parameters have {params.mu.shape[2]} features, representation has {F}")
         self.tables = online.FilterTables.build(params.mu, params.var, params.lam, params.tau, params.d_population(),
                                                 self.options.adapt_rate, self.options.prior_strength,
-                                                self.options.kappa, self.options.width)
+                                                self.options.kappa, self.options.width, self.options.kappa_global)
 
     def with_options(self, **kw) -> "HLMModel":
         """A copy with other inference options (the learned parameters are shared, read-only)."""

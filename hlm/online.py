@@ -25,8 +25,10 @@ and split between the two neighbouring knots, to D and its weight to W; the knot
 is D / (kappa + W).  A performer whose arms swing wider than the training population's, or whose
 neck is held higher, is filled with their own motion once a cycle of it has been seen.  Only the
 live states of the posterior are touched (sparse), so a frame costs O(k F); the per-stream state
-is 2 C n_bins F numbers (about 90 kB at C = 4, M = 280, width 5).  The emission keeps the style
-cycle (alignment stays that of the trained model).
+is 2 C n_bins F numbers (about 60 kB at C = 4, M = 280, width 8).  With ``kappa_global > 0`` the
+offset has a second level, a constant per style under the knots (see ``stream_offset``), so the
+phases not yet seen move with the rest.  The emission keeps the style cycle (alignment stays
+that of the trained model).
 
 Transition adaptation (``adapt_rate > 0``): each frame adds the filtered expected jump
 probabilities P(jump = j | x_<=t) to exponentially forgotten counts n_j <- (1 - rate) n_j + xi_j,
@@ -61,6 +63,7 @@ class FilterTables:
     prior_strength: float = 240.0
     kappa: float = 0.0     # stream-cycle adaptation pseudo-count (frames); 0 = off
     width: int = 5         # knots of that adaptation are 2 width + 1 states apart
+    kappa_global: float = 0.0  # pseudo-count of the stream's constant offset (0 = knots only)
     var: np.ndarray | None = None   # (C*M, F) Q(Z) variances, for the adapted second moment
     inv_lam: np.ndarray | None = None  # (C, F)
     style_of: np.ndarray | None = None  # (C*M,) style index of each flat state
@@ -71,7 +74,7 @@ class FilterTables:
     @classmethod
     def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray, tau: np.ndarray, d_pop: np.ndarray,
               adapt_rate: float = 0.0, prior_strength: float = 240.0, kappa: float = 0.0,
-              width: int = 5) -> "FilterTables":
+              width: int = 5, kappa_global: float = 0.0) -> "FilterTables":
         C, M, F = mu.shape
         ang = 2.0 * np.pi * np.arange(M) / M
         with np.errstate(divide="ignore"):  # a style with tau = 0 is impossible: log 0 = -inf
@@ -79,7 +82,8 @@ class FilterTables:
         return cls(EmissionTables.build(mu, var, lam), np.ascontiguousarray(mu.reshape(C * M, F)),
                    np.ascontiguousarray((mu ** 2 + var + 1.0 / lam[:, None, :]).reshape(C * M, F)),
                    lp, np.asarray(d_pop, dtype=np.float64), np.cos(ang), np.sin(ang), float(adapt_rate),
-                   float(prior_strength), float(kappa), int(width), np.ascontiguousarray(var.reshape(C * M, F)),
+                   float(prior_strength), float(kappa), int(width), float(kappa_global),
+                   np.ascontiguousarray(var.reshape(C * M, F)),
                    1.0 / lam, np.repeat(np.arange(C), M))
 
     def __post_init__(self) -> None:
@@ -148,10 +152,21 @@ def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, z
 
 
 def stream_offset(tab: FilterTables, rows: np.ndarray, D: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """delta(m) at the given flat states (k, F) from one stream's knot statistics D, W (C nb, F)."""
+    """delta(m) at the given flat states (k, F) from one stream's knot statistics D, W (C nb, F).
+
+    With ``kappa_global > 0`` the offset is two-level: a constant per style g_c (all the stream's
+    residuals, prior pseudo-count kappa_global) plus knot deviations from it, so phases the stream
+    has not shown yet still move by the offset seen elsewhere in the cycle."""
     k = tab.kappa
     b0, b1, a = tab.bin0[rows], tab.bin1[rows], tab.bin_a[rows, None]
-    return (1.0 - a) * D[b0] / (k + W[b0]) + a * D[b1] / (k + W[b1])
+    if tab.kappa_global <= 0.0:
+        return (1.0 - a) * D[b0] / (k + W[b0]) + a * D[b1] / (k + W[b1])
+    nb = tab.n_bins
+    c = tab.style_of[rows]
+    Dg = D.reshape(-1, nb, D.shape[1]).sum(1)                   # (C, F): knot weights sum to 1 per frame
+    Wg = W.reshape(-1, nb, W.shape[1]).sum(1)
+    g = (Dg / (tab.kappa_global + Wg))[c]                        # (k, F)
+    return g + (1.0 - a) * (D[b0] - W[b0] * g) / (k + W[b0]) + a * (D[b1] - W[b1] * g) / (k + W[b1])
 
 
 def predict_shared(post: np.ndarray, d: np.ndarray) -> np.ndarray:
