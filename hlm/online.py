@@ -28,7 +28,8 @@ live states of the posterior are touched (sparse), so a frame costs O(k F); the 
 is 2 C n_bins F numbers (about 60 kB at C = 4, M = 280, width 8).  With ``kappa_global > 0`` the
 offset has a second level, a constant per style under the knots (see ``stream_offset``), so the
 phases not yet seen move with the rest.  The emission keeps the style cycle (alignment stays
-that of the trained model).
+that of the trained model).  The reported std does not yet include the uncertainty of the
+offset estimate itself (about 1 / sqrt(lambda (kappa + W)) per knot), only the terms above.
 
 Transition adaptation (``adapt_rate > 0``): each frame adds the filtered expected jump
 probabilities P(jump = j | x_<=t) to exponentially forgotten counts n_j <- (1 - rate) n_j + xi_j,
