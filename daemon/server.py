@@ -231,6 +231,8 @@ class Daemon:
             if status == "degraded":
                 s.counts["degraded"] += 1
                 self.metrics.inc("degraded")
+                # held (hold-last-value) vs stepped with fewer Gibbs iterations
+                self.metrics.inc("degraded_held" if fill.degraded else "degraded_iterations")
             self.metrics.inc("frames_out")
             self.metrics.latency(now - p.arrived)
             self._send(p.origin, msg, publish=True)
