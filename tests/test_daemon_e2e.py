@@ -604,3 +604,14 @@ def test_a_flood_of_bad_messages_is_counted_in_full_but_logged_sparingly(tmp_pat
             break
         time.sleep(0.1)
     assert logged + summed == n and logged <= n // 2
+
+
+def test_second_daemon_on_a_taken_port_fails_with_a_clear_error(tmp_path, daemons):
+    d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"}}))
+    taken = d.endpoints["router"]
+    cfg2 = tmp_path / "second.toml"
+    cfg2.write_text(f'[models.floor]\nbuiltin = "passthrough"\n[zmq]\nrouter = "{taken}"\n')
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--config", str(cfg2)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.startswith("lacuna: error: zmq.router") and taken in r.stderr and "cannot bind" in r.stderr
