@@ -25,13 +25,13 @@ from daemon import osc, security, wire
 from daemon.metrics import Metrics, MetricsHTTP
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
-from daemon.ratelimit import EventLimiter
 from daemon.scheduler import Scheduler, fill_message
 from daemon.session import Origin, SessionError, SessionTable
 from daemon.transport import Transports
 
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
 HOUSEKEEPING_S = 0.5
+REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, summarised
 DRAIN_LINGER_MS = 1000  # on SIGTERM, let answers already queued reach their peers
 LEVELS = {"debug": 10, "info": 20, "warning": 30, "error": 40}
 
@@ -74,8 +74,8 @@ class Daemon:
         self._reload_result: tuple[config_mod.Config | None, dict[str, Loaded], dict[str, str]] | None = None
         self._reload_waiters: list[Origin] = []
         self.last_reload: dict[str, Any] = {}
-        self.reject_log = EventLimiter()  # a flood of bad input must not flood the log (counters stay exact)
         self.started = time.time()
+        self._rej_window, self._rej_logged, self._rej_suppressed = 0.0, 0, 0
 
     # ---- models -----------------------------------------------------------------------------
     def _resolve(self, requested: str | None, sid: str):
@@ -93,7 +93,8 @@ class Daemon:
         if errors:
             raise config_mod.ConfigError("; ".join(f"model {n}: {e}" for n, e in errors.items()))
         self._install(table)
-        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, self.log)
+        # the log object changes on reload (level): look it up at each call
+        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, lambda *a, **k: self.log(*a, **k))
         self.net.open()
         if self.cfg.metrics_http:
             self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom)
@@ -199,9 +200,17 @@ class Daemon:
         s = self.sessions.sessions.get(sid) if sid else None
         if s is not None:
             s.counts["rejected"] += 1
-        if self.reject_log.allow(reason):
+        # a flood of bad input must not turn into a flood of log lines: at most REJECT_LOG_PER_S
+        # a second are written, the rest are summed into one line per housekeeping tick
+        now = time.monotonic()
+        if now - self._rej_window >= 1.0:
+            self._rej_window, self._rej_logged = now, 0
+        if self._rej_logged < REJECT_LOG_PER_S:
+            self._rej_logged += 1
             self.log("warning", "rejected", reason=reason, detail=detail[:300], stream=sid, seq=seq,
                      transport=origin[0] if origin else None)
+        else:
+            self._rej_suppressed += 1
         if origin is not None:
             self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
 
@@ -234,6 +243,8 @@ class Daemon:
             if status == "degraded":
                 s.counts["degraded"] += 1
                 self.metrics.inc("degraded")
+                # held (hold-last-value) vs stepped with fewer Gibbs iterations
+                self.metrics.inc("degraded_held" if fill.degraded else "degraded_iterations")
             self.metrics.inc("frames_out")
             self.metrics.latency(now - p.arrived)
             self._send(p.origin, msg, publish=True)
@@ -364,13 +375,14 @@ class Daemon:
 
     # ---- housekeeping / shutdown --------------------------------------------------------------
     def _housekeeping(self, now: float) -> None:
+        if self._rej_suppressed:
+            self.log("warning", "rejected_not_logged", count=self._rej_suppressed,
+                     by_reason=dict(self.metrics.rejected), detail="more rejections than the log takes; all are counted")
+            self._rej_suppressed = 0
         gone = self.sessions.expire(now, self.cfg.idle_timeout_s)
         for sid in gone:
             self.log("info", "stream_expired", stream=sid)
             self.metrics.inc("expired")
-        for reason, n in self.reject_log.flush():
-            self.log("warning", "rejected_suppressed", reason=reason, count=n,
-                     detail=f"{n} more rejections not logged one by one (see `lacuna status`)")
         if self.http is not None:
             self._prom = self.metrics.prometheus(self.status())
         self.notify.status(self._status_line())

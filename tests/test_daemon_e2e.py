@@ -583,3 +583,35 @@ def test_osc_answers_go_to_the_configured_send_address(tmp_path, daemons):
     finally:
         out.close()
         src.close()
+
+
+def test_a_flood_of_bad_messages_is_counted_in_full_but_logged_sparingly(tmp_path, daemons, ctx):
+    d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"}}))
+    s = dealer(ctx, d)
+    n = 300
+    for i in range(n):
+        s.send(b"\xc1" + bytes([i % 256]))
+    errors = [recv(s) for _ in range(n)]
+    assert all(isinstance(e, wire.ErrorMsg) and e.reason == "not_msgpack" for e in errors)
+    st = loadgen_status(d)
+    assert st["rejected"] == {"not_msgpack": n}
+    d.wait_for("rejected_not_logged", 5)
+    end = time.monotonic() + 5  # every rejection is either a log line or in a summary line
+    while time.monotonic() < end:
+        logged = sum(1 for r in d.log if r.get("event") == "rejected")
+        summed = sum(r["count"] for r in d.log if r.get("event") == "rejected_not_logged")
+        if logged + summed == n:
+            break
+        time.sleep(0.1)
+    assert logged + summed == n and logged <= n // 2
+
+
+def test_second_daemon_on_a_taken_port_fails_with_a_clear_error(tmp_path, daemons):
+    d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"}}))
+    taken = d.endpoints["router"]
+    cfg2 = tmp_path / "second.toml"
+    cfg2.write_text(f'[models.floor]\nbuiltin = "passthrough"\n[zmq]\nrouter = "{taken}"\n')
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--config", str(cfg2)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.startswith("lacuna: error: zmq.router") and taken in r.stderr and "cannot bind" in r.stderr
