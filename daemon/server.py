@@ -294,7 +294,7 @@ class Daemon:
             "latency": self.metrics.latency_summary(), "step": self.metrics.step_summary(),
             "counters": dict(self.metrics.counters), "rejected": dict(self.metrics.rejected),
             "streams": {sid: s.info() for sid, s in self.sessions.sessions.items()},
-            "expired": self.sessions.expired, "step_errors": self.sched.step_errors,
+            "expired": self.sessions.expired, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
             "security": self.net.guard.info() if self.net is not None and self.net.guard is not None else None,
         }
