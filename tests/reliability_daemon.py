@@ -282,6 +282,7 @@ class LockStep(threading.Thread):
         self.answers: dict[int, wire.Message] = {}
         self.got_at: dict[int, float] = {}
         self.retries = 0
+        self.retried: set[int] = set()  # seqs sent again after a timeout
         self.problems: list[str] = []
         self.t_of: dict[int, float] = {}  # capture timestamp sent with each seq
         self.t_fn = lambda seq: seq / 120.0
@@ -327,6 +328,7 @@ class LockStep(threading.Thread):
                         s.send(wire.encode(wire.Hello(self.sid, self.hello)))
                     s.send(body)
                     self.retries += 1
+                    self.retried.add(seq)
                 seq += 1
         finally:
             s.close(0)
