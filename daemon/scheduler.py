@@ -157,7 +157,9 @@ class Scheduler:
             # a full-quality fill that overran the budget is "ok" (its proc_us shows the
             # overrun); it is "degraded" only when the cheapest level is cheaper than asked
             return StepPlan(order[:1], order[1:], levels[-1], levels[-1] != levels[0])
-        return StepPlan(order[:n], order[n:], levels[-1], True)
+        # the streams that do step get the cheapest level: degraded only if that is cheaper
+        # than asked (the held ones are marked degraded by the hold itself)
+        return StepPlan(order[:n], order[n:], levels[-1], levels[-1] != levels[0])
 
     # ---- stepping ---------------------------------------------------------------------------
     def run(self, groups: dict[int, tuple[Model, list[Session]]], now: float) -> list[tuple[Session, Fill, str]]:

@@ -620,3 +620,41 @@ def test_second_daemon_on_a_taken_port_fails_with_a_clear_error(tmp_path, daemon
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert r.stderr.startswith("lacuna: error: zmq.router") and taken in r.stderr and "cannot bind" in r.stderr
+
+
+@pytest.mark.slow
+def test_hlm_model_through_daemon_equals_in_process_stream_with_style_and_phase(tmp_path, daemons, ctx, data):
+    """A real HLM (trained in seconds on three subject-35 walks) serves a held-out walk with the
+    left arm missing: the daemon's fills equal the model's own causal stream fed the same float32
+    frames, and every reply carries the style posterior and the gait phase."""
+    from hlm.methods import train_model
+    from mocap.datasets import load_trial
+
+    train = [load_trial(t) for t in ("35_01", "35_06", "35_07")]
+    channels = list(train[0].channels)
+    model = train_model([m.frames for m in train], channels, n_iter=3, restarts=1, styles=2)
+    model.save(str(tmp_path / "hlm.npz"))
+    test = load_trial("35_08").frames[:150].astype(np.float32)
+    miss = np.array([c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand") for c in channels])
+    sent = test.copy()
+    sent[:, miss] = np.nan
+    d = daemons(write_config(tmp_path, {"hlm": {"file": str(tmp_path / "hlm.npz")}}, budget_ms=1000.0))
+    s = dealer(ctx, d)
+    s.send(wire.encode(wire.Hello("walk", channels)))
+    assert isinstance(recv(s), wire.HelloAck)
+    from lacuna.modelfile import load_model
+
+    ref_model = load_model(str(tmp_path / "hlm.npz"))  # the same file the daemon loaded
+    st = ref_model.stream()
+    for t in range(sent.shape[0]):
+        s.send(frame("walk", t, sent[t]))
+        m = recv(s, 30000)
+        assert isinstance(m, wire.FillMsg) and m.status == "ok", m
+        ref = st.step(sent[t].astype(np.float64), ~np.isnan(sent[t]))
+        assert np.array_equal(m.angles[~miss], test[t, ~miss])
+        np.testing.assert_allclose(m.angles, ref.frame.astype(np.float32), atol=1e-3)
+        np.testing.assert_allclose(m.std, ref.std.astype(np.float32), atol=1e-3)
+        assert m.filled[miss].all() and not m.filled[~miss].any()
+        assert m.style is not None and m.style.shape == (2,) and abs(float(m.style.sum()) - 1.0) < 1e-4
+        assert m.phase is not None and 0.0 <= m.phase < 1.0
+        np.testing.assert_allclose(m.style, np.asarray(ref.extras["style"], np.float32), atol=1e-5)

@@ -277,3 +277,17 @@ def test_model_held_everywhere_still_gets_a_probe_step():
     assert all(f.degraded for _, f, _ in second) and sched.probes == 1  # not again within PROBE_S
     stepped = next(s for s, f, _ in first if not f.degraded)
     assert stepped.model_seq == 1 and stepped.held_streak == 1  # its held frame 1 is skipped, not replayed
+
+
+def test_partial_step_without_knob_is_full_quality_not_degraded():
+    m = HoldModel(CH, np.zeros(3), np.ones(3))
+    t, _ = _table(m, max_streams=100)
+    for i in range(10):
+        t.frame(_frame(f"s{i}", 0, [1.0, np.nan, 3.0]), ("pull", None), 0.0)
+    sched = Scheduler(budget_ms=0.23, max_gap=5, max_batch=64)
+    sched.reply_cost = 0.0
+    for _ in range(3):
+        sched.cost(m, None).observe(1, 1e-3 / 30)
+        sched.cost(m, None).observe(10, 1e-2 / 30)
+    plan = sched.plan(m, list(t.sessions.values()), now=0.0)
+    assert len(plan.step) == 5 and len(plan.hold) == 5 and not plan.degraded
