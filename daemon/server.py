@@ -215,10 +215,12 @@ class Daemon:
             self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
 
     def _serve(self) -> None:
-        groups: dict[int, tuple[Any, list]] = {}
+        groups: dict[tuple[int, int], tuple[Any, list]] = {}
         for s in self.sessions.sessions.values():
             if s.pending is not None:
-                groups.setdefault(id(s.model), (s.model, []))[1].append(s)
+                # by width too: a pass-through "any channels" model serves streams of different
+                # widths, and one batch stacks frames of one width
+                groups.setdefault((id(s.model), s.mapping.n_model), (s.model, []))[1].append(s)
         if not groups:
             return
         t0 = time.perf_counter()
