@@ -1,0 +1,270 @@
+"""The online CRBM filler behind the Filler seam: clamped alternating Gibbs, batched over
+streams x chains, constant time per frame.
+
+Per frame t (section 5 of the paper and the released code, papers/NOTES.md):
+
+1. the past n completed frames set the dynamic biases once: c* = c + x A, b* = b + x B;
+2. observed features are clamped to the data; missing ones start from the previous completed
+   frame plus N(0, ``init_noise``^2) noise;
+3. K alternating Gibbs iterations: h ~ p(h | v, x) (eq. 2, binary samples), then the missing
+   visibles are set to their Gaussian mean c* + h W^T (eq. 3); observed ones stay clamped;
+4. a final mean-field step: the missing visibles become c* + p(h | v, x) W^T, using the hidden
+   probabilities of the last iteration instead of its sample ("otherwise very noisy").
+
+S chains run in parallel from the same history; the fill is their mean.  The per-channel std
+is the spread of the visible means E[v | h] over the chains and over the second half of the
+iterations (so it is informative even for S = 1).  The completed (mean) frame becomes history.
+
+``mode="mean-field"`` is deterministic: hidden probabilities instead of samples, no init noise;
+its std is the spread of E[v | h] under the factorial hidden posterior,
+sqrt(sum_j W_ij^2 p_j (1 - p_j)).
+
+Runtime knobs (not learned; the daemon turns them under load, see ``set_iterations``):
+``n_gibbs`` (K), ``n_chains`` (S).  Every fill reports ``extras["gibbs_iterations"]``.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.special import expit
+
+from crbm.model import CRBM
+from lacuna.feature_model import CoreOut, FeatureModel
+from mocap.representation import Representation
+
+MODES = ("gibbs", "mean-field")
+
+
+class CRBMModel(FeatureModel):
+    """A trained CRBM (optionally with a second level, section 6) as a causal filler.
+
+    Parameters
+    ----------
+    representation : the fitted feature space (Taylor's root motion, unit variance).
+    crbm : the trained first level, visible width = representation.n_features.
+    level2 : optional CRBM with binary visibles trained on ``crbm``'s hidden probabilities.
+    n_gibbs : K, alternating Gibbs iterations per frame (30).
+    n_chains : S, parallel chains averaged into the fill (1 = the paper).
+    mode : "gibbs" (the paper) or "mean-field" (deterministic).
+    init_noise : std of the noise added to the previous frame to start the missing visibles.
+    seed : seeds the filler's sampler (one generator per model, created once; ``reseed``).
+    meta : training metadata kept for the model file.
+
+    Degrading under load
+    --------------------
+    ``set_iterations(k)`` changes K for every following step (k >= 1; cost is linear in k) and
+    ``set_chains(s)`` changes S; both take effect at the next frame, keep all stream state, and
+    the value used is returned in ``Fill.extras["gibbs_iterations"]`` / ``["chains"]``.  A daemon
+    that needs a cheaper fill calls ``set_iterations(5)`` (or ``mode="mean-field"`` via
+    ``set_mode``), marks its replies degraded, and restores the default when the load drops.
+    """
+
+    method = "crbm"
+    causal = True
+
+    def __init__(self, representation: Representation, crbm: CRBM, level2: CRBM | None = None,
+                 n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs", init_noise: float = 0.01,
+                 seed: int = 0, meta: dict[str, Any] | None = None):
+        crbm._check_fitted()
+        if crbm.n_visible_ != representation.n_features:
+            raise ValueError(f"CRBM has {crbm.n_visible_} visible units but the representation has "
+                             f"{representation.n_features} features")
+        if level2 is not None and level2.n_visible_ != crbm.n_hidden:
+            raise ValueError(f"second level has {level2.n_visible_} visible units, first level has {crbm.n_hidden} hidden")
+        self.representation = representation
+        self.crbm = crbm
+        self.level2 = level2
+        self.init_noise = float(init_noise)
+        self.meta = dict(meta or {})
+        self.set_iterations(n_gibbs)
+        self.set_chains(n_chains)
+        self.set_mode(mode)
+        self.reseed(seed)
+        F, o = crbm.n_visible_, crbm.order
+        # one matmul gives both dynamic biases: x [A | B]
+        self._AB = np.ascontiguousarray(np.hstack([crbm.A_, crbm.B_]))
+        self._cb = np.concatenate([crbm.c_, crbm.b_])
+        self._W = np.ascontiguousarray(crbm.W_)
+        self._WT = np.ascontiguousarray(crbm.W_.T)
+        self._F, self._o = F, o
+        self._mask_cache: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        if level2 is not None:
+            self._AB2 = np.ascontiguousarray(np.hstack([level2.A_, level2.B_]))
+            self._cb2 = np.concatenate([level2.c_, level2.b_])
+
+    # ---- runtime knobs ----------------------------------------------------------------------------
+    def set_iterations(self, k: int) -> None:
+        """K alternating Gibbs iterations per frame for the following steps (k >= 1)."""
+        if isinstance(k, bool) or int(k) != k or k < 1:
+            raise ValueError(f"Gibbs iterations must be an integer >= 1 (got {k!r})")
+        self.n_gibbs = int(k)
+
+    def set_chains(self, s: int) -> None:
+        """S parallel chains per stream for the following steps (s >= 1)."""
+        if isinstance(s, bool) or int(s) != s or s < 1:
+            raise ValueError(f"chains must be an integer >= 1 (got {s!r})")
+        self.n_chains = int(s)
+
+    def set_mode(self, mode: str) -> None:
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES} (got {mode!r})")
+        self.mode = mode
+
+    def reseed(self, seed: int | None) -> None:
+        self._rng = np.random.default_rng(seed)
+
+    def info(self) -> dict[str, Any]:
+        d = super().info()
+        d.update(levels=2 if self.level2 is not None else 1, hidden=self.crbm.n_hidden, order=self.crbm.order,
+                 gibbs_iterations=self.n_gibbs, chains=self.n_chains, mode=self.mode)
+        return d
+
+    # ---- core -------------------------------------------------------------------------------------
+    def core_init(self, n: int) -> dict[str, np.ndarray]:
+        st = {"hist": np.zeros((n, self._o * self._F)), "count": np.zeros(n, dtype=np.int64)}
+        if self.level2 is not None:
+            st["hhist"] = np.zeros((n, self.level2.order * self.crbm.n_hidden))
+        return st
+
+    def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> CoreOut:
+        hist, F = state["hist"], self._F
+        first = state["count"] == 0
+        if first.any():
+            # no past yet: the first frame (missing features at the mean, 0) stands for it
+            hist[first] = np.tile(np.where(zobs[first], z[first], 0.0), self._o)
+        out = np.where(zobs, z, 0.0)
+        std = np.zeros_like(out)
+        need = ~zobs.all(1)
+        k = self.n_gibbs
+        rows = np.flatnonzero(need)
+        if rows.size:
+            fill, sd = self._fill_rows(state, rows, out[rows], zobs[rows])
+            out[rows], std[rows] = fill, sd
+        if self.level2 is not None:
+            self._push_level2(state, out, first)
+        hist[:, F:] = hist[:, :-F].copy()
+        hist[:, :F] = out
+        state["count"] += 1
+        info = {"gibbs_iterations": k if self.mode == "gibbs" else 0, "chains": self.n_chains}
+        return CoreOut(out, std, [dict(info) for _ in range(z.shape[0])])
+
+    def _fill_rows(self, state: dict[str, np.ndarray], rows: np.ndarray, zc: np.ndarray,
+                   obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """zc (m, F): observed values, 0 elsewhere; obs (m, F).  Returns fill and std (m, F)."""
+        hist = state["hist"][rows]
+        m, F, H = zc.shape[0], self._F, self.crbm.n_hidden
+        S = self.n_chains if self.mode == "gibbs" else 1
+        dyn = hist @ self._AB + self._cb                  # (m, F + H): c*, b*  (section 3)
+        bv, bh = dyn[:, :F], dyn[:, F:]
+        if self.level2 is not None:
+            dyn2 = state["hhist"][rows] @ self._AB2 + self._cb2
+            bv2, bh2 = dyn2[:, :H], dyn2[:, H:]
+        else:
+            bv2 = bh2 = None
+        same = m == 1 or bool((obs == obs[0]).all())
+        if same:
+            # one mask for every row: only the missing columns are iterated; the observed ones
+            # enter once, through the hidden input (b* + v_obs W_obs)
+            mi, ob, Wm, WmT = self._mask_parts(obs[0])
+            bh = bh + zc[:, ob] @ self._W[ob]
+            vb = bv[:, mi]
+            prev = hist[:, :F][:, mi]
+            W, WT = Wm, WmT
+        else:
+            vb, prev, W, WT = bv, hist[:, :F], self._W, self._WT
+        if S > 1:
+            vb, bh, prev = (np.repeat(a, S, axis=0) for a in (vb, bh, prev))
+            if bv2 is not None:
+                bv2, bh2 = np.repeat(bv2, S, axis=0), np.repeat(bh2, S, axis=0)
+        rng = self._rng
+        if self.mode == "gibbs":
+            v = prev + self.init_noise * rng.standard_normal(prev.shape)
+        else:
+            v = prev.copy()
+        if not same:
+            obsS = np.repeat(obs, S, axis=0) if S > 1 else obs
+            zS = np.repeat(zc, S, axis=0) if S > 1 else zc
+            np.copyto(v, zS, where=obsS)
+        K = self.n_gibbs
+        ph = np.empty((v.shape[0], H))
+        h = np.empty_like(ph)
+        half = K // 2
+        acc = np.zeros_like(v)
+        acc2 = np.zeros_like(v)
+        n_acc = 0
+        if self.mode == "gibbs":
+            U = rng.random((K, v.shape[0], H))
+            U2 = rng.random((K, v.shape[0], self.level2.n_hidden)) if self.level2 is not None else None
+        for it in range(K):
+            np.matmul(v, W, out=ph)
+            ph += bh
+            if self.level2 is not None:
+                # second level (section 6): its hiddens, driven by the current first-level hidden
+                # state, add top-down input c2* + h2 W2^T to the first-level hidden logits
+                h1 = expit(ph) if it == 0 else h
+                p2 = expit(h1 @ self.level2.W_ + bh2)
+                h2 = (U2[it] < p2).astype(float) if self.mode == "gibbs" else p2
+                ph += h2 @ self.level2.W_.T + bv2
+            expit(ph, out=ph)                             # eq. 2
+            if self.mode == "gibbs":
+                np.less(U[it], ph, out=h)                 # binary samples
+            else:
+                h[:] = ph
+            np.matmul(h, WT, out=v)
+            v += vb                                       # eq. 3: mean, not a sample
+            if not same:
+                np.copyto(v, zS, where=obsS)
+            if it >= half:
+                acc += v
+                acc2 += v * v
+                n_acc += 1
+        # final mean-field step from the last hidden probabilities
+        np.matmul(ph, WT, out=v)
+        v += vb
+        if self.mode == "gibbs":
+            var = np.maximum(acc2 / n_acc - (acc / n_acc) ** 2, 0.0)
+        else:
+            var = (ph * (1.0 - ph)) @ (WT * WT)
+        if S > 1:
+            mean = v.reshape(m, S, -1).mean(1)
+            # pooled spread: within-chain (second half) plus between chains
+            var = var.reshape(m, S, -1).mean(1) + v.reshape(m, S, -1).var(1)
+        else:
+            mean = v
+        sd = np.sqrt(var)
+        if same:
+            fill, std = zc.copy(), np.zeros_like(zc)
+            fill[:, mi], std[:, mi] = mean, sd
+            return fill, std
+        return np.where(obs, zc, mean), np.where(obs, 0.0, sd)
+
+    def _mask_parts(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        key = np.packbits(obs).tobytes()
+        got = self._mask_cache.get(key)
+        if got is None:
+            mi, ob = np.flatnonzero(~obs), np.flatnonzero(obs)
+            Wm = np.ascontiguousarray(self._W[mi])
+            got = (mi, ob, Wm, np.ascontiguousarray(Wm.T))
+            if len(self._mask_cache) > 256:
+                self._mask_cache.clear()
+            self._mask_cache[key] = got
+        return got
+
+    def _push_level2(self, state: dict[str, np.ndarray], out: np.ndarray, first: np.ndarray) -> None:
+        """The second level's history is the first level's bottom-up hidden probabilities of the
+        completed frames, as in its training data."""
+        H = self.crbm.n_hidden
+        dyn = state["hist"] @ self.crbm.B_ + self.crbm.b_
+        h1 = expit(out @ self._W + dyn)
+        hh = state["hhist"]
+        if first.any():
+            hh[first] = np.tile(h1[first], self.level2.order)
+        hh[:, H:] = hh[:, :-H].copy()
+        hh[:, :H] = h1
+
+    # ---- persistence ------------------------------------------------------------------------------
+    def save(self, path: str) -> None:
+        from crbm.persist import save_model
+
+        save_model(self, path)

@@ -1,0 +1,45 @@
+"""Registers the CRBM methods with ``lacuna.registry`` and the model-file loader.
+
+* ``crbm``         the paper, faithfully: CD-1 as in section 3, fill by K = 30 clamped Gibbs
+                   iterations plus a final mean-field step, one chain (section 5).
+* ``crbm-mf``      same training, deterministic mean-field fill (hidden probabilities, no noise).
+* ``crbm-2level``  a second CRBM on the first level's hidden activities (section 6), filled by
+                   Gibbs over both levels.
+* ``crbm-imp``     improvements: imCRBM history noise in training (Taylor's later code) and
+                   S = 8 chains averaged in the fill.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from crbm.persist import METHODS, load_model_arrays
+from crbm.train import train_model
+from lacuna.modelfile import register_loader
+from lacuna.registry import MethodSpec, register_method
+
+# option name -> keyword of train_model; anything else a protocol passes is ignored
+_OPTIONS = ("hidden", "order", "epochs", "seed", "history_noise", "positive_hidden", "levels",
+            "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "fps", "progress")
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "crbm": {},
+    "crbm-mf": {"mode": "mean-field"},
+    "crbm-2level": {"levels": 2},
+    "crbm-imp": {"history_noise": 1.0, "n_chains": 8},
+}
+
+
+def _trainer(name: str):
+    def train(training_set: Any, **options: Any):
+        kw = {**VARIANTS[name], **{k: v for k, v in options.items() if k in _OPTIONS and v is not None}}
+        return train_model(training_set.sequences, training_set.channels, names=list(getattr(training_set, "names", []) or []),
+                           method=name, **kw)
+
+    return train
+
+
+for _name in METHODS:
+    register_method(MethodSpec(_name, _trainer(_name), description=(__doc__ or "").split(f"``{_name}``")[1].split("*")[0].strip()
+                               .replace("\n", " ").replace("  ", " ") if f"``{_name}``" in (__doc__ or "") else _name,
+                               causal=True, defaults=dict(VARIANTS[_name])))
+    register_loader(_name, load_model_arrays)
