@@ -187,43 +187,44 @@ class CRBMModel(FeatureModel):
             zS = np.repeat(zc, S, axis=0) if S > 1 else zc
             np.copyto(v, zS, where=obsS)
         K = self.n_gibbs
-        ph = np.empty((v.shape[0], H))
-        h = np.empty_like(ph)
+        nr = v.shape[0]
+        a = np.empty((nr, H))
+        h = np.empty_like(a)
         half = K // 2
-        acc = np.zeros_like(v)
-        acc2 = np.zeros_like(v)
-        n_acc = 0
-        if self.mode == "gibbs":
-            U = rng.random((K, v.shape[0], H))
-            U2 = rng.random((K, v.shape[0], self.level2.n_hidden)) if self.level2 is not None else None
+        keep = np.empty((K - half,) + v.shape)
+        gibbs = self.mode == "gibbs"
+        if gibbs:
+            # h ~ Bernoulli(logistic(a))  <=>  h = [a > L] with L ~ Logistic(0, 1): drawing L up
+            # front spares a logistic function per iteration
+            L = rng.logistic(size=(K, nr, H))
+            if self.level2 is not None:
+                L2 = rng.logistic(size=(K, nr, self.level2.n_hidden))
         for it in range(K):
-            np.matmul(v, W, out=ph)
-            ph += bh
+            np.matmul(v, W, out=a)
+            a += bh                                        # eq. 2 logits: b* + v W
             if self.level2 is not None:
                 # second level (section 6): its hiddens, driven by the current first-level hidden
                 # state, add top-down input c2* + h2 W2^T to the first-level hidden logits
-                h1 = expit(ph) if it == 0 else h
-                p2 = expit(h1 @ self.level2.W_ + bh2)
-                h2 = (U2[it] < p2).astype(float) if self.mode == "gibbs" else p2
-                ph += h2 @ self.level2.W_.T + bv2
-            expit(ph, out=ph)                             # eq. 2
-            if self.mode == "gibbs":
-                np.less(U[it], ph, out=h)                 # binary samples
+                h1 = expit(a) if it == 0 else h
+                a2 = h1 @ self.level2.W_ + bh2
+                h2 = (a2 > L2[it]).astype(float) if gibbs else expit(a2)
+                a += h2 @ self.level2.W_.T + bv2
+            if gibbs:
+                np.greater(a, L[it], out=h)               # binary samples
             else:
-                h[:] = ph
+                expit(a, out=h)
             np.matmul(h, WT, out=v)
-            v += vb                                       # eq. 3: mean, not a sample
+            v += vb                                        # eq. 3: the mean, not a sample
             if not same:
                 np.copyto(v, zS, where=obsS)
             if it >= half:
-                acc += v
-                acc2 += v * v
-                n_acc += 1
-        # final mean-field step from the last hidden probabilities
+                keep[it - half] = v
+        # final mean-field step from the last iteration's hidden probabilities
+        ph = expit(a)
         np.matmul(ph, WT, out=v)
         v += vb
-        if self.mode == "gibbs":
-            var = np.maximum(acc2 / n_acc - (acc / n_acc) ** 2, 0.0)
+        if gibbs:
+            var = keep.var(0)
         else:
             var = (ph * (1.0 - ph)) @ (WT * WT)
         if S > 1:
