@@ -26,6 +26,8 @@ def add_commands(cli) -> None:
                    help="std of noise on the conditioning history (0 = the paper, 1 = imCRBM)")
     p.add_argument("--positive-hidden", choices=["sample", "prob"], default="sample",
                    help="hidden states in the data term: sampled (paper) or probabilities (released code)")
+    p.add_argument("--average-last", type=float, default=0.0,
+                   help="return the parameters averaged over this final fraction of epochs (0 = the paper)")
     p.add_argument("--levels", type=int, choices=[1, 2], default=1, help="2 adds the section-6 second level")
     p.add_argument("--gibbs", type=int, default=30, help="fill: Gibbs iterations per frame (default 30)")
     p.add_argument("--chains", type=int, default=1, help="fill: parallel chains averaged (default 1)")
@@ -77,7 +79,8 @@ def _run_train(args: argparse.Namespace) -> int:
         print(f"training crbm on {len(seqs)} sequences, {sum(len(s) for s in seqs)} frames at {fps:g} Hz",
               file=sys.stderr)
     model = train_model(seqs, channels, hidden=args.hidden, order=args.order, epochs=args.epochs, seed=args.seed,
-                        history_noise=args.history_noise, positive_hidden=args.positive_hidden, levels=args.levels,
+                        history_noise=args.history_noise, positive_hidden=args.positive_hidden,
+                        average_last=args.average_last, levels=args.levels,
                         n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, names=names, fps=fps,
                         progress=not args.quiet)
     model.save(args.output)

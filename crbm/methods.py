@@ -18,7 +18,7 @@ from lacuna.modelfile import register_loader
 from lacuna.registry import MethodSpec, register_method
 
 # option name -> keyword of train_model; anything else a protocol passes is ignored
-_OPTIONS = ("hidden", "order", "epochs", "seed", "history_noise", "positive_hidden", "levels",
+_OPTIONS = ("hidden", "order", "epochs", "seed", "history_noise", "positive_hidden", "average_last", "levels",
             "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "fps", "progress")
 
 VARIANTS: dict[str, dict[str, Any]] = {

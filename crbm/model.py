@@ -49,6 +49,7 @@ _PARAM_RANGES: dict[str, tuple[type, float, float | None]] = {
     "n_epochs": (int, 0, None),
     "init_std": (float, 0.0, None),
     "history_noise": (float, 0.0, None),
+    "average_last": (float, 0.0, 1.0),
 }
 
 
@@ -72,6 +73,9 @@ class CRBM:
         case (0 = the paper; 1 = Taylor's later imCRBM code).  Makes the dynamic biases robust
         to imperfect history, which is what a filler feeds back during a gap.
     visible : "gaussian" (joint angles) or "binary" (a second level on hidden activities).
+    average_last : ``fit`` returns the average of the parameters over this final fraction of
+        its epochs (0 = the paper: the last iterate).  Averaging the iterates of momentum SGD
+        removes much of the epoch-to-epoch jitter that a free-running fill amplifies.
     random_state : int seed; training is reproducible given it.
     verbose : print reconstruction error per epoch on stderr (or call ``progress``).
 
@@ -86,7 +90,7 @@ class CRBM:
                  learning_rate_ar: float = 1e-5, weight_decay: float = 2e-4, momentum: float = 0.9,
                  momentum_after: int = 5, batch_size: int = 100, n_epochs: int = 2000,
                  init_std: float = 0.01, positive_hidden: str = "sample", history_noise: float = 0.0,
-                 visible: str = "gaussian", random_state: int | None = 0, verbose: bool = False,
+                 visible: str = "gaussian", average_last: float = 0.0, random_state: int | None = 0, verbose: bool = False,
                  progress: Callable[[int, float], None] | None = None):
         self.n_hidden = n_hidden
         self.order = order
@@ -101,6 +105,7 @@ class CRBM:
         self.positive_hidden = positive_hidden
         self.history_noise = history_noise
         self.visible = visible
+        self.average_last = average_last
         self.random_state = random_state
         self.verbose = verbose
         self.progress = progress
@@ -288,9 +293,19 @@ class CRBM:
         seqs = [np.asarray(s, dtype=np.float64) for s in sequences]
         self._stack(seqs)  # validate before initialising
         self._init(seqs[0].shape[1])
+        E = self.n_epochs if n_epochs is None else n_epochs
+        start = E - int(round(self.average_last * E)) if self.average_last > 0 else E
+        keys = ("W_", "A_", "B_", "c_", "b_")
+        acc = {k: np.zeros_like(getattr(self, k)) for k in keys}
         with single_thread_blas():
-            for _ in range(self.n_epochs if n_epochs is None else n_epochs):
+            for e in range(E):
                 self.partial_fit(seqs)
+                if e >= start:
+                    for k in keys:
+                        acc[k] += getattr(self, k)
+        if E > start:
+            for k in keys:
+                setattr(self, k, acc[k] / (E - start))
         return self
 
     def reconstruction_error(self, sequences: Sequence[np.ndarray], rng: np.random.Generator | None = None) -> float:

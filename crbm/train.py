@@ -38,7 +38,7 @@ def _progress_printer(what: str, every: int):
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hidden: int = 150, order: int = 3,
                 epochs: int | None = None, seed: int = 0, history_noise: float = 0.0,
-                positive_hidden: str = "sample", levels: int = 1, level2_hidden: int | None = None,
+                positive_hidden: str = "sample", average_last: float = 0.0, levels: int = 1, level2_hidden: int | None = None,
                 level2_epochs: int | None = None, n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs",
                 method: str | None = None, names: Sequence[str] = (), fps: float | None = None,
                 root_mode: str = "relative", progress: bool = False, progress_every: int = 100) -> CRBMModel:
@@ -54,7 +54,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
     n_cases = sum(max(0, z.shape[0] - order) for z in Z)
     ep = auto_epochs(n_cases) if epochs is None else int(epochs)
     l1 = CRBM(n_hidden=hidden, order=order, n_epochs=ep, history_noise=history_noise,
-              positive_hidden=positive_hidden, random_state=seed,
+              positive_hidden=positive_hidden, average_last=average_last, random_state=seed,
               progress=_progress_printer("crbm", progress_every) if progress else None)
     l1.fit(Z)
     l2 = None
