@@ -45,6 +45,25 @@ def time_single(model, case, repeats: int) -> list[float]:
     return out
 
 
+def time_core(model, case, repeats: int) -> list[float]:
+    """The CRBM's own work per frame (``core_step`` on encoded features), without the shared
+    representation encode/decode of the seam."""
+    out = []
+    given = np.where(case.observed, case.truth, np.nan)
+    for _ in range(repeats):
+        st = model.stream()
+        for t in range(case.truth.shape[0]):
+            z, zobs = st.repr_state.encode(given[t][None], case.observed[t][None])
+            t0 = time.perf_counter()
+            o = model.core_step(st.core_state, z, zobs)
+            dt = time.perf_counter() - t0
+            done = st.repr_state.decode(o.z, given[t][None], case.observed[t][None])
+            st.repr_state.commit(done)
+            if not case.observed[t].all():
+                out.append(dt)
+    return out
+
+
 def time_batched(model, case, n_streams: int, repeats: int) -> list[float]:
     out = []
     given = np.where(case.observed, case.truth, np.nan)
@@ -85,16 +104,26 @@ def main() -> int:
     for erased, case in cases.items():
         for S in (1, 4, 16):
             model.set_chains(S)
+            rc = pct(time_core(model, case, a.repeats))
             r1 = pct(time_single(model, case, a.repeats))
             rb = pct(time_batched(model, case, 16, max(1, a.repeats // 2)))
-            res["fill"][f"{erased} S={S}"] = {"single": r1, "batched16_per_stream": rb}
-            print(f"{erased:10s} K=30 S={S:2d}: single median {r1['median_us']:.0f} us (p99 {r1['p99_us']:.0f}); "
+            res["fill"][f"{erased} S={S}"] = {"core": rc, "single": r1, "batched16_per_stream": rb}
+            print(f"{erased:10s} K=30 S={S:2d}: core median {rc['median_us']:.0f} us (p99 {rc['p99_us']:.0f}); "
+                  f"single stream.step median {r1['median_us']:.0f} us (p99 {r1['p99_us']:.0f}); "
                   f"16 streams batched {rb['median_us']:.0f} us per stream (p99 {rb['p99_us']:.0f})", file=sys.stderr)
     model.set_chains(1)
     model.set_mode("mean-field")
+    rc = pct(time_core(model, cases["right-leg"], a.repeats))
     r = pct(time_single(model, cases["right-leg"], a.repeats))
-    res["fill"]["right-leg mean-field K=30"] = {"single": r}
-    print(f"right-leg mean-field K=30: single median {r['median_us']:.0f} us", file=sys.stderr)
+    res["fill"]["right-leg mean-field K=30"] = {"core": rc, "single": r}
+    print(f"right-leg mean-field K=30: core median {rc['median_us']:.0f} us, single median {r['median_us']:.0f} us",
+          file=sys.stderr)
+    model.set_mode("gibbs")
+    for k in (5, 10):
+        model.set_iterations(k)
+        rc = pct(time_core(model, cases["right-leg"], a.repeats))
+        res["fill"][f"right-leg K={k} S=1 (degraded)"] = {"core": rc}
+        print(f"right-leg K={k} S=1: core median {rc['median_us']:.0f} us", file=sys.stderr)
     if a.out:
         os.makedirs(os.path.dirname(a.out) or ".", exist_ok=True)
         with open(a.out, "w") as fh:

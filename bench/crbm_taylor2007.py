@@ -7,9 +7,10 @@ Variants (name: training options | fill options):
   faithful    the paper: history noise 0, sampled hiddens in the data term | K=30, S=1 Gibbs
   faithful-mf same model | deterministic mean-field fill
   faithful-S8 same model | K=30, S=8 chains averaged
-  imcrbm      history noise 1 (Taylor's imCRBM code) | S=1
-  imcrbm-S8   history noise 1 | S=8 (the registered ``crbm-imp``)
-  2level      faithful first level + second level on its hidden activities | S=1
+  imcrbm      history noise 1 (Taylor's imCRBM code) | S=1, S=8, mean-field
+  prob        hidden probabilities in the data term (the released code) | S=1, S=8, mean-field
+  imp         prob + parameters averaged over the last 20% of epochs | S=1, S=8 (= ``crbm-imp``), mean-field
+  2level      faithful first level + second level on its hidden activities | S=1, S=8, mean-field
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ def main() -> int:
     results: dict = {"machine": f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cores, "
                                 f"python {platform.python_version()}", "repeats": a.repeats, "variants": {}}
     train_kw = {"faithful": {}, "imcrbm": {"history_noise": 1.0}, "2level": {"levels": 2},
-                "prob": {"positive_hidden": "prob"}}
+                "prob": {"positive_hidden": "prob"}, "imp": {"positive_hidden": "prob", "average_last": 0.2}}
     for v in a.variants:
         for seed in a.seeds:
             t0 = time.perf_counter()
