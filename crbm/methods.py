@@ -20,7 +20,8 @@ from lacuna.registry import MethodSpec, register_method
 
 # option name -> keyword of train_model; anything else a protocol passes is ignored
 _OPTIONS = ("hidden", "order", "epochs", "seed", "history_noise", "positive_hidden", "average_last", "levels",
-            "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "fps", "progress")
+            "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "fps", "progress",
+            "progress_every")
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "crbm": {},
@@ -33,6 +34,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
 def _trainer(name: str):
     def train(training_set: Any, **options: Any):
         kw = {**VARIANTS[name], **{k: v for k, v in options.items() if k in _OPTIONS and v is not None}}
+        kw.setdefault("progress", True)       # a progress line on stderr every 200 epochs
+        kw.setdefault("progress_every", 200)
         return train_model(training_set.sequences, training_set.channels, names=list(getattr(training_set, "names", []) or []),
                            method=name, **kw)
 
