@@ -1,9 +1,9 @@
 """The section-5 fill-in experiment on the real taylor2007 split, and section 4.1's walking and
 running from one model (issue 4, targets).
 
-Trains the faithful CRBM (the paper's CD-1, K = 30 Gibbs, one chain) and the improved one
-(``crbm-imp``) at the full default schedule (2000 epochs, about 40 s each on an idle 2-core
-machine), scores both with the protocol's cumulative scaled error against the nearest
+Trains the improved CRBM (``crbm-imp``) at the full default schedule (2000 epochs, about 40 s
+on an idle 2-core machine) and the faithful one (the paper's CD-1, K = 30 Gibbs, one chain) at
+1000 epochs, scores both with the protocol's cumulative scaled error against the nearest
 neighbours computed here.
 
 What is asserted, honestly: the upper-body target (<= 0.43 x the better nearest neighbour on
@@ -43,9 +43,9 @@ def base(proto):
     return baseline_scores()
 
 
-def _train(proto, method):
+def _train(proto, method, **kw):
     t0 = time.perf_counter()
-    model = registry.get_method(method).train(proto.training_set(), **proto.options)
+    model = registry.get_method(method).train(proto.training_set(), **{**proto.options, **kw})
     return model, time.perf_counter() - t0
 
 
@@ -56,7 +56,9 @@ def improved(proto):
 
 @pytest.fixture(scope="module")
 def faithful(proto):
-    return _train(proto, "crbm")
+    # half the schedule to save test time; it only has to beat nearest neighbour here (the full
+    # 2000-epoch run gives 35_29 ratios 0.78 / 0.62, see docs/BENCHMARKS.md)
+    return _train(proto, "crbm", epochs=1000)
 
 
 def test_issue4_taylor2007_improved_crbm_meets_the_paper_ratios(improved, base):
