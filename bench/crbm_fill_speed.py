@@ -6,12 +6,18 @@ with its right leg (7 channels) or upper body (36) missing.  Also the training t
 
 Timings are per frame of one stream (batched: total call time / streams), medians and
 percentiles over every erased frame, repeated; the machine is shared, so compare within a run.
+
+BLAS runs single-threaded here (OPENBLAS_NUM_THREADS=1 unless already set): the products are
+tiny, and on a busy 2-core machine OpenBLAS threads made 16 batched streams 7-20x slower
+(measured: 629-1978 us against 94 us per stream).  A serving process should do the same.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads OpenBLAS; see docstring
 import platform
 import sys
 import time
@@ -89,7 +95,8 @@ def main() -> int:
     a = ap.parse_args()
     proto = get_protocol("taylor2007")
     res: dict = {"machine": f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cores, "
-                            f"python {platform.python_version()}, numpy {np.__version__}", "fill": {}}
+                            f"python {platform.python_version()}, numpy {np.__version__}",
+                 "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"), "load_average": os.getloadavg(), "fill": {}}
     if a.model:
         model = load(a.model)
     else:
