@@ -34,6 +34,15 @@ from lacuna.feature_model import CoreOut, FeatureModel
 from mocap.representation import Representation
 
 MODES = ("gibbs", "mean-field")
+_TINY32 = np.float32(1e-30)
+
+
+def _logistic32(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Logistic(0, 1) noise as log(u / (1 - u)) from float32 uniforms: three times faster than
+    ``rng.logistic`` and ample resolution for Bernoulli draws (u is kept off 0 so log is finite)."""
+    u = rng.random(shape, dtype=np.float32)
+    np.maximum(u, _TINY32, out=u)
+    return np.log(u / (np.float32(1.0) - u))
 
 
 class CRBMModel(FeatureModel):
@@ -196,9 +205,9 @@ class CRBMModel(FeatureModel):
         if gibbs:
             # h ~ Bernoulli(logistic(a))  <=>  h = [a > L] with L ~ Logistic(0, 1): drawing L up
             # front spares a logistic function per iteration
-            L = rng.logistic(size=(K, nr, H))
+            L = _logistic32(rng, (K, nr, H))
             if self.level2 is not None:
-                L2 = rng.logistic(size=(K, nr, self.level2.n_hidden))
+                L2 = _logistic32(rng, (K, nr, self.level2.n_hidden))
         for it in range(K):
             np.matmul(v, W, out=a)
             a += bh                                        # eq. 2 logits: b* + v W

@@ -42,8 +42,14 @@ def _trainer(name: str):
     return train
 
 
+def _describe(name: str) -> str:
+    """The method's bullet from this module's docstring, on one line."""
+    doc = __doc__ or ""
+    part = doc.split(f"``{name}``", 1)[1].split("\n* ")[0]
+    return " ".join(part.split())
+
+
 for _name in METHODS:
-    register_method(MethodSpec(_name, _trainer(_name), description=(__doc__ or "").split(f"``{_name}``")[1].split("*")[0].strip()
-                               .replace("\n", " ").replace("  ", " ") if f"``{_name}``" in (__doc__ or "") else _name,
-                               causal=True, defaults=dict(VARIANTS[_name])))
+    register_method(MethodSpec(_name, _trainer(_name), description=_describe(_name), causal=True,
+                               defaults=dict(VARIANTS[_name])))
     register_loader(_name, load_model_arrays)
