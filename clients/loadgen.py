@@ -1,0 +1,188 @@
+"""Drive N streams at R Hz against a daemon and time every frame's round trip.
+
+One thread, one DEALER per stream (as N capture plugins would have), one ``zmq.Poller``.  Frame
+k of every stream is due at ``t0 + k / R`` (absolute deadlines from ``perf_counter``, so the
+pace never drifts however late one tick was); between deadlines the loop polls for answers.
+The poll sleeps in whole milliseconds and spins the last fraction, so ticks go out within
+about 0.1 ms of their deadline without burning a core.
+
+Each frame's round trip runs from just before its ``send`` to just after its answer was read;
+with many streams an answer may wait while the loop sends the rest of a tick, and that wait
+is part of the figure (a real plugin in one process would see it too).
+"""
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zmq
+
+from clients.client import decode_reply
+from clients.session import DEFAULT_TIMEOUT_S, dealer_socket
+from daemon import wire
+
+DRAIN_S = 1.0  # after the last tick, how long to wait for outstanding answers
+HANDSHAKE_TIMEOUT_S = 5.0
+PROGRESS_EVERY_S = 2.0
+
+
+@dataclass
+class LoadResult:
+    """Per-frame outcome of one run.
+
+    rtt_ms : (n_served,) round trips of served frames, milliseconds.
+    proc_us : (n_served,) the daemon's own processing time of each, microseconds.
+    lateness_ms : (n_ticks,) how late each tick's first send was after its deadline.
+    """
+
+    streams: list[str]
+    rate: float
+    seconds: float
+    sent: int = 0
+    served: int = 0
+    degraded: int = 0
+    passthrough: int = 0
+    dropped: int = 0
+    errors: int = 0
+    unsent: int = 0
+    drop_reasons: dict[str, int] = field(default_factory=dict)
+    error_reasons: dict[str, int] = field(default_factory=dict)
+    rtt_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    proc_us: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    lateness_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    wall_s: float = 0.0
+
+    @property
+    def lost(self) -> int:
+        """Frames sent that got no answer at all before the drain ended."""
+        return self.sent - self.served - self.dropped - self.errors
+
+
+def percentiles(rtt_ms: np.ndarray) -> dict[str, float | None]:
+    if rtt_ms.size == 0:
+        return {k: None for k in ("p50_ms", "p90_ms", "p99_ms", "p999_ms", "max_ms")}
+    q = np.percentile(rtt_ms, [50, 90, 99, 99.9])
+    return {"p50_ms": float(q[0]), "p90_ms": float(q[1]), "p99_ms": float(q[2]), "p999_ms": float(q[3]),
+            "max_ms": float(rtt_ms.max())}
+
+
+def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: np.ndarray, *, n_streams: int,
+             rate: float, seconds: float, model: str | None = None, prefix: str = "bench",
+             progress: bool = True) -> LoadResult:
+    """Offer ``n_streams`` x ``rate`` frames/s for ``seconds``; every stream replays ``frames``
+    (T, C) with mask ``observed`` (T, C) from its own starting offset, cycling."""
+    if n_streams < 1 or rate <= 0 or seconds <= 0:
+        raise ValueError(f"need streams >= 1, rate > 0, seconds > 0 (got {n_streams}, {rate}, {seconds})")
+    T, C = frames.shape
+    if C != len(channels) or observed.shape != frames.shape:
+        raise ValueError(f"frames {frames.shape} / observed {observed.shape} do not match {len(channels)} channels")
+    given = np.where(observed, frames, np.nan).astype(np.float32)
+    obs_u8 = observed.astype(np.uint8)
+    n_ticks = max(1, int(round(seconds * rate)))
+    ids = [f"{prefix}-{i:03d}" for i in range(n_streams)]
+    res = LoadResult(ids, rate, seconds)
+    ctx = zmq.Context()
+    socks = [dealer_socket(ctx, endpoint, DEFAULT_TIMEOUT_S) for _ in ids]
+    index = {s: i for i, s in enumerate(socks)}
+    poller = zmq.Poller()
+    for s in socks:
+        poller.register(s, zmq.POLLIN)
+    send_t = np.full((n_streams, n_ticks), np.nan)
+    rtt = np.full((n_streams, n_ticks), np.nan)
+    proc = np.full((n_streams, n_ticks), np.nan)
+    lateness = np.zeros(n_ticks)
+    try:
+        _handshake(socks, ids, channels, model)
+        offsets = (np.arange(n_streams) * (T // max(1, n_streams))) % T
+        # header bytes are constant per stream; the frame body is built per send (seq, t, angles)
+        t0 = time.perf_counter() + 0.05
+        next_report = t0 + PROGRESS_EVERY_S
+        for k in range(n_ticks):
+            due = t0 + k / rate
+            _wait_until(due, poller, index, send_t, rtt, proc, res)
+            now = time.perf_counter()
+            lateness[k] = (now - due) * 1000.0
+            for i, s in enumerate(socks):
+                j = (offsets[i] + k) % T
+                body = wire.encode(wire.Frame(ids[i], k, time.time(), given[j], obs_u8[j].astype(bool)))
+                t = time.perf_counter()
+                try:
+                    s.send(body, zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    res.unsent += 1
+                    continue
+                send_t[i, k] = t
+                res.sent += 1
+            if progress and now >= next_report:
+                next_report += PROGRESS_EVERY_S
+                print(f"\r  bench: {k + 1}/{n_ticks} ticks, {res.served} served, {res.dropped} dropped",
+                      end="", file=sys.stderr, flush=True)
+        end = time.perf_counter() + DRAIN_S
+        while res.served + res.dropped + res.errors < res.sent and time.perf_counter() < end:
+            _wait_until(min(end, time.perf_counter() + 0.05), poller, index, send_t, rtt, proc, res)
+        res.wall_s = time.perf_counter() - t0
+        if progress:
+            print(f"\r  bench: {n_ticks}/{n_ticks} ticks, {res.served} served, {res.dropped} dropped   ",
+                  file=sys.stderr, flush=True)
+    finally:
+        for s in socks:
+            s.close(linger=0)
+        ctx.term()
+    ok = np.isfinite(rtt)
+    res.rtt_ms = rtt[ok]
+    res.proc_us = proc[ok]
+    res.lateness_ms = lateness
+    return res
+
+
+def _handshake(socks: list[zmq.Socket], ids: list[str], channels: list[str], model: str | None) -> None:
+    for s, sid in zip(socks, ids):
+        s.send(wire.encode(wire.Hello(sid, channels, model)))
+    for s, sid in zip(socks, ids):
+        if not s.poll(int(HANDSHAKE_TIMEOUT_S * 1000), zmq.POLLIN):
+            raise TimeoutError(f"no hello-ack for stream {sid} within {HANDSHAKE_TIMEOUT_S:g} s")
+        msg = decode_reply(s.recv())
+        if isinstance(msg, wire.ErrorMsg):
+            raise ValueError(f"daemon refused the handshake of {sid}: {msg.reason}: {msg.detail}")
+
+
+def _wait_until(deadline: float, poller: zmq.Poller, index: dict[Any, int], send_t: np.ndarray, rtt: np.ndarray,
+                proc: np.ndarray, res: LoadResult) -> None:
+    while True:
+        left = deadline - time.perf_counter()
+        if left <= 0:
+            return
+        # sleep whole milliseconds in the poll, spin the remainder (ms-resolution poll timeout)
+        ms = int(left * 1000.0 - 0.3)
+        for sock, _ in poller.poll(ms if ms > 0 else 0):
+            i = index[sock]
+            while True:
+                try:
+                    data = sock.recv(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                t = time.perf_counter()
+                _account(decode_reply(data), i, t, send_t, rtt, proc, res)
+
+
+def _account(msg: wire.Message, i: int, t: float, send_t: np.ndarray, rtt: np.ndarray, proc: np.ndarray,
+             res: LoadResult) -> None:
+    if isinstance(msg, wire.FillMsg):
+        k = msg.seq
+        if 0 <= k < send_t.shape[1] and np.isfinite(send_t[i, k]):
+            rtt[i, k] = (t - send_t[i, k]) * 1000.0
+            proc[i, k] = msg.proc_us
+        res.served += 1
+        if msg.status == "degraded":
+            res.degraded += 1
+        elif msg.status == "passthrough":
+            res.passthrough += 1
+    elif isinstance(msg, wire.Drop):
+        res.dropped += 1
+        res.drop_reasons[msg.reason] = res.drop_reasons.get(msg.reason, 0) + 1
+    elif isinstance(msg, wire.ErrorMsg):
+        res.errors += 1
+        res.error_reasons[msg.reason] = res.error_reasons.get(msg.reason, 0) + 1
