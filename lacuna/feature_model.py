@@ -107,10 +107,6 @@ class FeatureStream(FillerState):
         self.core_state = model.core_init(1)
 
     def step(self, frame: np.ndarray | None, observed: np.ndarray | None = None) -> Fill:
-        C = self.model.n_channels
-        if frame is None:
-            f, obs = np.full(C, np.nan), np.zeros(C, bool)
-        else:
-            f, obs = check_frame(frame, observed, C)
+        f, obs = check_frame(frame, observed, self.model.n_channels)
         done, std, extras = self.model.step_arrays(self.repr_state, self.core_state, f[None], obs[None])
         return Fill(done[0], std[0], ~obs, extras[0] if extras else {})

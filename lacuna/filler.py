@@ -53,9 +53,12 @@ class Fill:
 def check_frame(frame: Any, observed: Any, n_channels: int) -> tuple[np.ndarray, np.ndarray]:
     """Validate one frame and its mask; returns float64 frame and bool mask copies.
 
-    Raises FillerError naming what arrived when the width is wrong or an observed value is
-    not finite (NaN in an *unobserved* slot is the normal way to say "missing").
+    ``frame=None`` is a frame that never arrived: all NaN, nothing observed.  Raises FillerError
+    naming what arrived when the width is wrong or an observed value is not finite (NaN in an
+    *unobserved* slot is the normal way to say "missing").
     """
+    if frame is None:
+        return np.full(n_channels, np.nan), np.zeros(n_channels, bool)
     f = np.asarray(frame, dtype=np.float64)
     if f.ndim != 1 or f.shape[0] != n_channels:
         raise FillerError(f"frame must have {n_channels} channels (got shape {f.shape})")

@@ -86,10 +86,7 @@ class HoldState(FillerState):
 
     def step(self, frame, observed=None) -> Fill:
         m = self.model
-        if frame is None:
-            f, obs = np.full(m.n_channels, np.nan), np.zeros(m.n_channels, bool)
-        else:
-            f, obs = check_frame(frame, observed, m.n_channels)
+        f, obs = check_frame(frame, observed, m.n_channels)
         out = np.where(obs, f, self.last)
         self.last = out.copy()
         return Fill(out, np.where(obs, 0.0, m.std_), ~obs)
@@ -167,10 +164,7 @@ class NNState(FillerState):
 
     def step(self, frame, observed=None) -> Fill:
         m = self.model
-        if frame is None:
-            f, obs = np.full(m.n_channels, np.nan), np.zeros(m.n_channels, bool)
-        else:
-            f, obs = check_frame(frame, observed, m.n_channels)
+        f, obs = check_frame(frame, observed, m.n_channels)
         out = m.fill(f[None], obs[None])[0]
         return Fill(out, np.zeros(m.n_channels), ~obs)
 
