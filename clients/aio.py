@@ -121,9 +121,10 @@ class AsyncClient:
         await self._send(data)
         return seq
 
-    async def fill(self, angles: Any, observed: Any = None, t: float | None = None) -> wire.FillMsg | wire.Drop:
+    async def fill(self, angles: Any, observed: Any = None, t: float | None = None,
+             seq: int | None = None) -> wire.FillMsg | wire.Drop:
         """Send one frame and await its FillMsg or Drop (see Client.fill)."""
-        seq, data = self.session.frame_bytes(angles, observed, t)
+        seq, data = self.session.frame_bytes(angles, observed, t, seq)
         for attempt in range(self.retries + 1):
             try:
                 await self._ensure_handshake()

@@ -140,13 +140,14 @@ class Client:
         self._send(data)
         return seq
 
-    def fill(self, angles: Any, observed: Any = None, t: float | None = None) -> wire.FillMsg | wire.Drop:
+    def fill(self, angles: Any, observed: Any = None, t: float | None = None,
+             seq: int | None = None) -> wire.FillMsg | wire.Drop:
         """Send one frame and wait for its answer: a FillMsg, or a Drop naming why it was not served.
 
         angles : (C,) degrees, NaN where missing; observed : (C,) bool or None.
         Raises DaemonUnavailable after every retry timed out, DaemonRefused on an ``error`` reply.
         """
-        seq, data = self.session.frame_bytes(angles, observed, t)
+        seq, data = self.session.frame_bytes(angles, observed, t, seq)
         for attempt in range(self.retries + 1):
             try:
                 self._ensure_handshake()

@@ -97,7 +97,7 @@ class DaemonProcess:
         if self.osc_opts:
             cfg["osc"] = self.osc_opts
         for name, spec in self.models.items():
-            cfg[f"models.{name}"] = {"file": os.fspath(spec)} if isinstance(spec, (str, os.PathLike)) else dict(spec)
+            cfg[f"models.{name}"] = {"file": os.path.abspath(os.fspath(spec))} if isinstance(spec, (str, os.PathLike)) else dict(spec)
         return cfg
 
     @property
