@@ -135,7 +135,8 @@ def errors(truth: np.ndarray, filled: np.ndarray, erased: np.ndarray, channels: 
     truth, filled : (T, C);  erased : (T, C) bool, values that were sent as missing and whose
     truth is known.
     """
-    err = filled - truth
+    # only erased values with a known truth are scored; zero the rest so NaN never enters wrap180
+    err = np.where(erased, np.nan_to_num(filled) - np.nan_to_num(truth), 0.0)
     ang = np.array([is_angle(c) for c in channels])
     err[:, ang] = wrap180(err[:, ang])
     ea = erased & ang[None]
