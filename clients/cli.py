@@ -88,7 +88,7 @@ def add_commands(cli) -> None:
                    help="motion: auto (data dir, else fetch, else synthetic), data, synthetic")
     p.add_argument("--methods", help="comma-separated model methods to train (default hlm,crbm)")
     p.add_argument("--speed", type=float, default=1.0, help="replay speed, times real time (default 1)")
-    p.add_argument("--budget-ms", type=float, default=4.0)
+    p.add_argument("--budget-ms", type=float, default=8.0, help="the daemon's per-frame budget (default 8: one 120 Hz period)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", "-q", action="store_true")
     p.set_defaults(func=_demo)
@@ -165,7 +165,9 @@ def _replay(args: argparse.Namespace) -> int:
     from mocap.motion import Motion
 
     filled = Motion(res.filled, list(motion.channels), motion.fps, motion.skeleton, out, dict(motion.meta))
-    write_take(out, filled, args.asf, observed=observed if p.suffix.lower() == ".lrec" else None)
+    is_rec = p.suffix.lower() == ".lrec"
+    write_take(out, filled, args.asf, observed=observed if is_rec else None,
+               fills=rp.fill_messages(res, args.stream) if is_rec else None)
     summ = rp.summary(res, known)
     summ["drop"] = args.drop
     summ["output"] = out

@@ -46,6 +46,8 @@ SMALL = {
     "crbm": {"hidden": 100, "epochs": 40, "order": 3, "progress": False},
 }
 TRAIN_OPTIONS = {"fps": 120.0, "cycle_frames": 140}
+SEED_TRIES = 10
+DEFAULT_BUDGET_MS = 8.0  # one frame period at 120 Hz is 8.33 ms
 
 
 def say(msg: str) -> None:
@@ -139,11 +141,10 @@ def run(args: Any) -> int:
         say(f"  {notes[-1]}")
     ch = train[0].channels
     test = test.select(ch) if test.channels != ch else test
-    obs, bursts = drop_mask(DROP, test, args.seed)
-    seed = args.seed
-    while not bursts and seed < args.seed + 50:  # a take short enough to get no burst: next seed
-        seed += 1
-        obs, bursts = drop_mask(DROP, test, seed)
+    # the gaps generator's bursts are sparse on a 4-second take: of SEED_TRIES consecutive seeds,
+    # take the one that drops the most values (deterministic for a given --seed)
+    seed = max(range(args.seed, args.seed + SEED_TRIES), key=lambda s: int((~drop_mask(DROP, test, s)[0]).sum()))
+    obs, bursts = drop_mask(DROP, test, seed)
     say(f"held-out take: {test.n_frames} frames at {test.fps:g} Hz; {len(bursts)} dropout bursts on the right arm "
         f"and the head ({int((~obs).sum())} values missing)")
     daemon = DaemonProcess({k: str(v) for k, v in files.items()}, (served or list(BASELINES))[0],
@@ -160,6 +161,7 @@ def run(args: Any) -> int:
             r = rp.replay(daemon.endpoint, test, obs, speed=args.speed, stream=f"demo-{name}", model=name,
                           progress=not args.quiet)
             results[name] = rp.summary(r)
+            results[name]["offline_rms_deg"] = offline_rms(name, files[name], test, obs)
             fills[name] = r.filled
             rtts[name] = r.rtt_ms
     finally:
@@ -176,15 +178,30 @@ def run(args: Any) -> int:
     return 0
 
 
+def offline_rms(name: str, path: Path, test: Motion, obs: np.ndarray) -> float | None:
+    """The same model file run in-process on the same take and mask: what the daemon should match
+    when it did not degrade."""
+    from lacuna.modelfile import load_model
+
+    model = load_model(str(path))
+    given = np.where(obs, test.frames, np.nan)
+    filled, _ = registry.get_method(name).run(model, given, obs.copy())
+    return rp.errors(test.frames, np.asarray(filled, np.float64), ~obs, test.channels)["rms_deg"]
+
+
+def _f2(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
 def format_report(rep: dict[str, Any]) -> str:
     L = [f"motion: {rep['motion']}", ""]
-    L.append(f"{'method':<8} {'train s':>8} {'RMS deg (dropped)':>18} {'p50 ms':>8} {'p90 ms':>8} {'p99 ms':>8} "
+    L.append(f"{'method':<8} {'train s':>8} {'RMS deg (dropped)':>18} {'same, offline':>14} {'p50 ms':>8} {'p90 ms':>8} {'p99 ms':>8} "
              f"{'max ms':>8}  status")
     for name, r in rep["results"].items():
         acc = r["accuracy"]["rms_deg"]
         lat = r["latency"]
         ts = rep["train_seconds"].get(name)
-        L.append(f"{name:<8} {'' if ts is None else f'{ts:8.1f}':>8} {'-' if acc is None else f'{acc:18.2f}':>18} "
+        L.append(f"{name:<8} {'' if ts is None else f'{ts:8.1f}':>8} {'-' if acc is None else f'{acc:18.2f}':>18} {_f2(r.get('offline_rms_deg')):>14} "
                  f"{lat['p50_ms'] or 0:8.3f} {lat['p90_ms'] or 0:8.3f} {lat['p99_ms'] or 0:8.3f} {lat['max_ms'] or 0:8.3f}"
                  f"  {json.dumps(r['status'])}")
     for n in rep["notes"]:

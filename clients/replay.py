@@ -43,6 +43,7 @@ class ReplayResult:
     rtt_ms: np.ndarray
     proc_us: np.ndarray
     status: dict[str, int] = field(default_factory=dict)
+    frame_status: list[str] = field(default_factory=list)
     dropped: int = 0
     held: int = 0
     echo_max_err: float = 0.0
@@ -64,6 +65,7 @@ def replay(endpoint: str, motion: Motion, observed: np.ndarray, *, speed: float 
     rtt = np.full(T, np.nan)
     proc = np.full(T, np.nan)
     status: dict[str, int] = {}
+    frame_status = ["dropped"] * T
     dropped = 0
     echo = 0.0
     model_name = ""
@@ -90,6 +92,7 @@ def replay(endpoint: str, motion: Motion, observed: np.ndarray, *, speed: float 
             dfill[k] = msg.filled
             proc[k] = msg.proc_us
             status[msg.status] = status.get(msg.status, 0) + 1
+            frame_status[k] = msg.status
             o = observed[k]
             if o.any():
                 echo = max(echo, float(np.max(np.abs(a[o] - motion.frames[k, o].astype(np.float32)))))
@@ -110,7 +113,15 @@ def replay(endpoint: str, motion: Motion, observed: np.ndarray, *, speed: float 
         written = _hold_forward(written)
     ok = np.isfinite(rtt)
     return ReplayResult(motion, written, std, observed.copy(), dfill, rtt[ok], proc[np.isfinite(proc)], status,
-                        dropped, held, echo, model_name, wall)
+                        frame_status, dropped, held, echo, model_name, wall)
+
+
+def fill_messages(res: ReplayResult, stream: str = "replay") -> list[wire.FillMsg]:
+    """The written take as one wire ``fill`` per frame (for writing a recording)."""
+    m = res.motion
+    return [wire.FillMsg(stream, k, k / m.fps, res.filled[k].astype(np.float32), res.daemon_filled[k],
+                         res.std[k].astype(np.float32), s if s in wire.STATUSES else "passthrough", res.model, 0)
+            for k, s in enumerate(res.frame_status)]
 
 
 def _hold_forward(x: np.ndarray) -> np.ndarray:

@@ -27,7 +27,7 @@ from mocap.protocols import JOINT_GROUPS, LEG_BONES, RIGHT_LEG, Gaps, bone
 def _io():
     try:
         from mocap import io as mio
-    except ModuleNotFoundError:
+    except ImportError:  # mocap.io (BVH/CSV) is not in this build yet
         return None
     return mio
 
