@@ -113,7 +113,10 @@ class DaemonProcess:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env.pop("NOTIFY_SOCKET", None)  # not ours to notify
         self.proc = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "serve", "--config", str(self.config_path)],
-                                     stdin=subprocess.DEVNULL, stdout=self._log, stderr=self._log, env=env)
+                                     stdin=subprocess.DEVNULL, stdout=self._log, stderr=self._log, env=env,
+                                     # own session: a terminal's Ctrl-C reaches only us, and we stop
+                                     # the daemon with SIGTERM (drain) in stop()
+                                     start_new_session=True)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
