@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lacuna.errors import ParseError
+from mocap.atomic import atomic_write_text
 from mocap.motion import Motion
 
 AMC_FPS = 120.0
@@ -86,6 +87,7 @@ def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
     hierarchy: dict[str, list[str]] = {}
     cur: Bone | None = None
     in_limits = False
+    hier_lines: list[tuple[int, str]] = []
     for i, raw in enumerate(lines, 1):
         line = raw.split("#", 1)[0].strip()
         if not line:
@@ -109,6 +111,8 @@ def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
                 bad = [p for p in root_order if p not in _VALID_DOFS]
                 if bad:
                     raise ParseError(path, i, f"root order has unknown dof {bad[0]!r}")
+                if len(set(root_order)) != len(root_order):
+                    raise ParseError(path, i, f"root order names a dof twice: {' '.join(parts[1:])}")
             elif key == "axis" and len(parts) > 1:
                 root_axis = parts[1].upper()
         elif section == "bonedata":
@@ -143,6 +147,8 @@ def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
                 bad = [p for p in cur.dofs if p not in _VALID_DOFS]
                 if bad:
                     raise ParseError(path, i, f"bone {cur.name}: unknown dof {bad[0]!r}")
+                if len(set(cur.dofs)) != len(cur.dofs):
+                    raise ParseError(path, i, f"bone {cur.name}: a dof appears twice in {' '.join(parts[1:])!r}")
             elif key == "limits" or in_limits:
                 in_limits = True
                 body = line[len("limits"):] if key == "limits" else line
@@ -150,7 +156,7 @@ def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
                 vals = []
                 for p in body:
                     try:
-                        vals.append(float(p.replace("inf", "inf")))
+                        vals.append(float(p))
                     except ValueError:
                         raise ParseError(path, i, f"bone {cur.name}: bad limit {p!r}") from None
                 if len(vals) != 2:
@@ -164,6 +170,7 @@ def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
             if key in ("begin", "end"):
                 continue
             hierarchy.setdefault(parts[0], []).extend(parts[1:])
+            hier_lines.extend((i, n) for n in parts)
     if cur is not None:
         raise ParseError(path, len(lines), f"bone {cur.name or '?'} not closed with 'end' (file truncated?)")
     if not root_order:
@@ -175,13 +182,16 @@ def parse_asf(text: str, path: str = "<asf>") -> Skeleton:
         if b.name in seen or b.name == "root":
             raise ParseError(path, None, f"bone name {b.name!r} appears twice")
         seen.add(b.name)
+    for i, n in hier_lines:
+        if n != "root" and n not in seen:
+            raise ParseError(path, i, f"':hierarchy' names bone {n!r}, which ':bonedata' does not define")
     return Skeleton(name, root_order, root_axis, bones, hierarchy, units, path, text)
 
 
 def read_asf(path: str | os.PathLike) -> Skeleton:
     path = os.fspath(path)
     try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
             text = fh.read()
     except OSError as e:
         raise ParseError(path, None, f"cannot read ({e.strerror or e})") from None
@@ -204,7 +214,13 @@ def find_asf(amc_path: str | os.PathLike) -> str:
 
 
 def parse_amc(text: str, skeleton: Skeleton, path: str = "<amc>", fps: float = AMC_FPS) -> Motion:
-    """Parse AMC text against a skeleton; bone lines are matched by name, in any order."""
+    """Parse AMC text against a skeleton; bone lines are matched by name, in any order.
+
+    Returns a Motion with ``frames`` of shape (n_frames, n_channels) in ``skeleton.channels``
+    order, in degrees (a ``:RADIANS`` file, or an ASF with ``angle rad``, is converted).  The bone
+    order of the first frame is kept in ``meta["amc_bone_order"]`` so a writer can reproduce it.
+    Frame numbers must count up by one.  Raises ParseError naming the file and line.
+    """
     dofs = skeleton.dofs_by_bone()
     channels = skeleton.channels
     col0: dict[str, int] = {}
@@ -213,57 +229,79 @@ def parse_amc(text: str, skeleton: Skeleton, path: str = "<amc>", fps: float = A
         col0[b] = c
         c += len(ds)
     n_ch = len(channels)
+    dofless = {b.name for b in skeleton.bones} - set(dofs)
+    radians = skeleton.units.get("angle", "deg").lower().startswith("rad")
     rows: list[np.ndarray] = []
     cur: np.ndarray | None = None
-    seen: set[str] = set()
+    seen: list[str] = []
+    first_order: list[str] = []
     cur_line = 0
     frame_no = 0
 
-    def close(lineno: int) -> None:
+    def close(at_eof: bool) -> None:
         missing = [b for b in dofs if b not in seen]
         if missing:
-            raise ParseError(path, cur_line, f"frame {frame_no} lacks bone {missing[0]!r} (and {len(missing) - 1} more)")
+            more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+            if at_eof:
+                raise ParseError(path, cur_line, f"file ends inside frame {frame_no}: no line for bone {missing[0]!r}{more} (truncated?)")
+            raise ParseError(path, cur_line, f"frame {frame_no} lacks bone {missing[0]!r}{more}")
+        if not first_order:
+            first_order.extend(seen)
         rows.append(cur)  # type: ignore[arg-type]
 
     for i, raw in enumerate(io.StringIO(text), 1):
         line = raw.strip()
-        if not line or line.startswith("#") or line.startswith(":"):
+        if not line or line.startswith("#"):
+            continue
+        if line.startswith(":"):
+            key = line.split()[0].upper()
+            if key == ":RADIANS":
+                radians = True
+            elif key == ":DEGREES":
+                radians = False
             continue
         parts = line.split()
         if len(parts) == 1 and parts[0].isdigit():
+            n = int(parts[0])
             if cur is not None:
-                close(i)
+                close(False)
+                if n != frame_no + 1:
+                    raise ParseError(path, i, f"frame number {n} follows frame {frame_no} (expected {frame_no + 1})")
             cur = np.full(n_ch, np.nan)
-            seen = set()
+            seen = []
             cur_line = i
-            frame_no = int(parts[0])
+            frame_no = n
             continue
         if cur is None:
             raise ParseError(path, i, f"bone line before the first frame number: {line[:40]!r}")
         bone = parts[0]
         if bone not in dofs:
-            if bone in {b.name for b in skeleton.bones}:
+            if bone in dofless and len(parts) == 1:
                 continue  # a bone with no dofs; tolerate an empty line for it
             raise ParseError(path, i, f"bone {bone!r} is not in skeleton {skeleton.source or skeleton.name}")
         want = len(dofs[bone])
         vals = parts[1:]
         if len(vals) != want:
-            raise ParseError(path, i, f"bone {bone} needs {want} values (got {len(vals)})")
+            raise ParseError(path, i, f"bone {bone} needs {want} values (got {len(vals)}: {' '.join(vals)!r})")
         try:
             v = [float(x) for x in vals]
         except ValueError:
             raise ParseError(path, i, f"bone {bone}: not a number in {' '.join(vals)!r}") from None
         if not all(math.isfinite(x) for x in v):
-            raise ParseError(path, i, f"bone {bone}: NaN or infinity")
+            raise ParseError(path, i, f"bone {bone}: NaN or infinity in {' '.join(vals)!r}")
         if bone in seen:
             raise ParseError(path, i, f"bone {bone} appears twice in frame {frame_no}")
-        seen.add(bone)
+        seen.append(bone)
         cur[col0[bone] : col0[bone] + want] = v
     if cur is not None:
-        close(cur_line)
+        close(True)
     if not rows:
-        raise ParseError(path, None, "no frames")
-    return Motion(np.vstack(rows), channels, fps, skeleton, path)
+        raise ParseError(path, None, "no frames (empty or not an AMC file)")
+    frames = np.vstack(rows)
+    if radians:
+        rot = [j for j, ch in enumerate(channels) if ch.split(".")[-1].startswith("r")]
+        frames[:, rot] = np.degrees(frames[:, rot])
+    return Motion(frames, channels, fps, skeleton, path, {"amc_bone_order": first_order})
 
 
 def read_amc(path: str | os.PathLike, asf: str | os.PathLike | Skeleton | None = None, fps: float = AMC_FPS) -> Motion:
@@ -274,7 +312,7 @@ def read_amc(path: str | os.PathLike, asf: str | os.PathLike | Skeleton | None =
     else:
         skel = read_asf(asf if asf is not None else find_asf(path))
     try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
             text = fh.read()
     except OSError as e:
         raise ParseError(path, None, f"cannot read ({e.strerror or e})") from None
@@ -282,36 +320,62 @@ def read_amc(path: str | os.PathLike, asf: str | os.PathLike | Skeleton | None =
 
 
 def _fmt(x: float) -> str:
+    # repr is the shortest text that parses back to the same double: exact round trips.
     return repr(float(x)) if x != 0 else "0"
 
 
-def format_amc(motion: Motion, skeleton: Skeleton | None = None) -> str:
-    """AMC text in the skeleton's bone order, full float precision (round trips exactly)."""
+def format_amc(motion: Motion, skeleton: Skeleton | None = None, bone_order: list[str] | None = None) -> str:
+    """AMC text (degrees, full float precision: it round trips exactly).
+
+    Bones are written in ``bone_order``, else the order the motion was read in
+    (``meta["amc_bone_order"]``), else the skeleton's order.  The motion must carry exactly the
+    skeleton's channels (any order) with finite values: nothing is silently dropped.
+    """
     skel = skeleton or motion.skeleton
     if not isinstance(skel, Skeleton):
-        raise ValueError("writing AMC needs an ASF skeleton (pass skeleton=)")
-    idx = motion.index(skel.channels)
-    out = [":FULLY-SPECIFIED", ":DEGREES"]
+        raise ValueError(f"writing AMC needs an ASF skeleton ({motion.source or 'this motion'} has none; pass asf=/--asf)")  # noqa: TRY004 (a user-facing error the CLI prints as one line)
+    want = skel.channels
+    have = set(motion.channels)
+    missing = [ch for ch in want if ch not in have]
+    extra = [ch for ch in motion.channels if ch not in set(want)]
+    if missing or extra:
+        what = []
+        if missing:
+            what.append(f"lacks {len(missing)} skeleton channels ({', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''})")
+        if extra:
+            what.append(f"has {len(extra)} channels not in the skeleton ({', '.join(extra[:4])}{' ...' if len(extra) > 4 else ''})")
+        raise ValueError(f"cannot write {motion.source or 'motion'} as AMC of skeleton {skel.source or skel.name}: it " + " and ".join(what))
+    frames = motion.frames[:, motion.index(want)]
+    bad = np.argwhere(~np.isfinite(frames))
+    if len(bad):
+        t, j = bad[0]
+        raise ValueError(f"cannot write AMC: frame {t + 1} channel {want[j]} is {frames[t, j]} (fill gaps first)")
     dofs = skel.dofs_by_bone()
-    for t in range(motion.n_frames):
-        row = motion.frames[t, idx]
+    col0: dict[str, int] = {}
+    c = 0
+    for b, ds in dofs.items():
+        col0[b] = c
+        c += len(ds)
+    order = bone_order or motion.meta.get("amc_bone_order") or []
+    if sorted(order) != sorted(dofs):
+        order = list(dofs)
+    out = [":FULLY-SPECIFIED", ":DEGREES"]
+    for t in range(frames.shape[0]):
+        row = frames[t]
         out.append(str(t + 1))
-        c = 0
-        for b, ds in dofs.items():
-            vals = row[c : c + len(ds)]
-            c += len(ds)
+        for b in order:
+            vals = row[col0[b] : col0[b] + len(dofs[b])]
             out.append(b + " " + " ".join(_fmt(v) for v in vals))
     return "\n".join(out) + "\n"
 
 
-def write_amc(path: str | os.PathLike, motion: Motion, skeleton: Skeleton | None = None) -> None:
-    with open(path, "w", encoding="utf-8") as fh:
-        fh.write(format_amc(motion, skeleton))
+def write_amc(path: str | os.PathLike, motion: Motion, skeleton: Skeleton | None = None, bone_order: list[str] | None = None) -> None:
+    """Write an AMC file atomically (see ``format_amc``)."""
+    atomic_write_text(path, format_amc(motion, skeleton, bone_order))
 
 
 def write_asf(path: str | os.PathLike, skeleton: Skeleton) -> None:
     """Write the skeleton back out (verbatim text when it was read from a file)."""
     if not skeleton.text:
         raise ValueError("this skeleton was not read from a file; nothing to write")
-    with open(path, "w", encoding="utf-8") as fh:
-        fh.write(skeleton.text)
+    atomic_write_text(path, skeleton.text)

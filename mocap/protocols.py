@@ -110,17 +110,10 @@ class Protocol:
 
     # shared helper
     def _load_file(self, path: str, asf: str | None, fps: float, channels: list[str]) -> Motion:
-        from mocap.asf import read_amc
+        from mocap.io import read_motion
 
         p = str(path)
-        if p.endswith(".amc"):
-            m = read_amc(p, asf)
-        else:
-            try:
-                from mocap.io import read_motion
-            except ModuleNotFoundError:
-                raise DataError(f"{p}: only .amc test files are supported in this build") from None
-            m = read_motion(p, asf=asf)
+        m = read_motion(p, asf=asf)
         missing = [c for c in channels if c not in m.channels]
         if missing:
             raise DataError(f"{p}: lacks channels the protocol needs, e.g. {missing[:3]}")
