@@ -33,7 +33,7 @@ SECTION = "## Daemon latency (lacuna bench)"
 TRAIN = ["35_01", "35_06", "35_07", "35_08", "35_09", "35_10", "35_11", "35_12"]
 LOADS = [(1, 120.0), (64, 120.0)]
 OPTIONS = {"fps": 120.0, "cycle_frames": 140}
-SMALL = {"hlm": {"n_iter": 10, "styles": 2, "progress": False},
+SMALL = {"hlm": {"n_iter": 10, "styles": 2, "restarts": 1, "progress": False},
          "crbm": {"hidden": 100, "epochs": 40, "order": 3, "progress": False}}
 
 

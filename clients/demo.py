@@ -42,7 +42,7 @@ BASELINES = ("hold", "nn")
 # Small models so that both train in well under two minutes on two cores; a method ignores
 # the options it does not know (lacuna.registry.MethodSpec).
 SMALL = {
-    "hlm": {"n_iter": 10, "styles": 2, "progress": False},
+    "hlm": {"n_iter": 10, "styles": 2, "restarts": 1, "progress": False},
     "crbm": {"hidden": 100, "epochs": 40, "order": 3, "progress": False},
 }
 TRAIN_OPTIONS = {"fps": 120.0, "cycle_frames": 140}
