@@ -154,8 +154,8 @@ class Bridge:
         observed = f.observed if f.observed is not None else np.isfinite(angles)
         if c.session.channels is not None and len(angles) != len(c.session.channels):
             self.counts.rejected += 1
-            return wire.ErrorMsg("width", f"frame has {len(angles)} values, stream {f.stream!r} said {len(c.session.channels)} channels",
-                                 f.stream, f.seq)
+            return wire.ErrorMsg("width", f"frame has {len(angles)} values, stream {f.stream!r} said "
+                                          f"{len(c.session.channels)} channels", f.stream, f.seq)
         reply: wire.Message | None = None
         if not self._daemon_away():
             try:

@@ -194,7 +194,8 @@ def _bench(args: argparse.Namespace) -> int:
     from clients import bench
 
     if args.streams < 1 or args.rate <= 0 or args.seconds <= 0:
-        raise LacunaError(f"--streams >= 1, --rate > 0 and --seconds > 0 please (got {args.streams}, {args.rate}, {args.seconds})")
+        raise LacunaError(f"--streams >= 1, --rate > 0 and --seconds > 0 please "
+                          f"(got {args.streams}, {args.rate}, {args.seconds})")
     return bench.run(args)
 
 

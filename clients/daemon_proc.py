@@ -97,7 +97,10 @@ class DaemonProcess:
         if self.osc_opts:
             cfg["osc"] = self.osc_opts
         for name, spec in self.models.items():
-            cfg[f"models.{name}"] = {"file": os.path.abspath(os.fspath(spec))} if isinstance(spec, (str, os.PathLike)) else dict(spec)
+            if isinstance(spec, (str, os.PathLike)):
+                cfg[f"models.{name}"] = {"file": os.path.abspath(os.fspath(spec))}  # the config's dir is not ours
+            else:
+                cfg[f"models.{name}"] = dict(spec)
         return cfg
 
     @property

@@ -195,13 +195,14 @@ def _f2(v: float | None) -> str:
 
 def format_report(rep: dict[str, Any]) -> str:
     L = [f"motion: {rep['motion']}", ""]
-    L.append(f"{'method':<8} {'train s':>8} {'RMS deg (dropped)':>18} {'same, offline':>14} {'p50 ms':>8} {'p90 ms':>8} {'p99 ms':>8} "
-             f"{'max ms':>8}  status")
+    L.append(f"{'method':<8} {'train s':>8} {'RMS deg (dropped)':>18} {'same, offline':>14} {'p50 ms':>8} "
+             f"{'p90 ms':>8} {'p99 ms':>8} {'max ms':>8}  status")
     for name, r in rep["results"].items():
         acc = r["accuracy"]["rms_deg"]
         lat = r["latency"]
         ts = rep["train_seconds"].get(name)
-        L.append(f"{name:<8} {'' if ts is None else f'{ts:8.1f}':>8} {'-' if acc is None else f'{acc:18.2f}':>18} {_f2(r.get('offline_rms_deg')):>14} "
+        L.append(f"{name:<8} {'' if ts is None else f'{ts:8.1f}':>8} {'-' if acc is None else f'{acc:18.2f}':>18} "
+                 f"{_f2(r.get('offline_rms_deg')):>14} "
                  f"{lat['p50_ms'] or 0:8.3f} {lat['p90_ms'] or 0:8.3f} {lat['p99_ms'] or 0:8.3f} {lat['max_ms'] or 0:8.3f}"
                  f"  {json.dumps(r['status'])}")
     for n in rep["notes"]:

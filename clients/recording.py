@@ -193,7 +193,8 @@ def read_recording(path: str | os.PathLike) -> Recording:
 
 def _arr(b: Any, dtype: Any, n: int) -> np.ndarray:
     if not isinstance(b, bytes) or len(b) != np.dtype(dtype).itemsize * n:
-        raise ValueError(f"expected {np.dtype(dtype).itemsize * n} bytes for {n} channels (got {len(b) if isinstance(b, bytes) else type(b).__name__})")
+        got = len(b) if isinstance(b, bytes) else type(b).__name__
+        raise ValueError(f"expected {np.dtype(dtype).itemsize * n} bytes for {n} channels (got {got})")
     return np.frombuffer(b, dtype=dtype).astype(np.float64 if dtype is F32 else dtype)
 
 

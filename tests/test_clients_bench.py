@@ -69,3 +69,26 @@ def test_cpu_seconds_reads_proc():
     after = cpu_seconds(os.getpid())
     assert before is not None and after is not None and after - before >= 0.1
     assert cpu_seconds(2**22 + 12345) is None
+
+
+def test_bench_connect_drives_a_running_daemon_and_its_floor_model(tmp_path, capsys):
+    from clients import synth
+
+    g = synth.gait(2.0, seed=4)
+    HoldModel.fit([g.frames], g.channels).save(str(tmp_path / "hold.npz"))
+    d = DaemonProcess({"hold": str(tmp_path / "hold.npz"), "floor": {"builtin": "passthrough", "channels": g.channels}},
+                      workdir=str(tmp_path / "d"))
+    d.start()
+    try:
+        rc = main(["bench", "--connect", d.endpoint, "--streams", "2", "--rate", "50", "--seconds", "0.6", "--floor",
+                   "--json", str(tmp_path / "c.json"), "-q"])
+        assert rc == 0
+        out = json.loads((tmp_path / "c.json").read_text())
+        assert out["runs"]["model"]["model"] == "hold" and out["runs"]["floor"]["model"] == "floor"
+        assert all(r["counts_agree"] and r["sent"] == 2 * 30 for r in out["runs"].values())
+        assert out["cpu_percent"] is not None  # a loopback daemon: its pid came from status
+        # a daemon without the floor model: a clear error naming the fix
+        assert main(["bench", "--connect", d.endpoint, "--floor", "--floor-model", "nope", "--seconds", "0.1", "-q"]) == 2
+        assert 'builtin = "passthrough"' in capsys.readouterr().err
+    finally:
+        d.stop()

@@ -100,7 +100,8 @@ def test_bridge_fills_then_passes_through_while_daemon_is_away_then_fills_again(
     d = DaemonProcess({"hold": str(model)}, workdir=str(tmp_path / "d"), daemon={"budget_ms": 200.0})
     d.start()
     try:
-        b = run_bridge(d.endpoint, down.getsockname(), timeout_s=0.3, probe_s=0.2)
+        b = run_bridge(d.endpoint, down.getsockname(), timeout_s=0.3, probe_s=0.2,
+                       record=str(tmp_path / "{stream}.lrec"))
         cap.sendto(osc_hello("actor", CH), b.address)
         vals = np.array([1.0, np.nan, 2.0, 3.0, 4.0], np.float32)
         cap.sendto(osc_frame("actor", 0, 0.0, vals), b.address)
@@ -127,6 +128,13 @@ def test_bridge_fills_then_passes_through_while_daemon_is_away_then_fills_again(
         assert f["status"] == "ok" and f["seq"] == k and f["filled"][1]
     finally:
         d.stop()
+    # --record kept every frame it emitted, raw and filled, pass-through ones included
+    from clients.recording import read_recording
+
+    rec = read_recording(str(tmp_path / "actor.lrec"))
+    assert rec.channels == CH and rec.seq.tolist() == list(range(k + 1))
+    assert rec.status[0] == "ok" and rec.status[1] == "passthrough" and rec.status[-1] == "ok"
+    np.testing.assert_array_equal(rec.observed[:, 1], False)
 
 
 def test_bridge_rejects_garbage_and_keeps_serving(pipeline, run_bridge):

@@ -137,3 +137,47 @@ def test_fill_frames_of_a_drop_reply_are_counted_not_invented(daemon):
         assert isinstance(c.fill(f, seq=5), wire.FillMsg)
         r = c.fill(f, seq=5)
         assert isinstance(r, wire.Drop) and r.reason == "duplicate"
+
+
+def test_lacuna_record_process_writes_what_the_daemon_published(daemon, tmp_path):
+    import subprocess
+    import sys
+
+    names = load_trial("07_01").channels
+    frames = load_trial("07_01").frames[:30]
+    out = tmp_path / "rec.lrec"
+    p = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "record", "--connect", daemon.zmq_opts["pub"],
+                          "--stream", "proc-rec", "--out", str(out), "--frames", "20", "--channels", ",".join(names),
+                          "--fps", "120", "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(1.5)  # the recorder's SUB joins the PUB (slow joiner); frames before that are not seen
+        with Client(daemon.endpoint, "proc-rec", names, timeout_s=5.0) as c:
+            for k in range(30):
+                c.fill(frames[k])
+        so, se = p.communicate(timeout=20)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, se
+    assert "recorded 20 frames" in so
+    rec = read_recording(str(out))
+    assert len(rec.seq) == 20 and rec.channels == names
+    first = int(rec.seq[0])
+    np.testing.assert_array_equal(rec.raw, frames[first:first + 20].astype(np.float32))
+
+
+def test_replay_csv_take_writes_csv(daemon, tmp_path):
+    from mocap import io as mio
+
+    m = load_trial("07_01").slice(0, 120)
+    src = tmp_path / "walk.csv"
+    mio.write_motion(str(src), m)
+    out = tmp_path / "walk.filled.csv"
+    assert main(["replay", str(src), "--connect", daemon.endpoint, "--speed", "0", "--drop", "pan2009",
+                 "--out", str(out), "-q"]) == 0
+    got = mio.read_motion(str(out))
+    want = mio.read_motion(str(src))
+    keep, _ = drop_mask("pan2009", want)
+    assert got.channels == want.channels and got.frames.shape == want.frames.shape
+    np.testing.assert_array_equal(got.frames[keep], want.frames[keep])
+    assert not np.array_equal(got.frames[~keep], want.frames[~keep])
