@@ -37,13 +37,13 @@ SMALL = {"hlm": {"n_iter": 10, "styles": 2, "restarts": 1, "progress": False},
          "crbm": {"hidden": 100, "epochs": 40, "order": 3, "progress": False}}
 
 
-def train_models(out: Path) -> dict[str, Path]:
+def train_models(out: Path, names: list[str]) -> dict[str, Path]:
     from mocap.datasets import load_trial
 
     ms = [load_trial(t) for t in TRAIN]
     ts = TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, TRAIN, ["walk"] * len(ms))
     files = {}
-    for name in ["hold", "nn", "hlm", "crbm"]:
+    for name in names:
         if name not in registry.methods():
             print(f"{name}: not registered in this build, skipped", file=sys.stderr)
             continue
@@ -127,11 +127,16 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--out", default=str(ROOT / "bench" / "out"))
+    ap.add_argument("--note", default="", help="a sentence added under the table (e.g. which branches were measured)")
+    ap.add_argument("--models", default="hold,nn,hlm,crbm", help="comma-separated (default hold,nn,hlm,crbm)")
+    ap.add_argument("--loads", default="1x120,64x120", help="comma-separated STREAMSxHZ (default 1x120,64x120)")
     ap.add_argument("--no-write", action="store_true", help="print the section instead of writing docs/BENCHMARKS.md")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    files = train_models(out)
+    global LOADS
+    LOADS = [(int(a), float(b)) for a, b in (x.split("x") for x in args.loads.split(","))]
+    files = {k: v for k, v in train_models(out, args.models.split(",")).items()}
     t0 = time.time()
     rows = run(files, out, args.repeats, args.seconds)
     (out / "latency-summary.json").write_text(json.dumps(rows, indent=2))
@@ -152,6 +157,7 @@ def main() -> int:
         "Counts agreed with the daemon's `status` in every run: "
         + ("yes" if all(r[k]["counts_agree"] for r in rows for k in ("model", "floor")) else "NO (see JSON)") + ".",
         f"Per-run JSON and histograms: `{Path(args.out).name}/` (not committed).",
+        *([args.note] if args.note else []),
     ])
     if args.no_write:
         print(text)

@@ -165,3 +165,34 @@ def test_bad_frames_are_refused_before_sending(daemon):
             c.fill(np.zeros(3))
         with pytest.raises(ValueError, match="observed mask"):
             c.fill(np.zeros(2), np.ones(3, bool))
+
+
+def test_asyncio_client_reconnects_after_daemon_restart(hold_file, tmp_path):
+    _, model = hold_file
+    names, frames = studio_take(model.channels)
+    d = DaemonProcess({"hold": hold_file[0]}, workdir=str(tmp_path), daemon={"budget_ms": 200.0})
+    d.start()
+
+    async def go():
+        async with AsyncClient(d.endpoint, "aactor", names, timeout_s=2.0, retries=5) as c:
+            for k in range(3):
+                assert isinstance(await c.fill(frames[k]), wire.FillMsg)
+            d.kill()
+            d.start()
+            obs = np.ones(len(names), bool)
+            obs[:4] = False
+            r = await c.fill(frames[3], obs)
+            return r, c.session
+
+    try:
+        r, session = asyncio.run(go())
+        st = Client(d.endpoint, "probe").status()["streams"]["aactor"]
+    finally:
+        d.stop()
+    assert isinstance(r, wire.FillMsg) and r.seq == 3
+    # the new daemon got the handshake: studio order, the extra channel passed through
+    assert st["passthrough"] == 1 and st["missing"] == 1
+    idx = {ch: i for i, ch in enumerate(model.channels)}
+    np.testing.assert_allclose(r.angles[:4], [model.mean_[idx[ch]] for ch in names[:4]], atol=1e-4)
+    np.testing.assert_array_equal(r.angles[4:-1], frames[3, 4:-1].astype(np.float32))
+    assert session.disconnects >= 1 and session.next_seq == 4
