@@ -47,6 +47,9 @@ def _status(args: argparse.Namespace) -> int:
         if not cfg.zmq_router:
             raise ValueError(f"{args.config}: zmq.router is not set, so the daemon takes no control requests")
         ep = cfg.zmq_router
+        if ep.endswith(":*") or ep.endswith(":0"):
+            raise ValueError(f"{args.config}: zmq.router {ep} is a wildcard port; the daemon logs the port it bound "
+                             f"in its ready line: pass it with --connect")
     rep = server.control(ep or DEFAULT_ENDPOINT, "status", timeout_s=args.timeout)
     if args.json:
         print(json.dumps(rep.result, indent=2, default=str))
@@ -71,6 +74,10 @@ def render(st: dict[str, Any]) -> str:
     L.append("frames: in {} out {} degraded {} dropped conflated/late/duplicate {}/{}/{} rejected {}".format(
         c.get("frames_in", 0), c.get("frames_out", 0), c.get("degraded", 0), c.get("dropped_conflated", 0),
         c.get("dropped_late", 0), c.get("dropped_duplicate", 0), c.get("rejected", 0)))
+    other = {k: c[k] for k in ("send_dropped", "send_errors", "internal_errors", "reloads", "reload_failures",
+                                "expired", "osc_recv_errors") if c.get(k)}
+    if other:
+        L.append("other: " + ", ".join(f"{k} {v}" for k, v in other.items()))
     if st.get("rejected"):
         L.append("rejected by reason: " + ", ".join(f"{k} {v}" for k, v in sorted(st["rejected"].items())))
     L.append("models:")

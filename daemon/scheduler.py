@@ -29,7 +29,9 @@ from lacuna.filler import Fill, Model
 
 SAFETY = 1.25  # multiply cost estimates: better to degrade a little early than overrun
 DISCOUNT = 0.97  # per observation, for the cost fit
-REPLY_COST_S = 30e-6  # first guess of encode+send per reply, refined online
+OUTLIER = 4.0  # clip a cost observation at this multiple of the current fit
+REPLY_COST_S = 30e-6
+HOLD_COST_S = 20e-6  # per stream, what hold-last-value costs in the session (numpy overhead)  # first guess of encode+send per reply, refined online
 
 
 class CostModel:
@@ -40,6 +42,12 @@ class CostModel:
         self.seen = False
 
     def observe(self, n: int, t: float) -> None:
+        if self.seen:
+            # one step stretched by the OS (preemption on a busy machine) must not make the
+            # scheduler degrade for the next hundred frames: clip outliers to OUTLIER x the fit;
+            # a model that really got slower still moves the fit by that factor per step
+            a, b = self.coef()
+            t = min(t, OUTLIER * max(a + b * n, 1e-6))
         self.s *= DISCOUNT
         self.s += (1.0, n, n * n, t, n * t)
         self.seen = True
@@ -91,6 +99,7 @@ class Scheduler:
         self.max_batch = max_batch
         self.costs: dict[tuple[int, int | None], CostModel] = {}
         self.reply_cost = REPLY_COST_S
+        self.hold_cost = CostModel()
         self.step_errors = 0
         self.last_error = ""
 
@@ -120,6 +129,12 @@ class Scheduler:
         avail = deadline - now - self.reply_cost * len(group)
         rounds = 1 + max(min(self._gap(s), self.max_gap) for s in group)
         levels = levels_of(model)
+        # a model about as cheap as holding gains nothing from degrading: frames already late
+        # (queued while the daemon was busy) are better served in full
+        # (holding's own cost is measured alongside, under the same load as the model's)
+        hold = self.hold_cost.estimate(len(group)) if self.hold_cost.seen else HOLD_COST_S * len(group)
+        if self.cost(model, levels[0]).estimate(len(group), rounds) <= 2.0 * max(hold, HOLD_COST_S * len(group)):
+            return StepPlan(group, [], levels[0], False)
         for lv in levels:
             cm = self.cost(model, lv)
             if not cm.seen or cm.estimate(len(group), rounds) <= avail:
@@ -140,7 +155,10 @@ class Scheduler:
             for i in range(0, len(sessions), self.max_batch):
                 chunk = sessions[i : i + self.max_batch]
                 plan = self.plan(model, chunk, time.perf_counter())
-                results.extend(self._hold(s) for s in plan.hold)
+                if plan.hold:
+                    t0 = time.perf_counter()
+                    results.extend(self._hold(s) for s in plan.hold)
+                    self.hold_cost.observe(len(plan.hold), time.perf_counter() - t0)
                 if plan.step:
                     results.extend(self._step(model, plan))
         return results
@@ -155,6 +173,10 @@ class Scheduler:
         # hold-last-value has no uncertainty estimate: NaN says "unknown", not "certain"
         std = np.where(filled, np.nan, 0.0)
         s.last_out = out
+        # the filter skips held frames rather than predicting them later: replaying them when
+        # the stream steps again would cost the time the daemon is short of (a death spiral)
+        if s.model_seq is not None:
+            s.model_seq = p.frame.seq
         s.held_streak += 1
         s.counts["held"] += 1
         return s, Fill(out, std, filled, {}, True), "degraded"
@@ -222,7 +244,11 @@ class Scheduler:
             try:
                 for n in sizes:
                     states = [model.stream() for _ in range(n)]
-                    frames, obs = np.full((n, C), np.nan), np.zeros((n, C), bool)
+                    # half the channels observed (zeros), like a frame with markers lost: an
+                    # all-missing frame can take a cheap path and would underestimate the cost
+                    obs = np.zeros((n, C), bool)
+                    obs[:, ::2] = True
+                    frames = np.where(obs, 0.0, np.nan)
                     for _ in range(2):
                         t0 = time.perf_counter()
                         fills = model.step_batch(states, frames, obs)

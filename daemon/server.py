@@ -9,11 +9,10 @@ dropped or held up by the load; a file that fails keeps the old model and the lo
 """
 from __future__ import annotations
 
-import errno
+import gc
 import json
 import os
 import signal
-import socket
 import sys
 import threading
 import time
@@ -27,14 +26,12 @@ from daemon.metrics import Metrics, MetricsHTTP
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
 from daemon.scheduler import Scheduler, fill_message
-from daemon.session import Origin, Out, SessionError, SessionTable
+from daemon.session import Origin, SessionError, SessionTable
+from daemon.transport import Transports
 
-DRAIN_MAX = 2048  # messages read per socket per tick: keeps one busy socket from starving the rest
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
 HOUSEKEEPING_S = 0.5
 DRAIN_LINGER_MS = 1000  # on SIGTERM, let answers already queued reach their peers
-UDP_MAX = 65535
-ZMQ_MAXMSG_FLOOR = 1 << 20  # bytes
 LEVELS = {"debug": 10, "info": 20, "warning": 30, "error": 40}
 
 
@@ -45,8 +42,10 @@ class Log:
         self.level = LEVELS[level]
         self.stream = stream or sys.stderr
 
-    def __call__(self, level: str, event: str, **fields: Any) -> None:
-        if LEVELS[level] < self.level:
+    def __call__(self, level: str, event: str, always: bool = False, **fields: Any) -> None:
+        # lifecycle events (ready, reload_done, stopped) are logged whatever the level: tools
+        # and tests wait for them
+        if LEVELS[level] < self.level and not always:
             return
         rec = {"ts": round(time.time(), 6), "level": level, "event": event, **fields}
         try:
@@ -65,9 +64,7 @@ class Daemon:
         self.models: dict[str, Loaded] = {}
         self.sched = Scheduler(cfg.budget_ms, cfg.max_gap_frames, cfg.max_batch)
         self.sessions = SessionTable(self._resolve, cfg.max_streams, self._count)
-        self.ctx: zmq.Context | None = None
-        self.router = self.pull = self.sub = self.pub = None
-        self.udp: socket.socket | None = None
+        self.net: Transports | None = None
         self.http: MetricsHTTP | None = None
         self._prom = ""
         self.flag_reload = False
@@ -94,48 +91,12 @@ class Daemon:
         if errors:
             raise config_mod.ConfigError("; ".join(f"model {n}: {e}" for n, e in errors.items()))
         self._install(table)
-        self.ctx = zmq.Context()
-        c = self.cfg
-        hwm = c.zmq_hwm
-
-        def sock(kind: int) -> zmq.Socket:
-            s = self.ctx.socket(kind)  # type: ignore[union-attr]
-            s.setsockopt(zmq.LINGER, 0)
-            s.setsockopt(zmq.SNDHWM, hwm)
-            s.setsockopt(zmq.RCVHWM, hwm)
-            # beyond this ZeroMQ disconnects the peer without reading the message into memory;
-            # between max_message_bytes and this the daemon reads it and answers `too_large`
-            s.setsockopt(zmq.MAXMSGSIZE, max(ZMQ_MAXMSG_FLOOR, 4 * c.max_message_bytes))
-            return s
-
-        self.poller = zmq.Poller()
-        if c.zmq_router:
-            self.router = sock(zmq.ROUTER)
-            self.router.bind(c.zmq_router)
-            self.poller.register(self.router, zmq.POLLIN)
-        if c.zmq_pull:
-            self.pull = sock(zmq.PULL)
-            self.pull.bind(c.zmq_pull)
-            self.poller.register(self.pull, zmq.POLLIN)
-        if c.zmq_sub:
-            self.sub = sock(zmq.SUB)
-            self.sub.setsockopt(zmq.SUBSCRIBE, b"")
-            for ep in c.zmq_sub:
-                self.sub.connect(ep)
-            self.poller.register(self.sub, zmq.POLLIN)
-        if c.zmq_pub:
-            self.pub = sock(zmq.PUB)
-            self.pub.bind(c.zmq_pub)
-        if c.osc_listen:
-            fam = socket.AF_INET6 if ":" in c.osc_listen[0] else socket.AF_INET
-            self.udp = socket.socket(fam, socket.SOCK_DGRAM)
-            self.udp.bind(c.osc_listen)
-            self.udp.setblocking(False)
-            self.poller.register(self.udp.fileno(), zmq.POLLIN)
-        if c.metrics_http:
-            self.http = MetricsHTTP(c.metrics_http[0], c.metrics_http[1], lambda: self._prom)
+        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, self.log)
+        self.net.open()
+        if self.cfg.metrics_http:
+            self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom)
         self._prom = self.metrics.prometheus(self.status())
-        self.log("info", "ready", pid=os.getpid(), config=c.path, endpoints=self.endpoints(),
+        self.log("info", "ready", always=True, pid=os.getpid(), config=self.cfg.path, endpoints=self.endpoints(),
                  models={n: m.info() for n, m in self.models.items()})
         self.notify.ready(self._status_line())
 
@@ -151,14 +112,7 @@ class Daemon:
         self.models = table
 
     def endpoints(self) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for name, s in (("router", self.router), ("pull", self.pull), ("pub", self.pub)):
-            if s is not None:
-                out[name] = s.getsockopt(zmq.LAST_ENDPOINT).decode()
-        if self.sub is not None:
-            out["sub"] = self.cfg.zmq_sub
-        if self.udp is not None:
-            out["osc"] = "%s:%d" % self.udp.getsockname()[:2]
+        out = self.net.endpoints() if self.net is not None else {}
         if self.http is not None:
             out["metrics_http"] = f"{self.cfg.metrics_http[0]}:{self.http.port}"  # type: ignore[index]
         return out
@@ -179,15 +133,14 @@ class Daemon:
                 wd = self.notify.watchdog_due(time.monotonic())
                 if wd is not None:
                     timeout = min(timeout, max(0, int(wd * 1000)))
+                ready = self.net.poll(timeout)  # type: ignore[union-attr]
                 try:
-                    ready = dict(self.poller.poll(timeout))
-                except zmq.ZMQError as e:
-                    if e.errno != errno.EINTR:
-                        raise
-                    ready = {}
-                if ready:
-                    self._ingest(ready)
-                self._serve()
+                    if ready:
+                        self.net.receive(ready)  # type: ignore[union-attr]
+                    self._serve()
+                except Exception as e:  # never let a bug end the service: log, count, go on
+                    self.metrics.inc("internal_errors")
+                    self.log("error", "internal_error", where="loop", error=f"{type(e).__name__}: {e}"[:300])
                 if self.flag_stop:
                     break
                 now = time.monotonic()
@@ -203,50 +156,24 @@ class Daemon:
         finally:
             self.close()
 
-    def _ingest(self, ready: dict) -> None:
-        for sock_, name in ((self.router, "router"), (self.pull, "pull"), (self.sub, "sub")):
-            if sock_ is None or sock_ not in ready:
-                continue
-            for _ in range(DRAIN_MAX):
-                try:
-                    parts = sock_.recv_multipart(zmq.NOBLOCK)
-                except zmq.Again:
-                    break
-                arrived = time.perf_counter()
-                if name == "router":
-                    if len(parts) < 2:
-                        self._reject(None, "bad_envelope", f"ROUTER message of {len(parts)} frame(s)", None, None)
-                        continue
-                    origin: Origin = ("router", parts[:-1])
-                else:
-                    origin = ("pull", None)
-                self._handle(parts[-1], origin, arrived)
-        if self.udp is not None and self.udp.fileno() in ready:
-            for _ in range(DRAIN_MAX):
-                try:
-                    data, addr = self.udp.recvfrom(UDP_MAX)
-                except (BlockingIOError, InterruptedError):
-                    break
-                except OSError as e:  # e.g. ICMP port unreachable surfacing as ECONNREFUSED
-                    self.metrics.inc("osc_recv_errors")
-                    self.log("debug", "osc_recv_error", error=str(e))
-                    continue
-                self._handle(data, ("osc", addr), time.perf_counter())
-
     def _handle(self, data: bytes, origin: Origin, arrived: float) -> None:
         self.metrics.inc("messages_in")
+        msg: Any = None
         try:
-            msg = osc.decode(data, self.cfg.max_message_bytes) if origin[0] == "osc" else wire.decode(data, self.cfg.max_message_bytes)
-        except wire.WireError as e:
-            self._reject(origin, e.reason, e.detail, e.stream, e.seq)
-            return
-        try:
+            try:
+                msg = osc.decode(data, self.cfg.max_message_bytes) if origin[0] == "osc" else \
+                    wire.decode(data, self.cfg.max_message_bytes)
+            except wire.WireError as e:
+                self._reject(origin, e.reason, e.detail, e.stream, e.seq)
+                return
             if isinstance(msg, wire.Frame):
                 self.metrics.inc("frames_in")
                 for o, m in self.sessions.frame(msg, origin, arrived):
                     self._send(o, m)
             elif isinstance(msg, wire.Hello):
-                ack = self.sessions.hello(msg)
+                ack, orphans = self.sessions.hello(msg)
+                for o, m in orphans:
+                    self._send(o, m)
                 self.log("info", "stream_hello", stream=msg.stream, model=ack.model, channels=len(ack.channels),
                          passthrough=len(ack.passthrough), missing=len(ack.missing))
                 self._send(origin, ack)
@@ -255,8 +182,12 @@ class Daemon:
             else:
                 self._reject(origin, "unknown_type", f"{type(msg).__name__} is an answer, not a request", None, None)
         except SessionError as e:
-            sid = getattr(msg, "stream", None)
-            self._reject(origin, e.reason, e.detail, sid, getattr(msg, "seq", None))
+            self._reject(origin, e.reason, e.detail, getattr(msg, "stream", None), getattr(msg, "seq", None))
+        except Exception as e:  # a bug must cost one message, never the loop
+            self.metrics.inc("internal_errors")
+            self.log("error", "internal_error", where="handle", error=f"{type(e).__name__}: {e}"[:300])
+            self._reject(origin, "internal", f"{type(e).__name__} while handling the message",
+                         getattr(msg, "stream", None), getattr(msg, "seq", None))
 
     def _reject(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
         self.metrics.reject(reason)
@@ -282,9 +213,17 @@ class Daemon:
         for s, fill, status in results:
             p = s.pending
             now = time.perf_counter()
-            msg = fill_message(s, fill, status, now)
-            s.last_seq = p.frame.seq
-            s.pending = None
+            try:
+                msg = fill_message(s, fill, status, now)  # reads s.pending and s.last_seq (for gap)
+            except Exception as e:  # a fill the wire cannot carry: answer with an error, keep serving
+                self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
+                self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
+                msg = None
+            finally:
+                s.last_seq = p.frame.seq
+                s.pending = None
+            if msg is None:
+                continue
             s.counts["frames_out"] += 1
             if status == "degraded":
                 s.counts["degraded"] += 1
@@ -298,29 +237,8 @@ class Daemon:
 
     # ---- output -----------------------------------------------------------------------------
     def _send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
-        kind = origin[0]
-        try:
-            if kind == "osc":
-                dest = self.cfg.osc_send or origin[1]
-                assert self.udp is not None
-                self.udp.sendto(osc.encode(msg), dest)
-            else:
-                body = wire.encode(msg)
-                if kind == "router" and self.router is not None:
-                    self.router.send_multipart([*origin[1], body], zmq.NOBLOCK)
-                elif kind == "pull" and self.pub is not None and not publish:
-                    topic = getattr(msg, "stream", None) or ""
-                    self.pub.send_multipart([topic.encode(), body], zmq.NOBLOCK)
-                if publish and self.pub is not None:
-                    self.pub.send_multipart([msg.stream.encode(), body], zmq.NOBLOCK)  # type: ignore[union-attr]
-                return
-            if publish and self.pub is not None:
-                self.pub.send_multipart([msg.stream.encode(), wire.encode(msg)], zmq.NOBLOCK)  # type: ignore[union-attr]
-        except zmq.Again:
-            self.metrics.inc("send_dropped")  # peer over its high-water mark: drop, never block
-        except (OSError, zmq.ZMQError) as e:
-            self.metrics.inc("send_errors")
-            self.log("debug", "send_error", transport=kind, error=str(e))
+        if self.net is not None:
+            self.net.send(origin, msg, publish)
 
     # ---- control ----------------------------------------------------------------------------
     def _control(self, msg: wire.Control, origin: Origin) -> None:
@@ -331,7 +249,9 @@ class Daemon:
                                                                          "default": self.cfg.default_model}))
         elif msg.cmd == "reset":
             assert msg.stream is not None
-            ok = self.sessions.reset(msg.stream)
+            ok, orphans = self.sessions.reset(msg.stream)
+            for o, m in orphans:
+                self._send(o, m)
             self.log("info", "stream_reset", stream=msg.stream, existed=ok)
             self._send(origin, wire.ControlReply("reset", ok, {"stream": msg.stream},
                                                  None if ok else f"no open stream {msg.stream!r}"))
@@ -405,7 +325,7 @@ class Daemon:
         self.metrics.inc("reloads" if ok else "reload_failures")
         for name, err in errors.items():
             self.log("error", "reload_refused", model=name, error=err, detail="the old model keeps serving")
-        self.log("info", "reload_done", ok=ok, models=list(self.models))
+        self.log("info", "reload_done", always=True, ok=ok, models=list(self.models))
         self.notify.ready(self._status_line())
         for o in self._reload_waiters:
             self._send(o, wire.ControlReply("reload", ok, {"models": {n: m.info() for n, m in self.models.items()},
@@ -427,35 +347,26 @@ class Daemon:
         """SIGTERM: answer what has already arrived, then stop."""
         self.notify.stopping()
         self.log("info", "draining")
+        assert self.net is not None
         for _ in range(3):
-            try:
-                ready = dict(self.poller.poll(0))
-            except zmq.ZMQError:
-                ready = {}
+            ready = self.net.poll(0)
             if not ready:
                 break
-            self._ingest(ready)
+            self.net.receive(ready)
             self._serve()
         self._serve()
         c = self.metrics.counters
-        self.log("info", "stopped", frames_in=c.get("frames_in", 0), frames_out=c.get("frames_out", 0),
-                 dropped=sum(v for k, v in c.items() if k.startswith("dropped_")))
+        self.log("info", "stopped", always=True, frames_in=c.get("frames_in", 0), frames_out=c.get("frames_out", 0),
+                 dropped=sum(v for k, v in c.items() if k.startswith("dropped_")),
+                 send_dropped=c.get("send_dropped", 0), send_errors=c.get("send_errors", 0))
 
     def close(self) -> None:
-        for s in (self.router, self.pull, self.sub, self.pub):
-            if s is not None:
-                s.setsockopt(zmq.LINGER, DRAIN_LINGER_MS if self.flag_stop else 0)
-                s.close()
-        self.router = self.pull = self.sub = self.pub = None
-        if self.udp is not None:
-            self.udp.close()
-            self.udp = None
+        if self.net is not None:
+            self.net.close(DRAIN_LINGER_MS if self.flag_stop else 0)
+            self.net = None
         if self.http is not None:
             self.http.close()
             self.http = None
-        if self.ctx is not None:
-            self.ctx.term()
-            self.ctx = None
         self.notify.close()
 
 
@@ -469,6 +380,10 @@ def serve(path: str) -> int:
     except Exception:
         d.close()
         raise
+    # everything loaded so far lives as long as the daemon: keep it out of the collector's
+    # generations so the cyclic GC has less to walk in the middle of a frame
+    gc.collect()
+    gc.freeze()
     d.run()
     return 0
 

@@ -23,8 +23,7 @@ from lacuna.filler import FillerState, Model
 Origin = tuple  # (transport name, address): ("router", envelope) | ("pull", None) | ("osc", (host, port))
 Out = list[tuple[Origin, wire.Message]]
 
-COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate",
-            "dropped_draining", "rejected", "degraded", "held", "predicted", "restarts")
+COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset", "rejected", "degraded", "held", "predicted", "restarts")
 
 
 @dataclass
@@ -142,13 +141,25 @@ class SessionTable:
         self.sessions[sid] = s
         return s
 
-    def hello(self, msg: wire.Hello) -> wire.HelloAck:
+    def hello(self, msg: wire.Hello) -> tuple[wire.HelloAck, Out]:
+        """(ack, answers for a frame that was waiting under the old handshake)."""
+        old = self.sessions.get(msg.stream)
         s = self._new(msg.stream, msg.channels, msg.model)
         mp = s.mapping
-        return wire.HelloAck(msg.stream, s.model_name, mp.channels, mp.passthrough, mp.missing)
+        return wire.HelloAck(msg.stream, s.model_name, mp.channels, mp.passthrough, mp.missing), self._orphan(old)
 
-    def reset(self, sid: str) -> bool:
-        return self.sessions.pop(sid, None) is not None
+    def reset(self, sid: str) -> tuple[bool, Out]:
+        old = self.sessions.pop(sid, None)
+        return old is not None, self._orphan(old)
+
+    def _orphan(self, old: Session | None) -> Out:
+        """A frame still waiting in a session being replaced gets its answer: dropped, ``reset``."""
+        if old is None or old.pending is None:
+            return []
+        p, old.pending = old.pending, None
+        old.counts["dropped_reset"] += 1
+        self.count("dropped_reset", old.sid)
+        return [(p.origin, wire.Drop(old.sid, p.frame.seq, "reset"))]
 
     def expire(self, now: float, idle_s: float) -> list[str]:
         gone = [sid for sid, s in self.sessions.items() if s.pending is None and now - s.last_active > idle_s]

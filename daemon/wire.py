@@ -107,7 +107,7 @@ class FillMsg:
 @dataclass
 class Drop:
     """A frame received but not served: ``conflated`` (a newer frame of the stream replaced it),
-    ``late`` (older than one already served), ``duplicate``, ``draining`` (daemon stopping)."""
+    ``late`` (older than one already served), ``duplicate``."""
 
     stream: str
     seq: int
@@ -232,6 +232,19 @@ def _number(m: dict, key: str, what: str) -> float:
 
 
 def _decode_frame(m: dict) -> Frame:
+    # fast path for the common, well-formed frame (the daemon's hot path); anything unusual
+    # goes through the checked path below, which names what is wrong
+    sid, seq, t, b = m.get("stream"), m.get("seq"), m.get("t"), m.get("angles")
+    if (type(sid) is str and 0 < len(sid) <= MAX_STREAM_ID and type(seq) is int and 0 <= seq <= MAX_SEQ
+            and type(t) is float and math.isfinite(t) and type(b) is bytes and 0 < len(b) <= 4 * MAX_CHANNELS
+            and not len(b) % 4 and m.get("observed") is None and sid.isprintable()):
+        angles = np.frombuffer(b, dtype=F32)
+        if not np.isinf(angles).any():
+            return Frame(sid, seq, t, angles, None)
+    return _decode_frame_checked(m)
+
+
+def _decode_frame_checked(m: dict) -> Frame:
     sid = _stream_id(m, "frame")
     seq = _get(m, "seq", int, "frame")
     if not 0 <= seq <= MAX_SEQ:

@@ -320,7 +320,7 @@ def test_control_reset_list_models_and_status_cli(tmp_path, daemons, ctx):
 
 # ---- reload -------------------------------------------------------------------------------------
 class Sender(threading.Thread):
-    """One stream at ~rate Hz over DEALER, pipelined, recording every answer."""
+    """One stream at up to ~rate Hz over DEALER, recording every answer."""
 
     def __init__(self, endpoint, sid, rate=200.0):
         super().__init__(daemon=True)
@@ -344,18 +344,16 @@ class Sender(threading.Thread):
             if not s.poll(5000):
                 raise TimeoutError("no hello-ack")
             s.recv()
+            # lock-step (each frame waits for its answer, like a REQ client): continuous traffic
+            # during the reloads, and no frame can be conflated however slow the machine is
             while not self.stop_flag.is_set():
                 s.send(frame(self.sid, self.sent, row))
                 self.sent += 1
-                deadline = time.perf_counter() + self.period
-                while s.poll(max(0, int((deadline - time.perf_counter()) * 1000))):
-                    m = wire.decode(s.recv())
-                    self.answers[m.seq] = m
-            end = time.monotonic() + 5
-            while len(self.answers) < self.sent and time.monotonic() < end:
-                if s.poll(200):
-                    m = wire.decode(s.recv())
-                    self.answers[m.seq] = m
+                if not s.poll(10000):
+                    raise TimeoutError(f"frame {self.sent - 1} not answered within 10 s")
+                m = wire.decode(s.recv())
+                self.answers[m.seq] = m
+                time.sleep(self.period)
         except BaseException as e:  # surfaced by the test
             self.error = e
         finally:
@@ -428,9 +426,10 @@ def test_sigterm_drains_and_sd_notify_messages(tmp_path, daemons, ctx):
         rl = until(lambda m: "RELOADING=1" in m, "RELOADING=1")
         assert "MONOTONIC_USEC=" in rl
         until(lambda m: "READY=1" in m, "READY=1 after reload")
-        # pipeline many frames, then SIGTERM: whatever reached the daemon is answered
+        # pipeline frames, then SIGTERM: whatever reached the daemon is answered (fewer frames
+        # than the high-water mark, 100: this client reads its answers only at the end)
         s = dealer(ctx, d)
-        n = 300
+        n = 60
         for i in range(n):
             s.send(frame("t", i, np.zeros(len(CH))))
         time.sleep(0.05)
@@ -469,3 +468,118 @@ def test_over_budget_steps_degrade_to_hold_and_say_so(tmp_path, daemons, ctx):
     assert m0.status == "degraded" and set(statuses) == {"degraded"}
     st = loadgen_status(d)
     assert st["counters"]["degraded"] == 6 and st["streams"]["slow"]["held"] == 6
+
+
+# ---- SUB ingest, expiry, control reload, real data --------------------------------------------------
+def test_sub_ingest_from_a_capture_pub_and_idle_expiry(tmp_path, daemons, ctx):
+    cap = ctx(zmq.PUB)  # the capture system's publisher; the daemon connects to it
+    port = cap.bind_to_random_port("tcp://127.0.0.1")
+    cfg = write_config(tmp_path, {"floor": {"builtin": "passthrough"}},
+                       extra=f'sub = ["tcp://127.0.0.1:{port}"]\n')
+    cfg_text = open(cfg).read().replace("idle_timeout_s = 60", "idle_timeout_s = 0.5")
+    open(cfg, "w").write(cfg_text)
+    d = daemons(cfg)
+    out = ctx(zmq.SUB)
+    out.setsockopt(zmq.SUBSCRIBE, b"")
+    out.connect(d.endpoints["pub"])
+    got = None
+    for seq in range(100):  # until both subscriptions are up (slow joiner), at most 10 s
+        cap.send_multipart([b"mocap", frame("stage", seq, [1.0, 2.0])])
+        if out.poll(100):
+            topic, body = out.recv_multipart()
+            got = wire.decode(body)
+            break
+    assert isinstance(got, wire.FillMsg) and topic == b"stage" and got.angles.tolist() == [1.0, 2.0]
+    time.sleep(1.5)  # idle longer than idle_timeout_s: the stream expires
+    st = loadgen_status(d)
+    assert "stage" not in st["streams"] and st["expired"] == 1
+    assert any(r.get("event") == "stream_expired" and r.get("stream") == "stage" for r in d.log)
+
+
+def test_control_reload_answers_when_done_and_bad_config_keeps_serving(tmp_path, daemons, ctx):
+    cfg = write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 1.0)}})
+    d = daemons(cfg)
+    s = dealer(ctx, d)
+    s.send(frame("c", 0, np.full(len(CH), np.nan)))
+    assert recv(s).angles[0] == 1.0
+    hold_file(tmp_path / "h.npz", 2.0)
+    s.send(wire.encode(wire.Control("reload")))
+    r = recv(s, 30000)
+    assert r.cmd == "reload" and r.ok and r.result["errors"] == {}
+    s.send(frame("c", 1, np.full(len(CH), np.nan)))
+    assert recv(s).angles[0] == 2.0
+    open(cfg, "a").write("\n[daemon]\nbudget_ms = -3\n")  # a broken config (duplicate table too)
+    s.send(wire.encode(wire.Control("reload")))
+    r = recv(s, 30000)
+    assert not r.ok and "config" in r.result["errors"] and str(cfg) in r.error
+    s.send(frame("c", 2, np.full(len(CH), np.nan)))
+    m = recv(s)
+    assert isinstance(m, wire.FillMsg) and m.angles[0] == 2.0
+
+
+def test_real_walk_through_daemon_matches_in_process_filler(tmp_path, daemons, ctx, data):
+    """A real CMU walk with the left arm missing, through the daemon frame by frame, gives the
+    same fill as the same model run in-process (float32 on the wire)."""
+    from mocap.protocols import get_protocol
+
+    proto = get_protocol("pan2009")
+    ts = proto.training_set()
+    model = HoldModel.fit(ts.sequences, ts.channels)
+    model.save(str(tmp_path / "hold.npz"))
+    case = proto.cases()[0]
+    truth = case.truth[:240].astype(np.float32)
+    miss = np.array([c.startswith(("lhumerus", "lradius", "lwrist")) for c in ts.channels])
+    d = daemons(write_config(tmp_path, {"hold": {"file": str(tmp_path / "hold.npz")}}))
+    s = dealer(ctx, d)
+    s.send(wire.encode(wire.Hello("walk", list(ts.channels))))
+    assert isinstance(recv(s), wire.HelloAck)
+    sent = truth.copy()
+    sent[:, miss] = np.nan
+    got = []
+    for t in range(sent.shape[0]):
+        s.send(frame("walk", t, sent[t]))
+        m = recv(s)
+        assert isinstance(m, wire.FillMsg), m
+        got.append(m)
+    ref, ref_std = model.fill_offline(sent.astype(np.float64), ~np.isnan(sent))
+    out = np.stack([m.angles for m in got])
+    assert np.array_equal(out[:, ~miss], truth[:, ~miss])  # observed values come back exactly
+    np.testing.assert_allclose(out, ref.astype(np.float32), rtol=0, atol=1e-4)
+    assert all(m.filled[miss].all() and not m.filled[~miss].any() for m in got)
+    np.testing.assert_allclose(np.stack([m.std for m in got]), ref_std.astype(np.float32), atol=1e-4)
+
+
+def test_serve_check_validates_config_and_models(tmp_path):
+    good = write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}})
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--check", "--config", good],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "model walk: ok" in r.stdout, r.stderr
+    (tmp_path / "h.npz").write_bytes(b"PK\x03\x04 not really a zip")
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--check", "--config", good],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "h.npz" in r.stderr and "model walk" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--config", str(tmp_path / "missing.toml")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.startswith("lacuna: error:") and "missing.toml" in r.stderr
+
+
+def test_osc_answers_go_to_the_configured_send_address(tmp_path, daemons):
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    out.bind(("127.0.0.1", 0))
+    out.settimeout(5.0)
+    src = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    src.bind(("127.0.0.1", 0))
+    src.settimeout(0.5)
+    try:
+        cfg = write_config(tmp_path, {"floor": {"builtin": "passthrough"}}, osc=True,
+                           extra=f'send = "127.0.0.1:{out.getsockname()[1]}"\n')
+        d = daemons(cfg)
+        host, port = d.endpoints["osc"].rsplit(":", 1)
+        src.sendto(_osc_frame("o2", 3, [0.5, 0.25]), (host, int(port)))
+        msgs = {m.address: m.params for m in OscBundle(out.recv(65535))}
+        assert msgs["/lacuna/fill"][:2] == ["o2", 3] and msgs["/lacuna/fill"][7:] == [0.5, 0.25]
+        with pytest.raises(socket.timeout):
+            src.recv(65535)  # nothing goes back to the sender when osc.send is set
+    finally:
+        out.close()
+        src.close()

@@ -232,3 +232,16 @@ def test_levels_and_plan_degrades_iterations_then_holds():
     res = sched.run({id(m): (m, group)}, 0.0)
     assert m.n_gibbs == 30 and all(st == "degraded" for _, _, st in res) and len(res) == 10
     assert m.calls and set(m.calls) <= {1, 3}
+
+
+def test_rehandshake_or_reset_answers_the_waiting_frame():
+    t, counted = _table(HoldModel(CH, np.zeros(3), np.ones(3)))
+    t.frame(_frame("s", 5, [1, 2, 3]), ("router", ["a"]), 0.0)
+    ack, out = t.hello(wire.Hello("s", ["a.rx", "b.rx"]))
+    assert ack.channels == ["a.rx", "b.rx"]
+    assert out == [(("router", ["a"]), wire.Drop("s", 5, "reset"))]
+    t.frame(_frame("s", 6, [1, 2]), ("router", ["b"]), 0.0)
+    ok, out = t.reset("s")
+    assert ok and out == [(("router", ["b"]), wire.Drop("s", 6, "reset"))] and "s" not in t.sessions
+    assert counted == ["dropped_reset", "dropped_reset"]
+    assert t.reset("s") == (False, [])
