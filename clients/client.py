@@ -102,7 +102,7 @@ class Client:
         t = self.timeout_s if timeout_s is None else timeout_s
         if not self.sock.poll(int(t * 1000), zmq.POLLIN):
             return None
-        return self.session.decode(self.sock.recv())
+        return decode_reply(self.sock.recv())
 
     def _ensure_handshake(self) -> None:
         self.session.drain_monitor(self._mon)

@@ -133,7 +133,8 @@ def run(args: Any) -> int:
     train, test, where = get_motion(args.source)
     say(f"motion: {where}")
     wanted = list(MODELS if not args.methods else args.methods.split(","))
-    options = {k: dict(v) for k, v in SMALL.items()}
+    # the models' own progress lines (EM iterations, CD epochs) go to stderr unless --quiet
+    options = {k: {**v, "progress": not args.quiet} for k, v in SMALL.items()}
     files, secs, notes = train_models(train, out, wanted + list(BASELINES), options)
     served = [m for m in wanted if m in files]
     if not served:

@@ -116,10 +116,6 @@ class StreamSession:
         msg = wire.Frame(self.stream, int(seq), float(time.time() if t is None else t), a.astype(np.float32), obs)
         return seq, wire.encode(msg)
 
-    @staticmethod
-    def decode(data: bytes) -> wire.Message:
-        return wire.decode(data, max_bytes=1 << 24)
-
     def on_ack(self, msg: wire.Message) -> wire.HelloAck:
         if isinstance(msg, wire.ErrorMsg):
             raise DaemonRefused(msg)
