@@ -64,7 +64,7 @@ def get_motion(source: str) -> tuple[list[Motion], Motion, str]:
             return got
         if source == "data":
             raise LacunaError("no CMU data directory (set LACUNA_DATA or run `lacuna data fetch cmu --subjects 35`)")
-    train = synth.trials(8, seconds=8.0, seed=1)
+    train = synth.trials(6, seconds=6.0, seed=1)
     test = synth.gait(5.0, seed=100)
     return train, test, ("SYNTHETIC gait (no CMU data directory and no download): the numbers below show the "
                          "machinery working, not accuracy on real motion")
