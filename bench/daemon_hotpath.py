@@ -46,6 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--frames", type=int, default=3000, help="frames per measurement")
+    ap.add_argument("--model", action="append", default=[], metavar="NAME=FILE", help="extra model file (HLM, CRBM)")
+    ap.add_argument("--models", default="floor,hold,nn", help="builtin set to measure")
     ap.add_argument("--json", dest="json_out")
     args = ap.parse_args(argv)
     proto = get_protocol("pan2009")
@@ -56,18 +58,18 @@ def main(argv: list[str] | None = None) -> int:
     tmp = tempfile.mkdtemp(prefix="lacuna-hot-")
     HoldModel.fit(ts.sequences, ch).save(f"{tmp}/hold.npz")
     NearestNeighbourModel.fit(ts.sequences, ch).save(f"{tmp}/nn.npz")
+    models = {"floor": {"builtin": "passthrough"}, "hold": {"file": f"{tmp}/hold.npz"}, "nn": {"file": f"{tmp}/nn.npz"}}
+    models.update({s.split("=", 1)[0]: {"file": s.split("=", 1)[1]} for s in args.model})
     cfg = config.from_dict({"daemon": {"budget_ms": 1000.0, "max_streams": 100000, "log_level": "warning"},
-                            "models": {"floor": {"builtin": "passthrough"}, "hold": {"file": f"{tmp}/hold.npz"},
-                                       "nn": {"file": f"{tmp}/nn.npz"}},
-                            "zmq": {"router": "tcp://127.0.0.1:*"}})
+                            "models": models, "zmq": {"router": "tcp://127.0.0.1:*"}})
     d = Daemon(cfg)
     table, errors = load_all(cfg)
     assert not errors, errors
     d._install(table)
     rows = []
-    for model in ("floor", "hold", "nn"):
+    for model in args.models.split(",") + [s.split("=", 1)[0] for s in args.model]:
         for n in (1, 64):
-            ticks = max(2, args.frames // n) if model != "nn" else max(2, 300 // n)
+            ticks = max(2, args.frames // n) if model in ("floor", "hold") else max(2, 300 // n)
             vals = [measure(d, model, n, ticks, frames, ch) for _ in range(args.repeats)]
             row = {"model": model, "streams": n, "cpu_us_per_frame_median": round(float(np.median(vals)), 1),
                    "cpu_us_per_frame_min": round(float(np.min(vals)), 1), "repeats": args.repeats}

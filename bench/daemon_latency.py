@@ -24,6 +24,7 @@ import time
 import numpy as np
 
 from daemon import loadgen
+from daemon.server import control
 from mocap.baselines import HoldModel, NearestNeighbourModel
 from mocap.protocols import get_protocol
 
@@ -99,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             for rep in range(args.repeats):
                 k += 1
                 rss0, cpu0 = rss_kib(pid), cpu_s(pid)
+                c0 = control(ep, "status").result["counters"]
                 res = loadgen.run_load(ep, n, rate, args.seconds, frames, channels=channels, model=model,
                                        prefix=f"{model}-{n}-{rep}-", max_in_flight=args.max_in_flight)
                 row = {"streams": n, "rate_hz": rate, "model": model, "repeat": rep, **res.summary(),
@@ -111,6 +113,9 @@ def main(argv: list[str] | None = None) -> int:
                        "daemon_cpu_us_per_frame": round(1e6 * (cpu_s(pid) - cpu0) / max(1, res.served + res.dropped + int(
                            0.5 * rate * n)), 1),
                        "daemon_rss_kib_before": rss0, "daemon_rss_kib_after": rss_kib(pid)}
+                c1 = control(ep, "status").result["counters"]
+                for key in ("degraded_held", "degraded_iterations", "send_dropped", "dropped_conflated"):
+                    row[f"daemon_{key}"] = c1.get(key, 0) - c0.get(key, 0)
                 results.append(row)
                 print(f"[{k}/{len(scenarios) * args.repeats}] {model:>6} {n:>3} streams @ {rate:g} Hz: "
                       f"p50 {row['p50_ms']:.3f} p99 {row['p99_ms']:.3f} max {row['max_ms']} ms, served {row['served']} "
@@ -119,7 +124,6 @@ def main(argv: list[str] | None = None) -> int:
                 # the streams of this run go idle; a reset keeps the session table small
                 for i in range(n):
                     try:
-                        from daemon.server import control
                         control(ep, "reset", f"{model}-{n}-{rep}-{i}", timeout_s=2)
                     except (TimeoutError, ValueError):
                         pass
@@ -131,7 +135,9 @@ def main(argv: list[str] | None = None) -> int:
                                                                                 "daemon_cpu_percent", "daemon_cpu_us_per_frame", "offered_fps", "served_fps",
                                                                                 "load_average")},
                         "daemon_proc_p99_ms": float(np.median([r["daemon_proc_p99_ms"] or np.nan for r in rows])),
-                        "served": sum(r["served"] for r in rows), "unsent": sum(r["unsent"] for r in rows), "degraded": sum(r["degraded"] for r in rows),
+                        "served": sum(r["served"] for r in rows), "unsent": sum(r["unsent"] for r in rows),
+                        **{f"daemon_{k}": sum(r[f"daemon_{k}"] for r in rows)
+                           for k in ("degraded_held", "degraded_iterations", "send_dropped", "dropped_conflated")}, "degraded": sum(r["degraded"] for r in rows),
                         "dropped": sum(r["dropped"] for r in rows), "lost": sum(r["lost"] for r in rows),
                         "rss_kib_first": rows[0]["daemon_rss_kib_before"], "rss_kib_last": rows[-1]["daemon_rss_kib_after"]})
     out = {"machine": machine, "seconds": args.seconds, "repeats": args.repeats, "budget_ms": args.budget_ms,

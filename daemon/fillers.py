@@ -48,10 +48,9 @@ class PassThroughState(FillerState):
         self.model = model
 
     def step(self, frame: np.ndarray | None, observed: np.ndarray | None = None) -> Fill:
-        if frame is None:
-            return Fill(np.full(0, np.nan), np.zeros(0), np.zeros(0, bool))
-        C = self.model.n_channels or np.asarray(frame).shape[0]
-        if frame is None:
+        if frame is None:  # a predicted frame: nothing to pass through (width unknown for "any")
+            C = self.model.n_channels
             return Fill(np.full(C, np.nan), np.zeros(C), np.zeros(C, bool))
+        C = self.model.n_channels or np.asarray(frame).shape[0]
         f, obs = check_frame(frame, observed, C)
         return Fill(np.where(obs, f, np.nan), np.zeros(C), np.zeros(C, bool))

@@ -202,13 +202,13 @@ def run_load(endpoint: str, n_streams: int, rate_hz: float, seconds: float, fram
                     if left <= 0:
                         return
                     continue
-                now = time.perf_counter()
                 for s in ev:
                     while True:
                         try:
                             data = s.recv(zmq.NOBLOCK)
                         except zmq.Again:
                             break
+                        now = time.perf_counter()
                         # the daemon's answers are trusted here: a bare unpack keeps the
                         # generator's own cost (part of every measured round trip) small
                         m = msgpack.unpackb(data, raw=False)
@@ -239,12 +239,16 @@ def run_load(endpoint: str, n_streams: int, rate_hz: float, seconds: float, fram
                 if max_in_flight is not None and in_flight[i] >= max_in_flight:
                     res.unsent += measured
                     continue
+                body = wire.encode(wire.Frame(sid[i], k, tick, f))
+                # the clock is read before the send: after it, the kernel may hand the CPU to
+                # the daemon woken by this very frame, and a later reading would hide its work
+                t0 = time.perf_counter()
                 try:  # never block the generator: a full queue is counted, like a dropped frame
-                    s.send(wire.encode(wire.Frame(sid[i], k, tick, f)), zmq.NOBLOCK, copy=False)
+                    s.send(body, zmq.NOBLOCK, copy=False)
                 except zmq.Again:
                     res.unsent += measured
                     continue
-                sent_at[(i, k)] = time.perf_counter() if measured else -1.0
+                sent_at[(i, k)] = t0 if measured else -1.0
                 in_flight[i] += 1
                 res.sent += measured
             read(t_start + (k + 1) * period)

@@ -105,6 +105,8 @@ class Daemon:
             old = self.models.get(name)
             if old is not None and old.model is ld.model:
                 continue
+            if old is not None:
+                self.sched.forget(old.model)  # costs are keyed by id(): never let a new object inherit them
             self.sched.costs.update(ld.costs)
             if old is not None:
                 n = self.sessions.rebind(name, ld.model)
@@ -141,6 +143,7 @@ class Daemon:
                 except Exception as e:  # never let a bug end the service: log, count, go on
                     self.metrics.inc("internal_errors")
                     self.log("error", "internal_error", where="loop", error=f"{type(e).__name__}: {e}"[:300])
+                    self._abandon_pending(f"{type(e).__name__} while serving")
                 if self.flag_stop:
                     break
                 now = time.monotonic()
@@ -228,12 +231,25 @@ class Daemon:
             if status == "degraded":
                 s.counts["degraded"] += 1
                 self.metrics.inc("degraded")
+                # held (hold-last-value) vs stepped with fewer Gibbs iterations
+                self.metrics.inc("degraded_held" if fill.degraded else "degraded_iterations")
             self.metrics.inc("frames_out")
             self.metrics.latency(now - p.arrived)
             self._send(p.origin, msg, publish=True)
         if results:
             per = (time.perf_counter() - t1) / len(results)
             self.sched.reply_cost = 0.9 * self.sched.reply_cost + 0.1 * per
+
+    def _abandon_pending(self, why: str) -> None:
+        """After a failed tick: answer every waiting frame with an error rather than retrying
+        the same failure in a tight loop."""
+        for s in self.sessions.sessions.values():
+            if s.pending is not None:
+                p, s.pending = s.pending, None
+                try:
+                    self._reject(p.origin, "internal", why, s.sid, p.frame.seq)
+                except Exception:  # the answer itself failing must not stop the loop either
+                    pass
 
     # ---- output -----------------------------------------------------------------------------
     def _send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:

@@ -245,3 +245,14 @@ def test_rehandshake_or_reset_answers_the_waiting_frame():
     assert ok and out == [(("router", ["b"]), wire.Drop("s", 6, "reset"))] and "s" not in t.sessions
     assert counted == ["dropped_reset", "dropped_reset"]
     assert t.reset("s") == (False, [])
+
+
+def test_passthrough_filler_fills_nothing():
+    m = PassThroughModel(CH)
+    st = m.stream()
+    f = st.step(np.array([1.0, np.nan, 3.0]))
+    assert np.isnan(f.frame[1]) and f.frame[0] == 1.0 and not f.filled.any() and not f.std.any()
+    assert np.isnan(st.predict().frame).all()
+    fills = m.step_batch([st, m.stream()], np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]), np.array([[1, 0, 1], [1, 1, 1]], bool))
+    assert np.isnan(fills[0].frame[1]) and fills[1].frame.tolist() == [4.0, 5.0, 6.0]
+    assert PassThroughModel().stream().step(np.ones(5)).frame.tolist() == [1.0] * 5  # "any" channels
