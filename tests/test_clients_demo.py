@@ -40,3 +40,33 @@ def test_demo_on_synthetic_motion_reports_accuracy_latency_and_plots(tmp_path, c
     # the daemon was stopped: its log ends with the daemon's own stop line
     log = (out / "daemon" / "daemon.log").read_text()
     assert '"event": "stopped"' in log
+
+
+@pytest.mark.slow
+def test_demo_ctrl_c_stops_the_daemon_it_started(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "demo"
+    p = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "demo", "--source", "synthetic", "--methods", "none",
+                          "--speed", "0.5", "--out", str(out), "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    log = out / "daemon" / "daemon.log"
+    pid = None
+    try:
+        deadline = time.monotonic() + 60
+        while pid is None and time.monotonic() < deadline and p.poll() is None:
+            time.sleep(0.2)
+            if log.exists() and "stream_hello" in log.read_text():  # the replay is under way
+                ready = [json.loads(x) for x in log.read_text().splitlines() if '"ready"' in x]
+                pid = ready[0]["pid"]
+        assert pid is not None, "the demo never got to its replay"
+        p.send_signal(signal.SIGINT)
+        p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130  # lacuna: interrupted
+    assert '"event": "stopped"' in log.read_text()
+    assert not os.path.exists(f"/proc/{pid}") or "zombie" in open(f"/proc/{pid}/status").read().lower()
