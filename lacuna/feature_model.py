@@ -53,18 +53,7 @@ class FeatureModel(Model):
     def _raw_std(self, z_std: np.ndarray) -> np.ndarray:
         """Feature std (normalised units) -> raw channel std (degrees / length units)."""
         rep = self.representation
-        if not hasattr(self, "_std_map"):
-            pos = {c: i for i, c in enumerate(rep.channels)}
-            self._std_map = [(j, [pos[f]]) if f in pos and not (rep.root_mode == "relative" and f.startswith("root."))
-                             else (j, {"root.dside": [pos["root.tx"], pos["root.tz"]],
-                                       "root.dfwd": [pos["root.tx"], pos["root.tz"]],
-                                       "root.ty": [pos["root.ty"]]}.get(f, [pos["root.rx"], pos["root.ry"], pos["root.rz"]]))
-                             for j, f in enumerate(rep.features)]
-        fs = z_std * np.asarray(rep.std) if rep.normalize else z_std
-        out = np.zeros((z_std.shape[0], len(rep.channels)))
-        for j, cols in self._std_map:
-            out[:, cols] = np.maximum(out[:, cols], fs[:, j : j + 1])
-        return out
+        return rep.raw_std(z_std * rep._plan()["std"] if rep.normalize else z_std)
 
     def step_arrays(self, repr_state: ReprState, core_state: dict[str, np.ndarray],
                     frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:

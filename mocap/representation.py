@@ -225,10 +225,34 @@ class Representation:
                 out.append([pos[f]])
         return out
 
+    def _source_index(self) -> tuple[np.ndarray, np.ndarray]:
+        """(F, 3) raw-channel index per feature, padded by repeating the first source, and
+        (C, 3) feature index per raw channel, padded with F (a zero column): lookup tables so
+        that the per-frame masks and stds are one fancy-indexing operation each."""
+        if not hasattr(self, "_src_cache"):
+            src = self.feature_source()
+            fsrc = np.array([s + [s[0]] * (3 - len(s)) for s in src], int).reshape(len(src), 3)
+            per_raw: list[list[int]] = [[] for _ in self.channels]
+            for j, s in enumerate(src):
+                for c in s:
+                    per_raw[c].append(j)
+            F = len(src)
+            rsrc = np.array([r + [F] * (3 - len(r)) for r in per_raw], int).reshape(len(self.channels), 3)
+            self._src_cache = (fsrc, rsrc)
+        return self._src_cache
+
     def feature_observed(self, observed: np.ndarray) -> np.ndarray:
         """(n, n_channels) raw mask -> (n, n_features) mask: a feature is observed when all its sources are."""
         observed = np.atleast_2d(observed)
-        return np.stack([observed[:, src].all(1) for src in self.feature_source()], 1)
+        return observed[:, self._source_index()[0]].all(2)
+
+    def raw_std(self, fstd: np.ndarray) -> np.ndarray:
+        """(n, F) feature std in feature units (not normalised) -> (n, C) raw channel std: each
+        raw channel takes the largest std of the features computed from it; dropped constant
+        channels get 0."""
+        fstd = np.atleast_2d(fstd)
+        padded = np.concatenate([fstd, np.zeros((fstd.shape[0], 1))], 1)
+        return padded[:, self._source_index()[1]].max(2)
 
     def normalize_features(self, f: np.ndarray) -> np.ndarray:
         p = self._plan()

@@ -1,0 +1,116 @@
+"""Registers the HLM methods with ``lacuna eval`` and the model-file loader.
+
+hlm                    the online forward filter (causal, constant time per frame), with the
+                       stream-cycle adaptation (kappa; see hlm.online) switched on
+hlm-offline            eq. (18) with the smoothed posteriors of the whole recording (not causal)
+hlm-lag                the fixed-lag smoother, ``lag`` frames late (default 15; not causal)
+hlm-faithful           the paper's model and filler as written: no stream-cycle adaptation
+hlm-faithful-offline   the paper's section 4.3 procedure (smoothed posteriors, eq. 18)
+
+All train the same model (the faithful section 3-4 training); they differ in inference options,
+which live in the model file and can be changed without retraining (``HLMModel.with_options``).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+from hlm import model as _model  # noqa: F401  (registers the model-file loader)
+from hlm.model import HLMModel, HLMOptions
+from hlm.train import fit
+from lacuna.registry import MethodSpec, register_method
+from mocap.representation import Representation
+
+# Defaults (section 4 of the paper where it says; representation: see docs/BENCHMARKS.md ## HLM)
+DEFAULTS: dict[str, Any] = {
+    "styles": 4,
+    "cycle_frames": 140,
+    "n_states": None,       # M; None = 2 N (section 2)
+    "jumps": 3,
+    "n_iter": 15,
+    "n_var": 3,
+    "restarts": 3,
+    "screen_iters": 2,
+    "seed": 0,
+    "root_mode": "raw",
+    "normalize": False,
+    "eta": 0.1,
+    "lam_s": 0.1,
+    "zbar_frac": 0.01,
+    "adapt_rate": 0.0,
+    "lag": 15,
+    "kappa": 3.0,          # stream-cycle adaptation (hlm.online); chosen on pan2009 and gaps
+    "width": 8,
+    "kappa_global": 3.0,
+}
+FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0}
+
+
+def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
+                progress: bool = False, **options: Any) -> HLMModel:
+    """Fit the representation and the HLM on raw sequences [(n_k, n_channels)] -> HLMModel."""
+    o = {**DEFAULTS, **{k: v for k, v in options.items() if k in DEFAULTS and v is not None}}
+    t0 = time.perf_counter()
+    rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]))
+    feats = [rep.transform(s) for s in sequences]
+    res = fit(feats, int(o["styles"]), int(o["cycle_frames"]), n_restarts=int(o["restarts"]), seed=int(o["seed"]),
+              n_iter=int(o["n_iter"]), n_var=int(o["n_var"]), progress=progress,
+              screen_iters=None if o["screen_iters"] is None else int(o["screen_iters"]), n_jumps=int(o["jumps"]),
+              lam_s=float(o["lam_s"]), zbar_frac=float(o["zbar_frac"]), eta=float(o["eta"]),
+              n_states=o["n_states"])
+    secs = time.perf_counter() - t0
+    hyper = {k: o[k] for k in ("styles", "cycle_frames", "jumps", "n_iter", "n_var", "restarts", "seed", "eta",
+                               "lam_s", "zbar_frac")}
+    hyper["n_states"] = int(res.params.n_states)
+    meta = {
+        "hyperparameters": hyper,
+        "training": {
+            "data": list(names), "frames": int(sum(s.shape[0] for s in sequences)), "seconds": round(secs, 2),
+            "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "bounds": [float(b) for b in res.bounds], "restart_bounds": [float(b) for b in res.restart_bounds],
+            "best_seed": res.seed, "psi": res.psi.tolist(),
+        },
+    }
+    opts = HLMOptions(adapt_rate=float(o["adapt_rate"]), lag=int(o["lag"]), kappa=float(o["kappa"]), width=int(o["width"]),
+                       kappa_global=float(o["kappa_global"]))
+    return HLMModel(rep, res.params, opts, meta)
+
+
+def _train(training_set, **options: Any) -> HLMModel:
+    return train_model(training_set.sequences, training_set.channels, training_set.names, **options)
+
+
+def _fill_offline(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
+    return model.fill_smoothed(frames, observed)
+
+
+def _fill_lag(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
+    return model.fill_lagged(frames, observed)
+
+
+def _train_faithful(training_set, **options: Any) -> HLMModel:
+    return _train(training_set, **{**options, **FAITHFUL})
+
+
+def _faithful_online(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
+    # a model file trained for `hlm` carries kappa > 0: the faithful methods switch it off
+    return model.with_options(**FAITHFUL).fill_offline(frames, observed)
+
+
+def _faithful_offline(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
+    return model.with_options(**FAITHFUL).fill_smoothed(frames, observed)
+
+
+# spec.defaults only carry what distinguishes the methods: protocol options (cycle_frames, fps)
+# must reach train_model unchanged.
+register_method(MethodSpec("hlm", _train, "HLM online forward filter with stream-cycle adaptation (causal)", None, True))
+register_method(MethodSpec("hlm-offline", _train, "HLM, eq. (18) with smoothed posteriors and the recording's own cycle",
+                           _fill_offline, False))
+register_method(MethodSpec("hlm-lag", _train, "HLM fixed-lag smoother (lag frames late)", _fill_lag, False))
+register_method(MethodSpec("hlm-faithful", _train_faithful, "HLM online filter exactly as the paper's model",
+                           _faithful_online, True, dict(FAITHFUL)))
+register_method(MethodSpec("hlm-faithful-offline", _train_faithful, "HLM section 4.3 as published: smoothed posteriors, eq. (18)",
+                           _faithful_offline, False, dict(FAITHFUL)))

@@ -1,0 +1,287 @@
+"""The trained HLM behind the Filler seam: an immutable FeatureModel with a batched online core,
+an offline smoother, a fixed-lag stream, and its model file.
+
+Frames in and out are raw channels; ``mocap.representation`` maps them to the features the model
+was trained on (``root_mode`` raw or relative, normalised or not, recorded in the file).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from lacuna import modelfile
+from lacuna.feature_model import CoreOut, FeatureModel
+from lacuna.filler import Fill, FillerError, check_frame
+from hlm import offline, online
+from hlm.params import HLMParams
+from mocap.representation import Representation
+
+METHOD = "hlm"
+
+
+@dataclass
+class HLMOptions:
+    """Inference options stored with the model (changeable without retraining).
+
+    adapt_rate : forgetting rate per frame of the online transition adaptation (0 = off).
+    prior_strength : pseudo-count of the population d in that adaptation.
+    n_iter_d : EM steps re-estimating d for a whole recording offline.
+    lag : frames of look-ahead of the fixed-lag stream.
+    kappa, width : stream-cycle adaptation (prior pseudo-count of each knot of the stream's offset,
+        knots 2 width + 1 states apart); kappa = 0 is the paper's filler.  See ``hlm.online``.
+    kappa_global : pseudo-count of the stream's constant offset under the knots (0 = none).
+    """
+
+    adapt_rate: float = 0.0
+    prior_strength: float = 240.0
+    n_iter_d: int = 3
+    lag: int = 15
+    kappa: float = 0.0
+    width: int = 5
+    kappa_global: float = 0.0
+
+    def check(self) -> None:
+        if not (0.0 <= self.adapt_rate < 1.0):
+            raise ValueError(f"adapt_rate must be in [0, 1) (got {self.adapt_rate})")
+        if self.prior_strength <= 0:
+            raise ValueError(f"prior_strength must be positive (got {self.prior_strength})")
+        if self.kappa < 0 or self.width < 0 or self.kappa_global < 0:
+            raise ValueError(f"kappa, width and kappa_global must be >= 0 "
+                             f"(got {self.kappa}, {self.width}, {self.kappa_global})")
+        if self.n_iter_d < 0 or self.lag < 0:
+            raise ValueError(f"n_iter_d and lag must be >= 0 (got {self.n_iter_d}, {self.lag})")
+
+
+class HLMModel(FeatureModel):
+    """A trained Hierarchical Locomotion Model.
+
+    Parameters
+    ----------
+    representation : the feature space.  params : learned HLM quantities (feature space).
+    options : inference options.  meta : hyperparameters, training data names, times, bounds.
+    """
+
+    method = METHOD
+    causal = True
+
+    def __init__(self, representation: Representation, params: HLMParams, options: HLMOptions | None = None,
+                 meta: dict[str, Any] | None = None):
+        self.representation = representation
+        self.params = params
+        self.options = options or HLMOptions()
+        self.options.check()
+        self.meta = dict(meta or {})
+        F = representation.n_features
+        if params.mu.shape[2] != F:
+            raise ValueError(f"HLM parameters have {params.mu.shape[2]} features, representation has {F}")
+        self.tables = online.FilterTables.build(params.mu, params.var, params.lam, params.tau, params.d_population(),
+                                                self.options.adapt_rate, self.options.prior_strength,
+                                                self.options.kappa, self.options.width, self.options.kappa_global)
+
+    def with_options(self, **kw) -> "HLMModel":
+        """A copy with other inference options (the learned parameters are shared, read-only)."""
+        o = HLMOptions(**{**self.options.__dict__, **kw})
+        return HLMModel(self.representation, self.params, o, self.meta)
+
+    # ---- online core (FeatureModel hooks) ------------------------------------------------------
+    def core_init(self, n: int) -> dict[str, np.ndarray]:
+        return online.init_state(self.tables, n)
+
+    def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> CoreOut:
+        online.update(self.tables, state, z, zobs)
+        online.accumulate(self.tables, state, z, zobs)
+        zf, sd = online.fill(self.tables, state["post"], z, zobs, *online.cycle_stats(state))
+        return CoreOut(zf, sd, online.extras(self.tables, state["post"]))
+
+    # ---- offline ----------------------------------------------------------------------------------
+    def encode_recording(self, frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features of a whole recording with gaps.  A missing raw channel is held at its last
+        completed value only to encode *later* frames' relative root features (never as data)."""
+        rep = self.representation
+        st = rep.new_state(1)
+        T = frames.shape[0]
+        Z = np.full((T, rep.n_features), np.nan)
+        O = np.zeros((T, rep.n_features), bool)
+        for t in range(T):
+            z, zo = st.encode(frames[t : t + 1], observed[t : t + 1])
+            Z[t], O[t] = z[0], zo[0]
+            held = np.where(observed[t], frames[t], st.prev_raw[0])
+            st.commit(held[None])
+        return Z, O
+
+    def decode_recording(self, Zf: np.ndarray, Zsd: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rep = self.representation
+        st = rep.new_state(1)
+        out = np.empty(frames.shape)
+        for t in range(frames.shape[0]):
+            f = np.where(observed[t], frames[t], np.nan)[None]
+            out[t] = st.decode(Zf[t : t + 1], f, observed[t : t + 1])[0]
+            st.commit(out[t : t + 1])
+        std = np.where(observed, 0.0, self._raw_std(Zsd))
+        return out, std
+
+    def _check_recording(self, frames: np.ndarray, observed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        frames = np.asarray(frames, dtype=np.float64)
+        if frames.ndim != 2 or frames.shape[1] != self.n_channels:
+            raise FillerError(f"recording must have shape (n_frames, {self.n_channels}) (got {frames.shape})")
+        observed = np.isfinite(frames) if observed is None else np.asarray(observed, dtype=bool)
+        if observed.shape != frames.shape:
+            raise FillerError(f"observed mask shape {observed.shape} does not match frames {frames.shape}")
+        if not np.isfinite(frames[observed]).all():
+            raise FillerError("observed values must be finite")
+        return frames, observed
+
+    def posterior(self, frames: np.ndarray, observed: np.ndarray | None = None) -> offline.Posterior:
+        """Smoothed style and phase posteriors of a raw recording (n_frames, n_channels)."""
+        frames, observed = self._check_recording(frames, observed)
+        Z, O = self.encode_recording(frames, observed)
+        return offline.infer(self.tables, Z, O, self.options.n_iter_d, self.meta.get("hyperparameters", {}).get("eta", 0.1))
+
+    def viterbi(self, frames: np.ndarray, observed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Viterbi alignment: (style (T,), latent-cycle state (T,)) of a raw recording."""
+        frames, observed = self._check_recording(frames, observed)
+        Z, O = self.encode_recording(frames, observed)
+        return offline.viterbi(self.tables, Z, O)
+
+    def fill_smoothed(self, frames: np.ndarray, observed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Offline fill (not causal): eq. (18) with the smoothed posteriors of the whole recording."""
+        frames, observed = self._check_recording(frames, observed)
+        Z, O = self.encode_recording(frames, observed)
+        Zf, Zsd, _ = offline.fill_features(self.tables, Z, O, self.options.n_iter_d)
+        return self.decode_recording(Zf, Zsd, frames, observed)
+
+    def fill_lagged(self, frames: np.ndarray, observed: np.ndarray | None = None, lag: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Run the fixed-lag stream over a recording and align its output with the input frames."""
+        frames, observed = self._check_recording(frames, observed)
+        st = self.lag_stream(lag)
+        out = []
+        for t in range(frames.shape[0]):
+            f = st.step(frames[t], observed[t])
+            if f is not None:
+                out.append(f)
+        out += st.flush()
+        return np.stack([f.frame for f in out]), np.stack([f.std for f in out])
+
+    def lag_stream(self, lag: int | None = None) -> "LagStream":
+        return LagStream(self, self.options.lag if lag is None else int(lag))
+
+    # ---- persistence --------------------------------------------------------------------------
+    def info(self) -> dict[str, Any]:
+        p = self.params
+        return {**super().info(), "styles": p.n_styles, "states": p.n_states, "features": self.representation.n_features,
+                "root_mode": self.representation.root_mode, "normalize": self.representation.normalize}
+
+    def save(self, path: str) -> None:
+        p = self.params
+        meta = {
+            "method": METHOD,
+            "channels": list(self.channels),
+            "representation": self.representation.to_dict(),
+            "options": dict(self.options.__dict__),
+            "lam_s": p.lam_s,
+            "lam_zbar": p.lam_zbar,
+            **{k: v for k, v in self.meta.items() if k not in ("method", "channels", "representation", "options")},
+        }
+        modelfile.save_arrays(path, meta, {"zbar": p.zbar, "mu": p.mu, "var": p.var, "lam": p.lam, "tau": p.tau, "d": p.d})
+
+
+def load(path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> HLMModel:
+    """Model-file loader registered for method 'hlm' (ModelFileError on bad shapes or values)."""
+    from lacuna.modelfile import ModelFileError, require
+
+    rep = Representation.from_dict(meta["representation"])
+    if list(meta["channels"]) != rep.channels:
+        raise ModelFileError(f"{path}: channel list does not match the representation")
+    F = rep.n_features
+    mu = require(path, arrays, "mu", (None, None, F))
+    C, M, _ = mu.shape
+    var = require(path, arrays, "var", (C, M, F))
+    lam = require(path, arrays, "lam", (C, F))
+    tau = require(path, arrays, "tau", (C,))
+    d = require(path, arrays, "d", (None, None))
+    zbar = require(path, arrays, "zbar", (M, F))
+    if (var <= 0).any() or (lam <= 0).any():
+        raise ModelFileError(f"{path}: variances and precisions must be positive")
+    if (tau < 0).any() or abs(tau.sum() - 1.0) > 1e-6 or (d <= 0).any() or np.abs(d.sum(1) - 1.0).max() > 1e-6:
+        raise ModelFileError(f"{path}: tau and every row of d must be probability vectors")
+    params = HLMParams(zbar.astype(float), mu.astype(float), var.astype(float), lam.astype(float), tau.astype(float),
+                       d.astype(float), float(meta["lam_s"]), float(meta["lam_zbar"]))
+    opts = HLMOptions(**{k: v for k, v in meta.get("options", {}).items() if k in HLMOptions.__dataclass_fields__})
+    return HLMModel(rep, params, opts, {k: v for k, v in meta.items() if k in ("hyperparameters", "training")})
+
+
+class LagStream:
+    """Fixed-lag smoother stream: ``step(frame)`` consumes frame t and returns the Fill of frame
+    t - L (None for the first L frames); ``flush()`` returns the last L at the end of a take.
+
+    The filter runs at t (its fill completes the encoder state, exactly as the causal stream);
+    a ring buffer keeps the last L + 1 frames' filtered posteriors, emission log-likelihoods and
+    inputs, so memory and time per frame are O(L C M J), constant in the stream length.  A second
+    representation state decodes the smoothed features of frame t - L.
+    """
+
+    def __init__(self, model: HLMModel, lag: int):
+        if lag < 0:
+            raise ValueError(f"lag must be >= 0 (got {lag})")
+        self.model = model
+        self.lag = lag
+        rep = model.representation
+        self.enc = rep.new_state(1)
+        self.dec = rep.new_state(1)
+        self.core = model.core_init(1)
+        C, M = model.tables.shape
+        L1 = lag + 1
+        self.post = np.zeros((L1, 1, C, M))
+        self.ll = np.zeros((L1, 1, C, M))
+        self.z = np.zeros((L1, 1, rep.n_features))
+        self.zobs = np.zeros((L1, 1, rep.n_features), bool)
+        self.raw = np.zeros((L1, model.n_channels))
+        self.rawobs = np.zeros((L1, model.n_channels), bool)
+        self.n = 0
+
+    def _emit(self, P: np.ndarray, slot: int) -> Fill:
+        m = self.model
+        zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot], *online.cycle_stats(self.core))
+        f = np.where(self.rawobs[slot], self.raw[slot], np.nan)[None]
+        done = self.dec.decode(zf, f, self.rawobs[slot][None])
+        self.dec.commit(done)
+        std = np.where(self.rawobs[slot], 0.0, m._raw_std(sd)[0])
+        return Fill(done[0], std, ~self.rawobs[slot], online.extras(m.tables, P)[0])
+
+    def step(self, frame: np.ndarray | None, observed: np.ndarray | None = None) -> Fill | None:
+        m = self.model
+        C = m.n_channels
+        if frame is None:
+            f, obs = np.full(C, np.nan), np.zeros(C, bool)
+        else:
+            f, obs = check_frame(frame, observed, C)
+        z, zo = self.enc.encode(f[None], obs[None])
+        ll = online.update(m.tables, self.core, z, zo)
+        online.accumulate(m.tables, self.core, z, zo)
+        zf, _ = online.fill(m.tables, self.core["post"], z, zo, *online.cycle_stats(self.core))
+        self.enc.commit(self.enc.decode(zf, np.where(obs, f, np.nan)[None], obs[None]))
+        slot = self.n % (self.lag + 1)
+        self.post[slot], self.ll[slot], self.z[slot], self.zobs[slot] = self.core["post"], ll, z, zo
+        self.raw[slot], self.rawobs[slot] = np.where(obs, f, 0.0), obs
+        self.n += 1
+        if self.n <= self.lag:
+            return None
+        order = [(self.n + i) % (self.lag + 1) for i in range(self.lag + 1)]   # oldest first
+        P = online.smooth_lag(self.post[order], self.ll[order], self.core["d"])
+        return self._emit(P, order[0])
+
+    def flush(self) -> list[Fill]:
+        """Fills of the frames still inside the window, oldest first (smoothed on what exists)."""
+        out = []
+        k = min(self.n, self.lag)
+        order = [(self.n - k + i) % (self.lag + 1) for i in range(k)]
+        for i in range(k):
+            sub = order[i:]
+            P = online.smooth_lag(self.post[sub], self.ll[sub], self.core["d"])
+            out.append(self._emit(P, sub[0]))
+        return out
+
+
+modelfile.register_loader(METHOD, load)

@@ -1,0 +1,311 @@
+"""The online forward filter of the HLM over the joint (style, phase) state, batched over streams.
+
+Per frame (O(C M J + C M F), independent of how long the stream has run):
+
+  predict   p(c, m | x_<t) = sum_j d_j p(c, m - j | x_<t)        eq. (1); the first frame uses
+            tau_c / M (the style prior and the uniform start of step 4c)
+  update    p(c, m | x_<=t) ~ p(c, m | x_<t) exp(ell_t(c, m))   ell over the observed features only
+  fill      eq. (18) with the joint posterior: x_dag = (sum_c P(c) Lambda^c)^-1 sum_cm P(c,m) Lambda^c mu^{c,m}
+  std       sqrt of the predictive mixture second moment about the fill: within-state 1/lambda,
+            Q(Z) variance, and the spread of the state means (between-state) plus the offset of the
+            precision-weighted fill from the mixture mean
+  extras    style posterior P(c) and phase = circular mean of m / M under P(m)
+
+The posterior is kept as probabilities normalised every frame, the emission enters as
+exp(ell - max ell) so nothing underflows as a whole; this is the normalised log-space forward
+recursion of ``hlm.hmm.forward`` (tested equal).  A frame that never arrives (nothing observed)
+is a pure prediction step.
+
+Stream cycle adaptation (``kappa > 0``; an extension beyond the paper, off in the faithful
+configuration): the stream gets its own latent cycle, its style's cycle plus a slowly varying
+offset, z^{s,c}_m = mu^c_m + delta^c(m), with delta piecewise linear over ``n_bins`` knots around
+the cycle (knots 2 ``width`` + 1 states apart) and a Gaussian prior N(0, 1/(kappa lambda^c_f)) on
+each knot.  Every observed frame adds its residual x - mu^c_m, weighted by the filtered posterior
+and split between the two neighbouring knots, to D and its weight to W; the knot's posterior mean
+is D / (kappa + W).  A performer whose arms swing wider than the training population's, or whose
+neck is held higher, is filled with their own motion once a cycle of it has been seen.  Only the
+live states of the posterior are touched (sparse), so a frame costs O(k F); the per-stream state
+is 2 C n_bins F numbers (about 60 kB at C = 4, M = 280, width 8).  With ``kappa_global > 0`` the
+offset has a second level, a constant per style under the knots (see ``stream_offset``), so the
+phases not yet seen move with the rest.  The emission keeps the style cycle (alignment stays
+that of the trained model).  The reported std does not yet include the uncertainty of the
+offset estimate itself (about 1 / sqrt(lambda (kappa + W)) per knot), only the terms above.
+
+Transition adaptation (``adapt_rate > 0``): each frame adds the filtered expected jump
+probabilities P(jump = j | x_<=t) to exponentially forgotten counts n_j <- (1 - rate) n_j + xi_j,
+and d = (prior_strength d_pop + n) / (prior_strength + sum n).  A performer who walks faster
+than the training population moves probability to longer jumps within a second or two; with
+``adapt_rate = 0`` d stays at the population value d_pop (the mean of the training d^k).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from scipy.ndimage import correlate1d
+
+from hlm.emissions import EmissionTables
+
+
+@dataclass
+class FilterTables:
+    """Everything the per-frame step reads, precomputed once per model.  Shapes: C styles,
+    M phases, F features, J jumps."""
+
+    em: EmissionTables
+    mu: np.ndarray        # (C*M, F)
+    q2: np.ndarray        # (C*M, F) mu^2 + var + 1/lam: second moment of x given (c, m)
+    log_prior: np.ndarray  # (C, M) log tau_c - log M
+    d_pop: np.ndarray     # (J,)
+    cos: np.ndarray       # (M,) cos(2 pi m / M)
+    sin: np.ndarray
+    adapt_rate: float = 0.0
+    prior_strength: float = 240.0
+    kappa: float = 0.0     # stream-cycle adaptation pseudo-count (frames); 0 = off
+    width: int = 5         # knots of that adaptation are 2 width + 1 states apart
+    kappa_global: float = 0.0  # pseudo-count of the stream's constant offset (0 = knots only)
+    var: np.ndarray | None = None   # (C*M, F) Q(Z) variances, for the adapted second moment
+    inv_lam: np.ndarray | None = None  # (C, F)
+    style_of: np.ndarray | None = None  # (C*M,) style index of each flat state
+    pack: np.ndarray | None = None      # (C*M, 4F) [lam mu | lam | mu | q2] per state, for fill
+    lam_rows: np.ndarray | None = None  # (C*M, F) lam of each state's style
+    var_q: np.ndarray | None = None     # (C*M, F) var + 1/lam
+
+    @classmethod
+    def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray, tau: np.ndarray, d_pop: np.ndarray,
+              adapt_rate: float = 0.0, prior_strength: float = 240.0, kappa: float = 0.0,
+              width: int = 5, kappa_global: float = 0.0) -> "FilterTables":
+        C, M, F = mu.shape
+        ang = 2.0 * np.pi * np.arange(M) / M
+        with np.errstate(divide="ignore"):  # a style with tau = 0 is impossible: log 0 = -inf
+            lp = np.log(tau)[:, None] - np.log(M) + np.zeros((C, M))
+        return cls(EmissionTables.build(mu, var, lam), np.ascontiguousarray(mu.reshape(C * M, F)),
+                   np.ascontiguousarray((mu ** 2 + var + 1.0 / lam[:, None, :]).reshape(C * M, F)),
+                   lp, np.asarray(d_pop, dtype=np.float64), np.cos(ang), np.sin(ang), float(adapt_rate),
+                   float(prior_strength), float(kappa), int(width), float(kappa_global),
+                   np.ascontiguousarray(var.reshape(C * M, F)),
+                   1.0 / lam, np.repeat(np.arange(C), M))
+
+    def __post_init__(self) -> None:
+        C, M = self.em.C, self.em.M
+        # stream-cycle knots: state m sits at u = m nb / M between knots floor(u) and floor(u) + 1
+        nb = max(3, int(round(M / (2 * self.width + 1)))) if self.width > 0 else M
+        u = np.arange(M) * nb / M
+        b0 = np.floor(u).astype(int)
+        self.n_bins = nb
+        self.bin0 = (np.arange(C)[:, None] * nb + b0[None]).ravel()
+        self.bin1 = (np.arange(C)[:, None] * nb + (b0[None] + 1) % nb).ravel()
+        self.bin_a = np.tile(u - b0, C)
+        self.lam_rows = np.ascontiguousarray(np.repeat(self.em.lam, M, axis=0))
+        self.var_q = np.ascontiguousarray(self.var + np.repeat(self.inv_lam, M, axis=0))
+        self.pack = np.ascontiguousarray(np.hstack([self.em.lam_mu, self.lam_rows, self.mu, self.q2]))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.em.C, self.em.M
+
+
+def init_state(tab: FilterTables, n: int) -> dict[str, np.ndarray]:
+    C, M = tab.shape
+    J = tab.d_pop.shape[0]
+    st = {
+        "post": np.zeros((n, C, M)),          # filtered p(c, m | x_<=t); unused before frame 0
+        "t": np.zeros(n, dtype=np.int64),     # frames consumed
+        "d": np.tile(tab.d_pop, (n, 1)),      # current transition probabilities
+        "counts": np.zeros((n, J)),           # forgotten expected jump counts (adaptation)
+    }
+    if tab.kappa > 0.0:
+        F = tab.mu.shape[1]
+        st["D"] = np.zeros((n, C * tab.n_bins, F))   # stream-cycle residual sums (see module doc)
+        st["W"] = np.zeros((n, C * tab.n_bins, F))   # and their weights
+    return st
+
+
+def cycle_stats(state: dict[str, np.ndarray]) -> tuple[np.ndarray | None, np.ndarray | None]:
+    return state.get("D"), state.get("W")
+
+
+LIVE = 1e-10      # fill: states below this fraction of the largest posterior are skipped
+LIVE_STATS = 1e-4  # stream-cycle statistics: contributions below this fraction are skipped
+
+
+def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
+               P: np.ndarray | None = None) -> None:
+    """Add this frame's residuals to the stream-cycle statistics D, W (only when ``kappa > 0``)."""
+    if tab.kappa <= 0.0:
+        return
+    P = state["post"] if P is None else P
+    n = P.shape[0]
+    o = zobs.astype(np.float64)
+    for i in range(n):
+        if not zobs[i].any():
+            continue
+        Pf = P[i].reshape(-1)
+        rows = np.flatnonzero(Pf > LIVE_STATS * Pf.max())
+        p = Pf[rows]
+        a = tab.bin_a[rows]
+        dev = o[i] * (np.where(zobs[i], z[i], 0.0) - tab.mu[rows])                 # (k, F)
+        bins = np.concatenate([tab.bin0[rows], tab.bin1[rows]])
+        wts = np.concatenate([p * (1.0 - a), p * a])[:, None]
+        np.add.at(state["D"][i], bins, wts * np.concatenate([dev, dev]))
+        np.add.at(state["W"][i], bins, wts * o[i])
+
+
+def stream_offset(tab: FilterTables, rows: np.ndarray, D: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """delta(m) at the given flat states (k, F) from one stream's knot statistics D, W (C nb, F).
+
+    With ``kappa_global > 0`` the offset is two-level: a constant per style g_c (all the stream's
+    residuals, prior pseudo-count kappa_global) plus knot deviations from it, so phases the stream
+    has not shown yet still move by the offset seen elsewhere in the cycle."""
+    k = tab.kappa
+    b0, b1, a = tab.bin0[rows], tab.bin1[rows], tab.bin_a[rows, None]
+    if tab.kappa_global <= 0.0:
+        return (1.0 - a) * D[b0] / (k + W[b0]) + a * D[b1] / (k + W[b1])
+    nb = tab.n_bins
+    c = tab.style_of[rows]
+    Dg = D.reshape(-1, nb, D.shape[1]).sum(1)                   # (C, F): knot weights sum to 1 per frame
+    Wg = W.reshape(-1, nb, W.shape[1]).sum(1)
+    g = (Dg / (tab.kappa_global + Wg))[c]                        # (k, F)
+    return g + (1.0 - a) * (D[b0] - W[b0] * g) / (k + W[b0]) + a * (D[b1] - W[b1] * g) / (k + W[b1])
+
+
+def predict_shared(post: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``predict`` when every stream uses the same d (J,): one cyclic correlation in C."""
+    J = d.shape[0]
+    w = np.zeros(2 * J + 1)
+    w[:J] = d[::-1]          # out[m] = sum_j d_j post[m - j]: weight d_j sits at offset -j
+    return correlate1d(post, w, axis=-1, mode="wrap")
+
+
+def predict(post: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(n, C, M) filtered -> (n, C, M) one-step prediction with per-stream d (n, J); eq. (1)."""
+    out = np.zeros_like(post)
+    for j in range(1, d.shape[1] + 1):
+        out[..., j:] += post[..., :-j] * d[:, j - 1, None, None]
+        out[..., :j] += post[..., -j:] * d[:, j - 1, None, None]
+    return out
+
+
+def prior(tab: FilterTables, state: dict[str, np.ndarray]) -> np.ndarray:
+    """p(c, m | x_<t) for every stream (n, C, M)."""
+    pr = predict(state["post"], state["d"])
+    first = state["t"] == 0
+    if first.any():
+        pr[first] = np.exp(tab.log_prior)
+    return pr
+
+
+def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> np.ndarray:
+    """Consume one frame per stream (z: (n, F) NaN where missing; zobs: (n, F) bool) and return
+    the emission log-likelihoods ell (n, C, M) it used.  Updates ``state`` in place."""
+    post, d = state["post"], state["d"]
+    first = state["t"] == 0
+    n = z.shape[0]
+    anyobs = zobs.any(1)
+    ll = tab.em.loglik(z, zobs) if anyobs.any() else np.zeros((n,) + tab.shape)
+    w = np.exp(ll - ll.max(axis=(1, 2), keepdims=True))
+    if tab.adapt_rate > 0.0:
+        # P(jump = j | x_<=t) needs the per-jump split of the prediction
+        parts = np.zeros((d.shape[1], n) + tab.shape)
+        for j in range(1, d.shape[1] + 1):
+            parts[j - 1][..., j:] = post[..., :-j] * d[:, j - 1, None, None]
+            parts[j - 1][..., :j] = post[..., -j:] * d[:, j - 1, None, None]
+        pr = parts.sum(0)
+    elif tab.adapt_rate == 0.0:
+        pr = predict_shared(post, tab.d_pop)      # d never leaves d_pop without adaptation
+    else:
+        pr = predict(post, d)
+    if first.any():
+        pr[first] = np.exp(tab.log_prior)
+    new = pr * w
+    tot = new.sum(axis=(1, 2))
+    bad = ~(tot > 0.0)
+    if bad.any():
+        # every predicted state got an emission weight that underflowed: redo those rows in logs
+        with np.errstate(divide="ignore"):  # log 0 = -inf for states the prediction excludes
+            lg = np.log(pr[bad]) + ll[bad]
+        lg -= lg.max(axis=(1, 2), keepdims=True)
+        new[bad] = np.exp(lg)
+        tot[bad] = new[bad].sum(axis=(1, 2))
+    new /= tot[:, None, None]
+    if tab.adapt_rate > 0.0:
+        xi = (parts * w[None]).sum(axis=(2, 3)).T                         # (n, J)
+        xi /= np.maximum(xi.sum(1, keepdims=True), 1e-300)
+        xi[first | bad | ~anyobs] = 0.0    # no information about the jump in these frames
+        state["counts"] *= 1.0 - tab.adapt_rate
+        state["counts"] += xi
+        dn = tab.prior_strength * tab.d_pop[None] + state["counts"]
+        state["d"] = dn / dn.sum(1, keepdims=True)
+    state["post"][...] = new
+    state["t"] += 1
+    return ll
+
+
+def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: np.ndarray | None = None,
+         W: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Fill the missing features from a joint posterior P (n, C, M).  Returns (z completed, std),
+    both (n, F); std is 0 where observed.  R, W (n, C*n_bins, F): the stream-cycle statistics D, W, if adapting.
+
+    Eq. (18) with the joint posterior in place of psi(c) gamma(m):
+    x_dag = (sum_c P(c) Lambda^c)^-1 sum_cm P(c, m) Lambda^c mu^{c,m}.  Only states holding more
+    than LIVE of the largest posterior enter the sums (the rest carry < C M LIVE of the mass), and
+    only the missing features are computed, so a frame costs O(k F_missing) for k live states.
+    """
+    out = z.copy()
+    sd = np.zeros_like(z)
+    n = P.shape[0]
+    F = z.shape[1]
+    Pflat = P.reshape(n, -1)
+    for i in range(n):
+        miss = ~zobs[i]
+        if not miss.any():
+            continue
+        Pf = Pflat[i]
+        rows = np.flatnonzero(Pf > LIVE * Pf.max())
+        p = Pf[rows]
+        p = p / p.sum()
+        if R is None:
+            # one gather of the packed per-state table [lam mu | lam | mu | mu^2 + var + 1/lam]
+            s4 = p @ tab.pack[rows]
+            val = s4[:F] / s4[F : 2 * F]
+            mean, m2 = s4[2 * F : 3 * F], s4[3 * F :]
+        else:
+            # the stream's own cycle: style cycle plus the stream's offset (module doc)
+            mu = tab.mu[rows] + stream_offset(tab, rows, R[i], W[i])
+            lam = tab.lam_rows[rows]
+            val = (p @ (lam * mu)) / (p @ lam)
+            mean = p @ mu
+            m2 = p @ (mu * mu + tab.var_q[rows])
+        var = np.maximum(m2 - mean * mean, 0.0) + (mean - val) ** 2
+        out[i, miss] = val[miss]
+        sd[i, miss] = np.sqrt(var[miss])
+    return out, sd
+
+
+def extras(tab: FilterTables, P: np.ndarray) -> list[dict]:
+    """Style posterior and circular-mean phase in [0, 1) for each row of P (n, C, M)."""
+    Pc = P.sum(2)
+    Pm = P.sum(1)
+    ph = np.arctan2(Pm @ tab.sin, Pm @ tab.cos) / (2.0 * np.pi) % 1.0
+    return [{"style": Pc[i].tolist(), "phase": float(ph[i])} for i in range(P.shape[0])]
+
+
+def smooth_lag(post_buf: np.ndarray, ll_buf: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Fixed-lag smoothing: the posterior of the oldest buffered frame given all buffered frames.
+
+    post_buf : (L+1, n, C, M) filtered posteriors, oldest first.  ll_buf : (L+1, n, C, M) their
+    emission log-likelihoods.  d : (n, J).  Returns (n, C, M).  O(L C M J): constant per frame.
+    """
+    L1 = post_buf.shape[0]
+    beta = np.ones(post_buf.shape[1:])
+    for u in range(L1 - 1, 0, -1):
+        w = np.exp(ll_buf[u] - ll_buf[u].max(axis=(1, 2), keepdims=True)) * beta
+        nb = np.zeros_like(beta)
+        for j in range(1, d.shape[1] + 1):
+            # beta_{u-1}(m) = sum_j d_j w_u(m + j) beta_u(m + j)
+            nb[..., :-j] += w[..., j:] * d[:, j - 1, None, None]
+            nb[..., -j:] += w[..., :j] * d[:, j - 1, None, None]
+        beta = nb / np.maximum(nb.max(axis=(1, 2), keepdims=True), 1e-300)
+    sm = post_buf[0] * beta
+    return sm / np.maximum(sm.sum(axis=(1, 2), keepdims=True), 1e-300)

@@ -1,0 +1,189 @@
+"""The online HLM filter behind the Filler seam: equals the offline forward pass, batches exactly,
+is causal, passes observed values through, predicts through dropped frames, and its fixed-lag
+stream converges to the offline smoother."""
+import numpy as np
+import pytest
+
+from hlm import offline, online
+from hlm.methods import train_model
+from hlm.synthetic import random_cycles, sample
+from lacuna.filler import FillerError
+
+C, M, F = 2, 40, 6
+CH = [f"j{i}.tx" for i in range(F)]
+
+
+@pytest.fixture(scope="module")
+def world():
+    rng = np.random.default_rng(11)
+    Z = random_cycles(C, M, F, rng)
+    lam = np.full((C, F), 4.0)
+    seqs, truth = sample(Z, lam, [100] * 8, rng, labels=np.array([0, 1] * 4))
+    test, ttruth = sample(Z, lam, [80, 80], rng, labels=np.array([0, 1]))
+    model = train_model(seqs, CH, styles=C, cycle_frames=M // 2, restarts=2, n_iter=8, root_mode="raw",
+                        normalize=True, kappa=0.0)
+    return model, test, ttruth, truth
+
+
+def _mask(rng, T, p=0.3):
+    obs = rng.random((T, F)) > p
+    obs[T // 2 :, :3] = False     # a long gap on half the channels
+    return obs
+
+
+def test_online_posterior_equals_offline_forward_pass(world, rng):
+    model, test, _, _ = world
+    for kappa in (0.0, 0.5):     # the stream-cycle adaptation changes fills, never the posterior
+        m = model.with_options(kappa=kappa)
+        x = test[0]
+        obs = _mask(rng, x.shape[0])
+        st = m.stream()
+        posts = []
+        for t in range(x.shape[0]):
+            st.step(np.where(obs[t], x[t], np.nan), obs[t])
+            posts.append(st.core_state["post"][0].copy())
+        z = m.representation.transform(x)
+        zobs = m.representation.feature_observed(obs)
+        ref = offline.forward_filter(m.tables, np.where(zobs, z, np.nan), zobs)
+        np.testing.assert_allclose(np.array(posts), ref, atol=1e-10)
+
+
+def test_batched_step_equals_single_streams(world, rng):
+    model, test, _, _ = world
+    m = model.with_options(kappa=0.5)
+    xs = [test[0], test[1], test[0][::-1].copy()]
+    obs = [_mask(rng, x.shape[0]) for x in xs]
+    obs[2][10:15] = False          # frames that never arrived, in one stream only
+    singles = [m.stream() for _ in xs]
+    batch = [m.stream() for _ in xs]
+    for t in range(60):
+        fr = np.stack([np.where(o[t], x[t], np.nan) for x, o in zip(xs, obs)])
+        ob = np.stack([o[t] for o in obs])
+        got = m.step_batch(batch, fr, ob)
+        for i, s in enumerate(singles):
+            want = s.step(fr[i], ob[i])
+            np.testing.assert_allclose(got[i].frame, want.frame, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(got[i].std, want.std, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(got[i].extras["style"], want.extras["style"], atol=1e-12)
+            assert got[i].extras["phase"] == pytest.approx(want.extras["phase"], abs=1e-12)
+
+
+def test_causal_changing_the_future_never_changes_the_past(world, rng):
+    model, test, _, _ = world
+    x = test[0]
+    obs = _mask(rng, x.shape[0])
+    a, b = model.stream(), model.stream()
+    y = x.copy()
+    y[41:] += rng.normal(0, 3.0, y[41:].shape)
+    for t in range(41):
+        fa = a.step(np.where(obs[t], x[t], np.nan), obs[t])
+        fb = b.step(np.where(obs[t], y[t], np.nan), obs[t])
+        np.testing.assert_array_equal(fa.frame, fb.frame)
+        np.testing.assert_array_equal(fa.std, fb.std)
+
+
+def test_nothing_missing_returns_the_frame_unchanged(world):
+    model, test, _, _ = world
+    st = model.stream()
+    for t in range(30):
+        f = st.step(test[0][t], np.ones(F, bool))
+        np.testing.assert_array_equal(f.frame, test[0][t])
+        assert not f.std.any() and not f.filled.any()
+
+
+def test_dropped_frame_is_a_prediction_step(world):
+    model, test, _, _ = world
+    st = model.stream()
+    for t in range(20):
+        st.step(test[0][t], np.ones(F, bool))
+    before = st.core_state["post"].copy()
+    f = st.step(None)
+    np.testing.assert_allclose(st.core_state["post"], online.predict(before, st.core_state["d"]), atol=1e-14)
+    assert f.filled.all() and np.isfinite(f.frame).all() and (f.std > 0).all()
+
+
+def test_style_posterior_phase_and_calibrated_std(world):
+    model, test, ttruth, truth = world
+    m = model.with_options(kappa=0.0)
+    # map learned styles to true ones through the training sequences
+    assign = np.array(m.meta["training"]["psi"]).argmax(1)
+    zs = []
+    for k in range(2):
+        x = test[k]
+        obs = np.ones(x.shape, bool)
+        obs[20:, :3] = False
+        st = m.stream()
+        for t in range(x.shape[0]):
+            f = st.step(np.where(obs[t], x[t], np.nan), obs[t])
+            if t >= 20:
+                zs.append((f.frame[:3] - x[t, :3]) / f.std[:3])
+        style = np.array(f.extras["style"])
+        assert style.sum() == pytest.approx(1.0)
+        learned = int(style.argmax())
+        assert np.bincount(truth.labels[assign == learned]).argmax() == ttruth.labels[k]
+        assert 0.0 <= f.extras["phase"] < 1.0
+    zs = np.concatenate(zs)
+    assert 0.6 < zs.std() < 1.6     # the reported std is the size of the actual error
+
+
+def test_fixed_lag_stream_converges_to_offline_smoother(world, rng):
+    model, test, _, _ = world
+    m = model.with_options(kappa=0.0, n_iter_d=0)
+    x = test[1][:50]
+    obs = _mask(rng, x.shape[0])
+    want, want_sd = m.fill_smoothed(np.where(obs, x, np.nan), obs)
+    got, got_sd = m.fill_lagged(np.where(obs, x, np.nan), obs, lag=x.shape[0])
+    np.testing.assert_allclose(got, want, atol=1e-8)
+    np.testing.assert_allclose(got_sd, want_sd, atol=1e-8)
+    # lag 0 is the causal filter itself
+    got0, _ = m.fill_lagged(np.where(obs, x, np.nan), obs, lag=0)
+    causal, _ = m.fill_offline(np.where(obs, x, np.nan), obs)
+    np.testing.assert_allclose(got0, causal, atol=1e-10)
+    # a lag stream emits nothing for its first L frames, then one fill per frame
+    st = m.lag_stream(5)
+    outs = [st.step(np.where(obs[t], x[t], np.nan), obs[t]) for t in range(10)]
+    assert outs[:5] == [None] * 5 and all(o is not None for o in outs[5:])
+    assert len(st.flush()) == 5
+
+
+def test_transition_adaptation_follows_a_faster_performer(world):
+    model, _, _, _ = world
+    rng = np.random.default_rng(3)
+    p = model.params
+    Zf = p.mu[:, :, :] * model.representation.std + np.array(model.representation.mean)  # back to raw units
+    fast, _ = sample(Zf, np.full((C, F), 4.0), [300], rng, d_alpha=(0.2, 0.2, 20.0), labels=np.array([0]))
+    m = model.with_options(adapt_rate=0.01, prior_strength=20.0)
+    st = m.stream()
+    for x in fast[0]:
+        st.step(x, np.ones(F, bool))
+    d = st.core_state["d"][0]
+    d0 = m.tables.d_pop
+    assert d @ np.arange(1, 4) > d0 @ np.arange(1, 4) + 0.3
+
+
+def test_bad_frames_get_clear_errors(world):
+    model, _, _, _ = world
+    st = model.stream()
+    with pytest.raises(FillerError, match="6 channels"):
+        st.step(np.zeros(5))
+    with pytest.raises(FillerError, match="finite"):
+        st.step(np.full(F, np.nan), np.ones(F, bool))
+    with pytest.raises(FillerError, match="shape"):
+        model.fill_smoothed(np.zeros((10, 4)), np.ones((10, 4), bool))
+
+
+def test_stream_cycle_adaptation_learns_a_performers_offset(world):
+    """A performer who holds channel 0 three units higher than the training population: once a
+    cycle has been seen, the adapted filler fills it with the offset; the paper's filler cannot."""
+    model, test, _, _ = world
+    x = test[0].copy()
+    x[:, 0] += 3.0
+    obs = np.ones(x.shape, bool)
+    obs[45:, 0] = False
+    errs = {}
+    for kappa in (0.0, 3.0):
+        m = model.with_options(kappa=kappa, kappa_global=kappa, width=3)
+        filled, _ = m.fill_offline(np.where(obs, x, np.nan), obs)
+        errs[kappa] = np.sqrt(np.mean((filled[45:, 0] - x[45:, 0]) ** 2))
+    assert errs[0.0] > 2.5                 # the offset itself
+    assert errs[3.0] < 0.5 * errs[0.0]
