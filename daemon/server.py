@@ -31,6 +31,7 @@ from daemon.transport import Transports
 
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
 HOUSEKEEPING_S = 0.5
+REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, summarised
 DRAIN_LINGER_MS = 1000  # on SIGTERM, let answers already queued reach their peers
 LEVELS = {"debug": 10, "info": 20, "warning": 30, "error": 40}
 
@@ -74,6 +75,7 @@ class Daemon:
         self._reload_waiters: list[Origin] = []
         self.last_reload: dict[str, Any] = {}
         self.started = time.time()
+        self._rej_window, self._rej_logged, self._rej_suppressed = 0.0, 0, 0
 
     # ---- models -----------------------------------------------------------------------------
     def _resolve(self, requested: str | None, sid: str):
@@ -91,7 +93,8 @@ class Daemon:
         if errors:
             raise config_mod.ConfigError("; ".join(f"model {n}: {e}" for n, e in errors.items()))
         self._install(table)
-        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, self.log)
+        # the log object changes on reload (level): look it up at each call
+        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, lambda *a, **k: self.log(*a, **k))
         self.net.open()
         if self.cfg.metrics_http:
             self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom)
@@ -197,8 +200,17 @@ class Daemon:
         s = self.sessions.sessions.get(sid) if sid else None
         if s is not None:
             s.counts["rejected"] += 1
-        self.log("warning", "rejected", reason=reason, detail=detail[:300], stream=sid, seq=seq,
-                 transport=origin[0] if origin else None)
+        # a flood of bad input must not turn into a flood of log lines: at most REJECT_LOG_PER_S
+        # a second are written, the rest are summed into one line per housekeeping tick
+        now = time.monotonic()
+        if now - self._rej_window >= 1.0:
+            self._rej_window, self._rej_logged = now, 0
+        if self._rej_logged < REJECT_LOG_PER_S:
+            self._rej_logged += 1
+            self.log("warning", "rejected", reason=reason, detail=detail[:300], stream=sid, seq=seq,
+                     transport=origin[0] if origin else None)
+        else:
+            self._rej_suppressed += 1
         if origin is not None:
             self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
 
@@ -282,7 +294,7 @@ class Daemon:
             "latency": self.metrics.latency_summary(), "step": self.metrics.step_summary(),
             "counters": dict(self.metrics.counters), "rejected": dict(self.metrics.rejected),
             "streams": {sid: s.info() for sid, s in self.sessions.sessions.items()},
-            "expired": self.sessions.expired, "step_errors": self.sched.step_errors,
+            "expired": self.sessions.expired, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
         }
 
@@ -351,6 +363,10 @@ class Daemon:
 
     # ---- housekeeping / shutdown --------------------------------------------------------------
     def _housekeeping(self, now: float) -> None:
+        if self._rej_suppressed:
+            self.log("warning", "rejected_not_logged", count=self._rej_suppressed,
+                     by_reason=dict(self.metrics.rejected), detail="more rejections than the log takes; all are counted")
+            self._rej_suppressed = 0
         gone = self.sessions.expire(now, self.cfg.idle_timeout_s)
         for sid in gone:
             self.log("info", "stream_expired", stream=sid)

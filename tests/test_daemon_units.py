@@ -256,3 +256,38 @@ def test_passthrough_filler_fills_nothing():
     fills = m.step_batch([st, m.stream()], np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]), np.array([[1, 0, 1], [1, 1, 1]], bool))
     assert np.isnan(fills[0].frame[1]) and fills[1].frame.tolist() == [4.0, 5.0, 6.0]
     assert PassThroughModel().stream().step(np.ones(5)).frame.tolist() == [1.0] * 5  # "any" channels
+
+
+def test_model_held_everywhere_still_gets_a_probe_step():
+    """A pessimistic estimate must not hold every stream forever: one real step per PROBE_S."""
+    m = HoldModel(CH, np.zeros(3), np.ones(3))
+    t, _ = _table(m, max_streams=100)
+    sched = Scheduler(budget_ms=1.0, max_gap=5, max_batch=64)
+    for _ in range(3):
+        sched.cost(m, None).observe(1, 10.0)  # "10 s per step": far over any budget
+
+    def tick(seq):
+        for i in range(4):
+            t.frame(_frame(f"s{i}", seq, [1.0, np.nan, 3.0]), ("pull", None), time.perf_counter())
+        return sched.run({id(m): (m, list(t.sessions.values()))}, 0.0)
+
+    first = tick(0)
+    assert sum(not f.degraded for _, f, _ in first) == 1 and sched.probes == 1  # one stream stepped
+    second = tick(1)
+    assert all(f.degraded for _, f, _ in second) and sched.probes == 1  # not again within PROBE_S
+    stepped = next(s for s, f, _ in first if not f.degraded)
+    assert stepped.model_seq == 1 and stepped.held_streak == 1  # its held frame 1 is skipped, not replayed
+
+
+def test_partial_step_without_knob_is_full_quality_not_degraded():
+    m = HoldModel(CH, np.zeros(3), np.ones(3))
+    t, _ = _table(m, max_streams=100)
+    for i in range(10):
+        t.frame(_frame(f"s{i}", 0, [1.0, np.nan, 3.0]), ("pull", None), 0.0)
+    sched = Scheduler(budget_ms=0.23, max_gap=5, max_batch=64)
+    sched.reply_cost = 0.0
+    for _ in range(3):
+        sched.cost(m, None).observe(1, 1e-3 / 30)
+        sched.cost(m, None).observe(10, 1e-2 / 30)
+    plan = sched.plan(m, list(t.sessions.values()), now=0.0)
+    assert len(plan.step) == 5 and len(plan.hold) == 5 and not plan.degraded
