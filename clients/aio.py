@@ -153,3 +153,29 @@ class AsyncClient:
                 return msg
             if isinstance(msg, wire.ErrorMsg) and msg.seq in (seq, None):
                 return msg
+
+    async def control(self, cmd: str, stream: str | None = None) -> wire.ControlReply:
+        """A control request (status, reset, reload, list-models) on a short-lived socket of its
+        own, so its answer never mixes with the stream's pipelined frame answers."""
+        s = dealer_socket(self.ctx, self.endpoint, self.timeout_s)  # type: ignore[arg-type]
+        try:
+            try:
+                await asyncio.wait_for(s.send(wire.encode(wire.Control(cmd, stream))), self.timeout_s)
+            except (zmq.Again, asyncio.TimeoutError):
+                raise DaemonUnavailable(f"no daemon at {self.endpoint} (control {cmd})") from None
+            if not await s.poll(int(self.timeout_s * 1000), zmq.POLLIN):
+                raise DaemonUnavailable(f"no answer from {self.endpoint} to control {cmd} within {self.timeout_s:g} s")
+            msg = decode_reply(await s.recv())
+        finally:
+            s.close(linger=0)
+        if isinstance(msg, wire.ErrorMsg):
+            raise DaemonRefused(msg)
+        if not isinstance(msg, wire.ControlReply):
+            raise DaemonRefused(wire.ErrorMsg("unexpected", f"control {cmd} answered with {type(msg).__name__}"))
+        return msg
+
+    async def status(self) -> dict[str, Any]:
+        r = await self.control("status")
+        if not r.ok:
+            raise DaemonRefused(wire.ErrorMsg("status", r.error or "status failed"))
+        return r.result

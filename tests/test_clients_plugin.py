@@ -111,9 +111,11 @@ def test_asyncio_client_round_trip(daemon, hold_file):
             ack = await c.hello()
             r0 = await c.fill(frames[0])
             r1 = await c.fill(frames[1], obs)
-            return ack, r0, r1
+            st = await c.status()
+            return ack, r0, r1, st
 
-    ack, r0, r1 = asyncio.run(go())
+    ack, r0, r1, st = asyncio.run(go())
+    assert st["streams"]["rt-async"]["frames_out"] == 2
     assert ack.passthrough == [EXTRA]
     assert r0.seq == 0 and r1.seq == 1
     np.testing.assert_array_equal(r1.filled[:5], True)
