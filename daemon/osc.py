@@ -1,0 +1,117 @@
+"""OSC address space <-> wire messages.  Pure functions on datagram bytes (python-osc parses).
+
+The address space is documented in docs/PROTOCOL.md (## OSC address space).  ``decode``
+returns the same message objects as the msgpack decoder (Hello, Frame, Control) or raises
+``wire.WireError``; ``encode`` turns a daemon answer into one datagram (a bundle for a fill).
+"""
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+from pythonosc.osc_message import OscMessage
+from pythonosc.osc_message_builder import OscMessageBuilder
+
+from daemon import wire
+
+PREFIX = "/lacuna/"
+
+
+def _msg(address: str, args: list[tuple[object, str]]) -> OscMessageBuilder:
+    b = OscMessageBuilder(address)
+    for v, t in args:
+        b.add_arg(v, t)
+    return b
+
+
+def _str(args: list, i: int, what: str) -> str:
+    if i >= len(args) or not isinstance(args[i], str):
+        got = type(args[i]).__name__ if i < len(args) else "nothing"
+        raise wire.WireError("bad_type", f"OSC {what}: argument {i + 1} must be a string (got {got})")
+    return args[i]
+
+
+def _int(args: list, i: int, what: str) -> int:
+    if i >= len(args) or not isinstance(args[i], int) or isinstance(args[i], bool):
+        got = type(args[i]).__name__ if i < len(args) else "nothing"
+        raise wire.WireError("bad_type", f"OSC {what}: argument {i + 1} (seq) must be an int (got {got})")
+    return args[i]
+
+
+def _float(args: list, i: int, what: str) -> float:
+    if i >= len(args) or isinstance(args[i], bool) or not isinstance(args[i], (int, float)):
+        got = type(args[i]).__name__ if i < len(args) else "nothing"
+        raise wire.WireError("bad_type", f"OSC {what}: argument {i + 1} (t) must be a number (got {got})")
+    return float(args[i])
+
+
+def decode(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES) -> wire.Message:
+    """One OSC datagram -> Hello | Frame | Control.  Raises wire.WireError only."""
+    if len(data) > max_bytes:
+        raise wire.WireError("too_large", f"datagram is {len(data)} bytes, the limit is {max_bytes}")
+    if not data.startswith(b"/"):
+        raise wire.WireError("not_osc", f"{len(data)} bytes are not an OSC message (bundles are not accepted as input)")
+    try:
+        m = OscMessage(data)
+        addr, args = m.address, list(m.params)
+    except Exception as e:  # python-osc raises ParseError and assorted others on bad bytes
+        raise wire.WireError("not_osc", f"{len(data)} bytes are not an OSC message ({type(e).__name__})") from None
+    try:
+        if addr == "/lacuna/frame":
+            sid, seq, t = _str(args, 0, addr), _int(args, 1, addr), _float(args, 2, addr)
+            vals = args[3:]
+            if not vals or len(vals) > wire.MAX_CHANNELS or not all(isinstance(v, float) for v in vals):
+                raise wire.WireError("bad_type", f"OSC {addr}: after stream, seq, t come 1..{wire.MAX_CHANNELS} "
+                                                 f"float angles (got {len(vals)} values)", sid, seq)
+            return _via_wire({"type": "frame", "stream": sid, "seq": seq, "t": t,
+                           "angles": np.asarray(vals, dtype=wire.F32).tobytes()})
+        if addr == "/lacuna/frame/masked":
+            sid, seq, t = _str(args, 0, addr), _int(args, 1, addr), _float(args, 2, addr)
+            if len(args) != 5 or not isinstance(args[3], bytes) or not isinstance(args[4], bytes):
+                raise wire.WireError("bad_type", f"OSC {addr}: needs stream, seq, t, angles blob, observed blob", sid, seq)
+            return _via_wire({"type": "frame", "stream": sid, "seq": seq, "t": t, "angles": args[3], "observed": args[4]})
+        if addr == "/lacuna/hello":
+            sid, model = _str(args, 0, addr), _str(args, 1, addr)
+            return _via_wire({"type": "hello", "stream": sid, "channels": args[2:], "model": model or None})
+        if addr == "/lacuna/reset":
+            return wire.Control("reset", _str(args, 0, addr))
+    except wire.WireError:
+        raise
+    except Exception as e:
+        raise wire.WireError("malformed", f"OSC {addr} could not be read ({type(e).__name__})") from None
+    raise wire.WireError("unknown_type", f"OSC address {addr[:60]!r} is not one of /lacuna/frame, /lacuna/frame/masked, "
+                                         f"/lacuna/hello, /lacuna/reset")
+
+
+def _via_wire(d: dict) -> wire.Message:
+    """Validate through the msgpack decoder's rules so both transports check the same things."""
+    return wire.decode(msgpack.packb({"v": 1, **d}, use_bin_type=True), 1 << 30)
+
+
+def encode(msg: wire.Message) -> bytes:
+    """A daemon answer -> one OSC datagram."""
+    if isinstance(msg, wire.FillMsg):
+        bb = OscBundleBuilder(IMMEDIATELY)
+        sid, seq = (msg.stream, "s"), (msg.seq, "h")
+        bb.add_content(_msg("/lacuna/fill", [sid, seq, (msg.t, "d"), (msg.status, "s"), (msg.model, "s"),
+                                             (int(msg.proc_us), "i"), (int(msg.gap), "i")]
+                            + [(float(v), "f") for v in msg.angles]).build())
+        bb.add_content(_msg("/lacuna/std", [sid, seq] + [(float(v), "f") for v in msg.std]).build())
+        bb.add_content(_msg("/lacuna/filled", [sid, seq, (np.asarray(msg.filled, np.uint8).tobytes(), "b")]).build())
+        if msg.style is not None:
+            bb.add_content(_msg("/lacuna/style", [sid, seq] + [(float(v), "f") for v in msg.style]).build())
+        if msg.phase is not None and math.isfinite(msg.phase):
+            bb.add_content(_msg("/lacuna/phase", [sid, seq, (float(msg.phase), "f")]).build())
+        return bb.build().dgram
+    if isinstance(msg, wire.HelloAck):
+        return _msg("/lacuna/hello-ack", [(msg.stream, "s"), (msg.model, "s"), (len(msg.channels), "i"),
+                                          (len(msg.passthrough), "i"), (len(msg.missing), "i")]).build().dgram
+    if isinstance(msg, wire.Drop):
+        return _msg("/lacuna/drop", [(msg.stream, "s"), (msg.seq, "h"), (msg.reason, "s")]).build().dgram
+    if isinstance(msg, wire.ErrorMsg):
+        return _msg("/lacuna/error", [(msg.reason, "s"), (msg.detail[:400], "s")]).build().dgram
+    if isinstance(msg, wire.ControlReply):
+        return _msg("/lacuna/control-reply", [(msg.cmd, "s"), (1 if msg.ok else 0, "i"), (msg.error or "", "s")]).build().dgram
+    raise TypeError(f"no OSC form for {type(msg).__name__}")

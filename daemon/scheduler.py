@@ -1,0 +1,305 @@
+"""The scheduler: one batched Filler step per model over the newest frame of every stream.
+
+Each tick takes every session with a pending frame (at most one per stream: the session's
+pending slot conflates), groups them by model and steps each group through
+``model.step_batch``.  Before stepping it compares an estimate of the step's cost with the time
+left before the oldest frame's budget runs out and, if it would overrun, degrades:
+
+1. fewer Gibbs iterations, where the model has the knob (``set_iterations(k)`` and
+   ``n_gibbs``, as crbm.filler.CRBMModel does): K, K/2, K/4, ..., 1;
+2. hold-last-value for the streams that still do not fit (the ones held most recently go
+   first next time, so no stream starves).
+
+Replies from a degraded step carry status ``degraded``.  Cost estimates are learned online
+per (model, level): step time ~ a + b * n_streams, fitted by exponentially discounted least
+squares over recent steps and seeded by a warm-up step when a model is loaded.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from daemon import wire
+from daemon.fillers import PassThroughModel
+from daemon.session import Out, Session
+from lacuna.filler import Fill, Model
+
+SAFETY = 1.25  # multiply cost estimates: better to degrade a little early than overrun
+DISCOUNT = 0.97  # per observation, for the cost fit
+PROBE_S = 1.0  # seconds: a model held on every stream gets one real step this often
+OUTLIER = 4.0  # clip a cost observation at this multiple of the current fit
+REPLY_COST_S = 30e-6
+HOLD_COST_S = 20e-6  # per stream, what hold-last-value costs in the session (numpy overhead)  # first guess of encode+send per reply, refined online
+
+
+class CostModel:
+    """Step time ~ a + b * n, by discounted least squares (falls back to b = t / n)."""
+
+    def __init__(self) -> None:
+        self.s = np.zeros(5)  # sum w, sum w n, sum w n^2, sum w t, sum w n t
+        self.seen = False
+
+    def observe(self, n: int, t: float) -> None:
+        if self.seen:
+            # one step stretched by the OS (preemption on a busy machine) must not make the
+            # scheduler degrade for the next hundred frames: clip outliers to OUTLIER x the fit;
+            # a model that really got slower still moves the fit by that factor per step
+            a, b = self.coef()
+            t = min(t, OUTLIER * max(a + b * n, 1e-6))
+        self.s *= DISCOUNT
+        self.s += (1.0, n, n * n, t, n * t)
+        self.seen = True
+
+    def coef(self) -> tuple[float, float]:
+        w, sn, snn, st, snt = self.s
+        if w <= 0:
+            return 0.0, 0.0
+        det = w * snn - sn * sn
+        if det > 1e-9 * max(w * snn, 1e-30):
+            b = (w * snt - sn * st) / det
+            a = (st - b * sn) / w
+            if a >= 0 and b >= 0:
+                return a, b
+        # all steps had (nearly) the same n, or a negative coefficient: cost proportional to n
+        return 0.0, st / max(sn, 1e-12)
+
+    def estimate(self, n: int, rounds: int = 1) -> float:
+        a, b = self.coef()
+        return SAFETY * rounds * (a + b * n)
+
+
+@dataclass
+class StepPlan:
+    """What one group gets: level 0 = as asked; ``iterations`` = the Gibbs knob used."""
+
+    step: list[Session]
+    hold: list[Session]
+    iterations: int | None
+    degraded: bool
+
+
+def levels_of(model: Model) -> list[int | None]:
+    """Cost levels a model offers: [None] (no knob) or [K, K/2, ..., 1] Gibbs iterations."""
+    k = getattr(model, "n_gibbs", None)
+    if not callable(getattr(model, "set_iterations", None)) or not isinstance(k, int) or k < 1:
+        return [None]
+    out, v = [k], k
+    while v > 1:
+        v = max(1, v // 2)
+        out.append(v)
+    return out
+
+
+class Scheduler:
+    def __init__(self, budget_ms: float, max_gap: int, max_batch: int):
+        self.budget_s = budget_ms / 1000.0
+        self.max_gap = max_gap
+        self.max_batch = max_batch
+        self.costs: dict[tuple[int, int | None], CostModel] = {}
+        self.reply_cost = REPLY_COST_S
+        self.hold_cost = CostModel()
+        self.last_step: dict[int, float] = {}  # id(model) -> perf_counter of its last real step
+        self.probes = 0
+        self.step_errors = 0
+        self.last_error = ""
+
+    def cost(self, model: Model, level: int | None) -> CostModel:
+        key = (id(model), level)
+        if key not in self.costs:
+            self.costs[key] = CostModel()
+        return self.costs[key]
+
+    def forget(self, model: Model) -> None:
+        for k in [k for k in self.costs if k[0] == id(model)]:
+            del self.costs[k]
+        self.last_step.pop(id(model), None)
+
+    # ---- planning ---------------------------------------------------------------------------
+    def _gap(self, s: Session) -> int:
+        p = s.pending
+        assert p is not None
+        if s.model_seq is None:
+            return 0
+        return p.frame.seq - s.model_seq - 1
+
+    def plan(self, model: Model, group: list[Session], now: float) -> StepPlan:
+        """Decide level and which streams step (the rest hold).  Pure apart from reading costs."""
+        if isinstance(model, PassThroughModel):
+            return StepPlan(group, [], None, False)
+        deadline = min(s.pending.arrived for s in group) + self.budget_s  # type: ignore[union-attr]
+        avail = deadline - now - self.reply_cost * len(group)
+        rounds = 1 + max(min(self._gap(s), self.max_gap) for s in group)
+        levels = levels_of(model)
+        # a model about as cheap as holding gains nothing from degrading: frames already late
+        # (queued while the daemon was busy) are better served in full
+        # (holding's own cost is measured alongside, under the same load as the model's)
+        hold = self.hold_cost.estimate(len(group)) if self.hold_cost.seen else HOLD_COST_S * len(group)
+        if self.cost(model, levels[0]).estimate(len(group), rounds) <= 2.0 * max(hold, HOLD_COST_S * len(group)):
+            return StepPlan(group, [], levels[0], False)
+        for lv in levels:
+            cm = self.cost(model, lv)
+            if not cm.seen or cm.estimate(len(group), rounds) <= avail:
+                return StepPlan(group, [], lv, lv != levels[0])
+        # even the cheapest level cannot take every stream: step as many as fit, hold the rest
+        cm = self.cost(model, levels[-1])
+        order = sorted(group, key=lambda s: -s.held_streak)
+        n = len(order)
+        while n > 0 and cm.estimate(n, rounds) > avail:
+            n -= 1
+        if n == 0 and now - self.last_step.get(id(model), 0.0) > PROBE_S:
+            # estimates only improve when the model runs: without an occasional step a
+            # pessimistic estimate (a slow warm-up, a busy spell) would hold every stream
+            # forever.  One stream, the longest held, at the cheapest level.
+            self.probes += 1
+            # a full-quality fill that overran the budget is "ok" (its proc_us shows the
+            # overrun); it is "degraded" only when the cheapest level is cheaper than asked
+            return StepPlan(order[:1], order[1:], levels[-1], levels[-1] != levels[0])
+        # the streams that do step get the cheapest level: degraded only if that is cheaper
+        # than asked (the held ones are marked degraded by the hold itself)
+        return StepPlan(order[:n], order[n:], levels[-1], levels[-1] != levels[0])
+
+    # ---- stepping ---------------------------------------------------------------------------
+    def run(self, groups: dict[int, tuple[Model, list[Session]]], now: float) -> list[tuple[Session, Fill, str]]:
+        """Step every group; returns (session, fill in model space, status) for each pending frame."""
+        results: list[tuple[Session, Fill, str]] = []
+        for model, sessions in groups.values():
+            for i in range(0, len(sessions), self.max_batch):
+                chunk = sessions[i : i + self.max_batch]
+                plan = self.plan(model, chunk, time.perf_counter())
+                if plan.hold:
+                    t0 = time.perf_counter()
+                    results.extend(self._hold(s) for s in plan.hold)
+                    self.hold_cost.observe(len(plan.hold), time.perf_counter() - t0)
+                if plan.step:
+                    results.extend(self._step(model, plan))
+        return results
+
+    def _hold(self, s: Session) -> tuple[Session, Fill, str]:
+        p = s.pending
+        assert p is not None
+        frame, obs = s.to_model(p.frame)
+        last = s.last_out if s.last_out is not None else np.full(frame.shape, np.nan)
+        out = np.where(obs, frame, last)
+        filled = ~obs & np.isfinite(last)
+        # hold-last-value has no uncertainty estimate: NaN says "unknown", not "certain"
+        std = np.where(filled, np.nan, 0.0)
+        s.last_out = out
+        # the filter skips held frames rather than predicting them later: replaying them when
+        # the stream steps again would cost the time the daemon is short of (a death spiral)
+        if s.model_seq is not None:
+            s.model_seq = p.frame.seq
+        s.held_streak += 1
+        s.counts["held"] += 1
+        return s, Fill(out, std, filled, {}, True), "degraded"
+
+    def _step(self, model: Model, plan: StepPlan) -> list[tuple[Session, Fill, str]]:
+        group = plan.step
+        for s in group:
+            if s.model_seq is not None and self._gap(s) > self.max_gap:
+                s.restart()
+                s.counts["restarts"] += 1
+        gaps = [self._gap(s) for s in group]
+        C = group[0].mapping.n_model
+        levels = levels_of(model)
+        knob = plan.iterations is not None and plan.iterations != levels[0]
+        t0 = time.perf_counter()
+        try:
+            if knob:
+                model.set_iterations(plan.iterations)  # type: ignore[attr-defined]
+            try:
+                # frames that never arrived: prediction steps, all channels missing (batched by round)
+                for r in range(max(gaps, default=0)):
+                    who = [s for s, g in zip(group, gaps) if g > r]
+                    model.step_batch([s.state for s in who], np.full((len(who), C), np.nan), np.zeros((len(who), C), bool))
+                    for s in who:
+                        s.counts["predicted"] += 1
+                mf = np.empty((len(group), C))
+                mo = np.empty((len(group), C), bool)
+                for i, s in enumerate(group):
+                    mf[i], mo[i] = s.to_model(s.pending.frame)  # type: ignore[union-attr]
+                fills = model.step_batch([s.state for s in group], mf, mo)
+            finally:
+                if knob:
+                    model.set_iterations(levels[0])  # type: ignore[attr-defined]
+        except Exception as e:  # a model bug must not stop the daemon: pass the frames through
+            self.step_errors += 1
+            self.last_error = f"{type(e).__name__}: {e}"[:300]
+            out = []
+            for s in group:
+                f, o = s.to_model(s.pending.frame)  # type: ignore[union-attr]
+                s.restart()
+                out.append((s, Fill(f, np.zeros(C), np.zeros(C, bool)), "passthrough"))
+            return out
+        self.last_step[id(model)] = time.perf_counter()
+        dt = time.perf_counter() - t0
+        self.cost(model, plan.iterations).observe(len(group), dt / (1 + max(gaps, default=0)))
+        status = "passthrough" if isinstance(model, PassThroughModel) else ("degraded" if plan.degraded else "ok")
+        out = []
+        for s, fill in zip(group, fills):
+            s.model_seq = s.pending.frame.seq  # type: ignore[union-attr]
+            s.last_out = np.asarray(fill.frame, dtype=np.float64)
+            s.held_streak = 0
+            out.append((s, fill, status))
+        return out
+
+    def warm_up(self, model: Model, n_channels: int, sizes: tuple[int, ...] = (1, 4, 16)) -> None:
+        """Seed the cost model (and surface a broken model before it serves): a few throwaway
+        steps on all-missing frames of fresh states."""
+        if isinstance(model, PassThroughModel):
+            return
+        C = n_channels
+        lvls = levels_of(model)
+        for lv in lvls:
+            knob = lv is not None and lv != lvls[0]
+            if knob:
+                model.set_iterations(lv)  # type: ignore[attr-defined]
+            try:
+                for n in sizes:
+                    states = [model.stream() for _ in range(n)]
+                    # half the channels observed (zeros), like a frame with markers lost: an
+                    # all-missing frame can take a cheap path and would underestimate the cost
+                    obs = np.zeros((n, C), bool)
+                    obs[:, ::2] = True
+                    frames = np.where(obs, 0.0, np.nan)
+                    for rep in range(4):
+                        t0 = time.perf_counter()
+                        fills = model.step_batch(states, frames, obs)
+                        if rep >= 2:  # first calls fill caches and lags: keep the steady state
+                            self.cost(model, lv).observe(n, time.perf_counter() - t0)
+                    if len(fills) != n or any(np.shape(f.frame) != (C,) for f in fills):
+                        raise ValueError(f"step_batch returned {len(fills)} fills of shape "
+                                         f"{np.shape(fills[0].frame) if fills else None} for {n} streams of {C} channels")
+            finally:
+                if knob:
+                    model.set_iterations(lvls[0])  # type: ignore[attr-defined]
+
+
+def fill_message(s: Session, fill: Fill, status: str, now: float) -> wire.FillMsg:
+    """Model-space fill -> the studio's channel order, as a wire message."""
+    p = s.pending
+    assert p is not None
+    mp = s.mapping
+    f = p.frame
+    angles = f.angles.astype(np.float32, copy=True)
+    filled = np.zeros(mp.n_in, bool)
+    std = np.zeros(mp.n_in, np.float32)
+    angles[mp.s_idx] = np.asarray(fill.frame)[mp.m_idx]
+    filled[mp.s_idx] = np.asarray(fill.filled)[mp.m_idx]
+    std[mp.s_idx] = np.asarray(fill.std)[mp.m_idx]
+    if f.observed is not None:  # observed values exactly as sent, whatever the model returned
+        angles[f.observed] = f.angles[f.observed]
+    else:
+        ok = np.isfinite(f.angles)
+        angles[ok] = f.angles[ok]
+    filled &= ~(f.observed if f.observed is not None else np.isfinite(f.angles))
+    ex: dict[str, Any] = fill.extras or {}
+    style = ex.get("style")
+    phase = ex.get("phase")
+    gap = 0 if s.last_seq is None else max(0, f.seq - s.last_seq - 1)
+    return wire.FillMsg(f.stream, f.seq, f.t, angles, filled, std, status, s.model_name,
+                        int((now - p.arrived) * 1e6),
+                        None if style is None else np.asarray(style, np.float32).ravel(),
+                        None if phase is None or not np.isfinite(phase) else float(phase), gap)

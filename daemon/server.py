@@ -1,0 +1,442 @@
+"""`lacuna serve`: the main loop.
+
+One thread serves everything: ``poll(timeout)`` over the ZeroMQ sockets and the OSC UDP socket,
+drain what arrived (bounded), decode, hand frames to their sessions (conflating per stream),
+one batched scheduler step per model, answer, then housekeeping against deadlines (watchdog,
+idle expiry, metrics snapshot, signal flags).  Signal handlers only set flags.  A reload loads
+and checks the new models on a helper thread and swaps them between two ticks, so no frame is
+dropped or held up by the load; a file that fails keeps the old model and the log says why.
+"""
+from __future__ import annotations
+
+import gc
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from typing import Any
+
+import zmq
+
+from daemon import config as config_mod
+from daemon import osc, wire
+from daemon.metrics import Metrics, MetricsHTTP
+from daemon.models import Loaded, load_all
+from daemon.notify import Notifier
+from daemon.scheduler import Scheduler, fill_message
+from daemon.session import Origin, SessionError, SessionTable
+from daemon.transport import Transports
+
+IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
+HOUSEKEEPING_S = 0.5
+REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, summarised
+DRAIN_LINGER_MS = 1000  # on SIGTERM, let answers already queued reach their peers
+LEVELS = {"debug": 10, "info": 20, "warning": 30, "error": 40}
+
+
+class Log:
+    """JSON lines on stderr: {"ts", "level", "event", ...fields}."""
+
+    def __init__(self, level: str = "info", stream: Any = None):
+        self.level = LEVELS[level]
+        self.stream = stream or sys.stderr
+
+    def __call__(self, level: str, event: str, always: bool = False, **fields: Any) -> None:
+        # lifecycle events (ready, reload_done, stopped) are logged whatever the level: tools
+        # and tests wait for them
+        if LEVELS[level] < self.level and not always:
+            return
+        rec = {"ts": round(time.time(), 6), "level": level, "event": event, **fields}
+        try:
+            self.stream.write(json.dumps(rec, default=str) + "\n")
+            self.stream.flush()
+        except (OSError, ValueError):
+            pass
+
+
+class Daemon:
+    def __init__(self, cfg: config_mod.Config, log: Log | None = None):
+        self.cfg = cfg
+        self.log = log or Log(cfg.log_level)
+        self.metrics = Metrics()
+        self.notify = Notifier()
+        self.models: dict[str, Loaded] = {}
+        self.sched = Scheduler(cfg.budget_ms, cfg.max_gap_frames, cfg.max_batch)
+        self.sessions = SessionTable(self._resolve, cfg.max_streams, self._count)
+        self.net: Transports | None = None
+        self.http: MetricsHTTP | None = None
+        self._prom = ""
+        self.flag_reload = False
+        self.flag_stop = False
+        self._reload_thread: threading.Thread | None = None
+        self._reload_result: tuple[config_mod.Config | None, dict[str, Loaded], dict[str, str]] | None = None
+        self._reload_waiters: list[Origin] = []
+        self.last_reload: dict[str, Any] = {}
+        self.started = time.time()
+        self._rej_window, self._rej_logged, self._rej_suppressed = 0.0, 0, 0
+
+    # ---- models -----------------------------------------------------------------------------
+    def _resolve(self, requested: str | None, sid: str):
+        name = requested or self.cfg.stream_models.get(sid) or self.cfg.default_model
+        if name not in self.models:
+            raise KeyError(f"model {name!r} is not loaded (loaded: {', '.join(sorted(self.models))})")
+        return name, self.models[name].model
+
+    def _count(self, name: str, sid: str | None) -> None:
+        self.metrics.inc(name)
+
+    # ---- start ------------------------------------------------------------------------------
+    def start(self) -> None:
+        table, errors = load_all(self.cfg)
+        if errors:
+            raise config_mod.ConfigError("; ".join(f"model {n}: {e}" for n, e in errors.items()))
+        self._install(table)
+        # the log object changes on reload (level): look it up at each call
+        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, lambda *a, **k: self.log(*a, **k))
+        self.net.open()
+        if self.cfg.metrics_http:
+            self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom)
+        self._prom = self.metrics.prometheus(self.status())
+        self.log("info", "ready", always=True, pid=os.getpid(), config=self.cfg.path, endpoints=self.endpoints(),
+                 models={n: m.info() for n, m in self.models.items()})
+        self.notify.ready(self._status_line())
+
+    def _install(self, table: dict[str, Loaded]) -> None:
+        for name, ld in table.items():
+            old = self.models.get(name)
+            if old is not None and old.model is ld.model:
+                continue
+            if old is not None:
+                self.sched.forget(old.model)  # costs are keyed by id(): never let a new object inherit them
+            self.sched.costs.update(ld.costs)
+            if old is not None:
+                n = self.sessions.rebind(name, ld.model)
+                self.log("info", "model_swapped", model=name, file=ld.spec.file, streams=n)
+        self.models = table
+
+    def endpoints(self) -> dict[str, Any]:
+        out = self.net.endpoints() if self.net is not None else {}
+        if self.http is not None:
+            out["metrics_http"] = f"{self.cfg.metrics_http[0]}:{self.http.port}"  # type: ignore[index]
+        return out
+
+    # ---- signals ----------------------------------------------------------------------------
+    def install_signals(self) -> None:
+        signal.signal(signal.SIGHUP, lambda *_: setattr(self, "flag_reload", True))
+        signal.signal(signal.SIGTERM, lambda *_: setattr(self, "flag_stop", True))
+        signal.signal(signal.SIGINT, lambda *_: setattr(self, "flag_stop", True))
+
+    # ---- main loop --------------------------------------------------------------------------
+    def run(self) -> None:
+        next_house = 0.0
+        try:
+            while True:
+                pending = any(s.pending is not None for s in self.sessions.sessions.values())
+                timeout = 0 if pending else IDLE_POLL_MS
+                wd = self.notify.watchdog_due(time.monotonic())
+                if wd is not None:
+                    timeout = min(timeout, max(0, int(wd * 1000)))
+                ready = self.net.poll(timeout)  # type: ignore[union-attr]
+                try:
+                    if ready:
+                        self.net.receive(ready)  # type: ignore[union-attr]
+                    self._serve()
+                except Exception as e:  # never let a bug end the service: log, count, go on
+                    self.metrics.inc("internal_errors")
+                    self.log("error", "internal_error", where="loop", error=f"{type(e).__name__}: {e}"[:300])
+                    self._abandon_pending(f"{type(e).__name__} while serving")
+                if self.flag_stop:
+                    break
+                now = time.monotonic()
+                if self.flag_reload:
+                    self.flag_reload = False
+                    self._start_reload(None)
+                if self._reload_result is not None:
+                    self._finish_reload()
+                if now >= next_house:
+                    next_house = now + HOUSEKEEPING_S
+                    self._housekeeping(now)
+            self._drain()
+        finally:
+            self.close()
+
+    def _handle(self, data: bytes, origin: Origin, arrived: float) -> None:
+        self.metrics.inc("messages_in")
+        msg: Any = None
+        try:
+            try:
+                msg = osc.decode(data, self.cfg.max_message_bytes) if origin[0] == "osc" else \
+                    wire.decode(data, self.cfg.max_message_bytes)
+            except wire.WireError as e:
+                self._reject(origin, e.reason, e.detail, e.stream, e.seq)
+                return
+            if isinstance(msg, wire.Frame):
+                self.metrics.inc("frames_in")
+                for o, m in self.sessions.frame(msg, origin, arrived):
+                    self._send(o, m)
+            elif isinstance(msg, wire.Hello):
+                ack, orphans = self.sessions.hello(msg)
+                for o, m in orphans:
+                    self._send(o, m)
+                self.log("info", "stream_hello", stream=msg.stream, model=ack.model, channels=len(ack.channels),
+                         passthrough=len(ack.passthrough), missing=len(ack.missing))
+                self._send(origin, ack)
+            elif isinstance(msg, wire.Control):
+                self._control(msg, origin)
+            else:
+                self._reject(origin, "unknown_type", f"{type(msg).__name__} is an answer, not a request", None, None)
+        except SessionError as e:
+            self._reject(origin, e.reason, e.detail, getattr(msg, "stream", None), getattr(msg, "seq", None))
+        except Exception as e:  # a bug must cost one message, never the loop
+            self.metrics.inc("internal_errors")
+            self.log("error", "internal_error", where="handle", error=f"{type(e).__name__}: {e}"[:300])
+            self._reject(origin, "internal", f"{type(e).__name__} while handling the message",
+                         getattr(msg, "stream", None), getattr(msg, "seq", None))
+
+    def _reject(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
+        self.metrics.reject(reason)
+        s = self.sessions.sessions.get(sid) if sid else None
+        if s is not None:
+            s.counts["rejected"] += 1
+        # a flood of bad input must not turn into a flood of log lines: at most REJECT_LOG_PER_S
+        # a second are written, the rest are summed into one line per housekeeping tick
+        now = time.monotonic()
+        if now - self._rej_window >= 1.0:
+            self._rej_window, self._rej_logged = now, 0
+        if self._rej_logged < REJECT_LOG_PER_S:
+            self._rej_logged += 1
+            self.log("warning", "rejected", reason=reason, detail=detail[:300], stream=sid, seq=seq,
+                     transport=origin[0] if origin else None)
+        else:
+            self._rej_suppressed += 1
+        if origin is not None:
+            self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
+
+    def _serve(self) -> None:
+        groups: dict[int, tuple[Any, list]] = {}
+        for s in self.sessions.sessions.values():
+            if s.pending is not None:
+                groups.setdefault(id(s.model), (s.model, []))[1].append(s)
+        if not groups:
+            return
+        t0 = time.perf_counter()
+        results = self.sched.run(groups, t0)
+        self.metrics.step_time(time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        for s, fill, status in results:
+            p = s.pending
+            now = time.perf_counter()
+            try:
+                msg = fill_message(s, fill, status, now)  # reads s.pending and s.last_seq (for gap)
+            except Exception as e:  # a fill the wire cannot carry: answer with an error, keep serving
+                self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
+                self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
+                msg = None
+            finally:
+                s.last_seq = p.frame.seq
+                s.pending = None
+            if msg is None:
+                continue
+            s.counts["frames_out"] += 1
+            if status == "degraded":
+                s.counts["degraded"] += 1
+                self.metrics.inc("degraded")
+                # held (hold-last-value) vs stepped with fewer Gibbs iterations
+                self.metrics.inc("degraded_held" if fill.degraded else "degraded_iterations")
+            self.metrics.inc("frames_out")
+            self.metrics.latency(now - p.arrived)
+            self._send(p.origin, msg, publish=True)
+        if results:
+            per = (time.perf_counter() - t1) / len(results)
+            self.sched.reply_cost = 0.9 * self.sched.reply_cost + 0.1 * per
+
+    def _abandon_pending(self, why: str) -> None:
+        """After a failed tick: answer every waiting frame with an error rather than retrying
+        the same failure in a tight loop."""
+        for s in self.sessions.sessions.values():
+            if s.pending is not None:
+                p, s.pending = s.pending, None
+                try:
+                    self._reject(p.origin, "internal", why, s.sid, p.frame.seq)
+                except Exception:  # the answer itself failing must not stop the loop either
+                    pass
+
+    # ---- output -----------------------------------------------------------------------------
+    def _send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
+        if self.net is not None:
+            self.net.send(origin, msg, publish)
+
+    # ---- control ----------------------------------------------------------------------------
+    def _control(self, msg: wire.Control, origin: Origin) -> None:
+        if msg.cmd == "status":
+            self._send(origin, wire.ControlReply("status", True, self.status()))
+        elif msg.cmd == "list-models":
+            self._send(origin, wire.ControlReply("list-models", True, {"models": {n: m.info() for n, m in self.models.items()},
+                                                                         "default": self.cfg.default_model}))
+        elif msg.cmd == "reset":
+            assert msg.stream is not None
+            ok, orphans = self.sessions.reset(msg.stream)
+            for o, m in orphans:
+                self._send(o, m)
+            self.log("info", "stream_reset", stream=msg.stream, existed=ok)
+            self._send(origin, wire.ControlReply("reset", ok, {"stream": msg.stream},
+                                                 None if ok else f"no open stream {msg.stream!r}"))
+        elif msg.cmd == "reload":
+            self._start_reload(origin)
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "pid": os.getpid(), "uptime_s": round(time.time() - self.started, 3), "config": self.cfg.path,
+            "budget_ms": self.cfg.budget_ms, "default_model": self.cfg.default_model,
+            "models": {n: m.info() for n, m in self.models.items()},
+            "latency": self.metrics.latency_summary(), "step": self.metrics.step_summary(),
+            "counters": dict(self.metrics.counters), "rejected": dict(self.metrics.rejected),
+            "streams": {sid: s.info() for sid, s in self.sessions.sessions.items()},
+            "expired": self.sessions.expired, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
+            "last_step_error": self.sched.last_error, "reload": self.last_reload,
+        }
+
+    def _status_line(self) -> str:
+        lat = self.metrics.latency_summary()
+        p99 = lat.get("p99_ms")
+        return (f"{len(self.sessions.sessions)} streams, {self.metrics.counters.get('frames_out', 0)} frames out, "
+                f"p99 {p99 if p99 is not None else '-'} ms, models: {', '.join(self.models)}")
+
+    # ---- reload -----------------------------------------------------------------------------
+    def _start_reload(self, origin: Origin | None) -> None:
+        if origin is not None:
+            self._reload_waiters.append(origin)
+        if self._reload_thread is not None and self._reload_thread.is_alive():
+            return  # one at a time; the waiter gets this one's answer
+        self.notify.reloading()
+        self.log("info", "reload_start", config=self.cfg.path)
+        old = dict(self.models)
+        path = self.cfg.path
+
+        def work() -> None:
+            try:
+                new_cfg = config_mod.load(path) if path else self.cfg
+            except config_mod.ConfigError as e:
+                self._reload_result = (None, old, {"config": str(e)})
+                return
+            table, errors = load_all(new_cfg, old)
+            self._reload_result = (new_cfg, table, errors)
+
+        self._reload_thread = threading.Thread(target=work, name="reload", daemon=True)
+        self._reload_thread.start()
+
+    def _finish_reload(self) -> None:
+        new_cfg, table, errors = self._reload_result  # type: ignore[misc]
+        self._reload_result = None
+        if new_cfg is not None:
+            moved = [k for k in ("zmq_router", "zmq_pull", "zmq_sub", "zmq_pub", "osc_listen", "metrics_http")
+                     if getattr(new_cfg, k) != getattr(self.cfg, k)]
+            if moved:
+                self.log("warning", "reload_needs_restart", keys=moved, detail="socket addresses change only on restart")
+            for k in moved:
+                setattr(new_cfg, k, getattr(self.cfg, k))
+            if new_cfg.default_model not in table:
+                errors["config"] = f"default_model {new_cfg.default_model!r} did not load; keeping the old config"
+                new_cfg = None
+        if new_cfg is not None:
+            self.cfg = new_cfg
+            self.sched.budget_s = new_cfg.budget_ms / 1000.0
+            self.sched.max_gap, self.sched.max_batch = new_cfg.max_gap_frames, new_cfg.max_batch
+            self.sessions.max_streams = new_cfg.max_streams
+            self.log = Log(new_cfg.log_level, self.log.stream)
+        self._install(table)
+        ok = not errors
+        self.last_reload = {"at": time.time(), "ok": ok, "errors": errors,
+                            "models": {n: m.loaded_at for n, m in self.models.items()}}
+        self.metrics.inc("reloads" if ok else "reload_failures")
+        for name, err in errors.items():
+            self.log("error", "reload_refused", model=name, error=err, detail="the old model keeps serving")
+        self.log("info", "reload_done", always=True, ok=ok, models=list(self.models))
+        self.notify.ready(self._status_line())
+        for o in self._reload_waiters:
+            self._send(o, wire.ControlReply("reload", ok, {"models": {n: m.info() for n, m in self.models.items()},
+                                                           "errors": errors},
+                                            None if ok else "; ".join(f"{k}: {v}" for k, v in errors.items())))
+        self._reload_waiters = []
+
+    # ---- housekeeping / shutdown --------------------------------------------------------------
+    def _housekeeping(self, now: float) -> None:
+        if self._rej_suppressed:
+            self.log("warning", "rejected_not_logged", count=self._rej_suppressed,
+                     by_reason=dict(self.metrics.rejected), detail="more rejections than the log takes; all are counted")
+            self._rej_suppressed = 0
+        gone = self.sessions.expire(now, self.cfg.idle_timeout_s)
+        for sid in gone:
+            self.log("info", "stream_expired", stream=sid)
+            self.metrics.inc("expired")
+        if self.http is not None:
+            self._prom = self.metrics.prometheus(self.status())
+        self.notify.status(self._status_line())
+
+    def _drain(self) -> None:
+        """SIGTERM: answer what has already arrived, then stop."""
+        self.notify.stopping()
+        self.log("info", "draining")
+        assert self.net is not None
+        for _ in range(3):
+            ready = self.net.poll(0)
+            if not ready:
+                break
+            self.net.receive(ready)
+            self._serve()
+        self._serve()
+        c = self.metrics.counters
+        self.log("info", "stopped", always=True, frames_in=c.get("frames_in", 0), frames_out=c.get("frames_out", 0),
+                 dropped=sum(v for k, v in c.items() if k.startswith("dropped_")),
+                 send_dropped=c.get("send_dropped", 0), send_errors=c.get("send_errors", 0))
+
+    def close(self) -> None:
+        if self.net is not None:
+            self.net.close(DRAIN_LINGER_MS if self.flag_stop else 0)
+            self.net = None
+        if self.http is not None:
+            self.http.close()
+            self.http = None
+        self.notify.close()
+
+
+def serve(path: str) -> int:
+    cfg = config_mod.load(path)
+    log = Log(cfg.log_level)
+    d = Daemon(cfg, log)
+    d.install_signals()
+    try:
+        d.start()
+    except Exception:
+        d.close()
+        raise
+    # everything loaded so far lives as long as the daemon: keep it out of the collector's
+    # generations so the cyclic GC has less to walk in the middle of a frame
+    gc.collect()
+    gc.freeze()
+    d.run()
+    return 0
+
+
+def control(endpoint: str, cmd: str, stream: str | None = None, timeout_s: float = 5.0) -> wire.ControlReply:
+    """One control request over a DEALER socket (what `lacuna status` uses)."""
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.DEALER)
+    s.setsockopt(zmq.LINGER, 0)
+    try:
+        s.connect(endpoint)
+        s.send(wire.encode(wire.Control(cmd, stream)))
+        if not s.poll(int(timeout_s * 1000)):
+            raise TimeoutError(f"no answer from {endpoint} within {timeout_s:g} s (is `lacuna serve` running?)")
+        m = wire.decode(s.recv(), 64 << 20)
+        if isinstance(m, wire.ErrorMsg):
+            raise ValueError(f"{endpoint} refused {cmd}: {m.reason}: {m.detail}")
+        if not isinstance(m, wire.ControlReply):
+            raise ValueError(f"{endpoint} answered {cmd} with a {type(m).__name__}")
+        return m
+    finally:
+        s.close()
+        ctx.term()
+

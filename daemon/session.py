@@ -1,0 +1,218 @@
+"""Per-stream sessions: channel mapping, sequence numbers, the one pending frame, counters.
+
+A session holds everything the daemon knows about one performer's stream: which model serves
+it, how the studio's channel list maps onto the model's, the filler state, the last sequence
+number answered and the last one the filler consumed, the last completed frame (for
+hold-last-value when the scheduler degrades), and a single *pending* slot: a newer frame
+replaces an older waiting one (conflation), so nothing queues inside the daemon.
+
+Message handling returns the immediate answers (``drop``/``error``/``hello-ack``) as a list of
+``(origin, message)``; filled frames come from the scheduler.  No sockets here.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from daemon import wire
+from lacuna.filler import FillerState, Model
+
+Origin = tuple  # (transport name, address): ("router", envelope) | ("pull", None) | ("osc", (host, port))
+Out = list[tuple[Origin, wire.Message]]
+
+COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset", "rejected", "degraded", "held", "predicted", "restarts")
+
+
+@dataclass
+class Pending:
+    frame: wire.Frame
+    origin: Origin
+    arrived: float  # time.perf_counter() at receipt
+
+
+@dataclass
+class Mapping:
+    """studio frame (n_in,) -> model frame (n_model,): model[m_idx] = studio[s_idx]."""
+
+    channels: list[str]
+    s_idx: np.ndarray
+    m_idx: np.ndarray
+    passthrough: list[str]
+    missing: list[str]
+    n_model: int
+
+    @classmethod
+    def build(cls, studio: list[str], model_channels: list[str]) -> "Mapping":
+        pos = {c: i for i, c in enumerate(model_channels)}
+        s_idx = np.array([i for i, c in enumerate(studio) if c in pos], dtype=np.intp)
+        m_idx = np.array([pos[c] for c in studio if c in pos], dtype=np.intp)
+        sent = set(studio)
+        return cls(list(studio), s_idx, m_idx, [c for c in studio if c not in pos],
+                   [c for c in model_channels if c not in sent], len(model_channels))
+
+    @property
+    def n_in(self) -> int:
+        return len(self.channels)
+
+
+@dataclass
+class Session:
+    sid: str
+    model_name: str
+    model: Model
+    mapping: Mapping
+    state: FillerState
+    last_seq: int | None = None  # last sequence number answered (filled, held)
+    model_seq: int | None = None  # last sequence number the filler state consumed
+    last_out: np.ndarray | None = None  # (n_model,) last completed frame, for hold-last-value
+    pending: Pending | None = None
+    last_active: float = field(default_factory=time.monotonic)
+    held_streak: int = 0
+    counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
+
+    def restart(self) -> None:
+        """Fresh filter state; the sequence numbering restarts at the next frame."""
+        self.state = self.model.stream()
+        self.model_seq = None
+        self.last_out = None
+
+    def to_model(self, f: wire.Frame) -> tuple[np.ndarray, np.ndarray]:
+        """Studio frame -> model-space (frame, observed), float64 / bool, (n_model,) each."""
+        mp = self.mapping
+        a = f.angles.astype(np.float64)
+        obs_in = np.isfinite(a) if f.observed is None else f.observed
+        frame = np.full(mp.n_model, np.nan)
+        obs = np.zeros(mp.n_model, bool)
+        frame[mp.m_idx] = a[mp.s_idx]
+        obs[mp.m_idx] = obs_in[mp.s_idx]
+        frame[~obs] = np.nan
+        return frame, obs
+
+    def info(self) -> dict[str, Any]:
+        d: dict[str, Any] = dict(self.counts)
+        d.update(model=self.model_name, last_seq=self.last_seq, channels=self.mapping.n_in,
+                 passthrough=len(self.mapping.passthrough), missing=len(self.mapping.missing),
+                 idle_s=round(time.monotonic() - self.last_active, 3))
+        d["dropped"] = sum(v for k, v in self.counts.items() if k.startswith("dropped_"))
+        return d
+
+
+class SessionError(Exception):
+    def __init__(self, reason: str, detail: str):
+        self.reason, self.detail = reason, detail
+        super().__init__(f"{reason}: {detail}")
+
+
+class SessionTable:
+    """All live sessions.  ``resolve(name)`` gives (model name, Model) for a requested model."""
+
+    def __init__(self, resolve: Callable[[str | None, str], tuple[str, Model]], max_streams: int,
+                 count: Callable[[str, str | None], None]):
+        self.sessions: dict[str, Session] = {}
+        self.resolve = resolve
+        self.max_streams = max_streams
+        self.count = count  # count(counter name, stream id or None): global metrics hook
+        self.expired = 0
+
+    # ---- lifecycle --------------------------------------------------------------------------
+    def _new(self, sid: str, studio: list[str] | None, model_req: str | None, width: int = 0) -> Session:
+        if sid not in self.sessions and len(self.sessions) >= self.max_streams:
+            raise SessionError("too_many_streams", f"{len(self.sessions)} streams are open, the limit is {self.max_streams}")
+        try:
+            name, model = self.resolve(model_req, sid)
+        except KeyError as e:
+            raise SessionError("unknown_model", str(e.args[0])) from None
+        chans = list(model.channels)
+        if not chans:  # pass-through "any channels": the studio's list (or the first frame's width) decides
+            chans = studio if studio is not None else [f"ch{i}" for i in range(width)]
+        if studio is None:
+            studio = chans
+        mp = Mapping.build(studio, chans)
+        if chans and mp.s_idx.size == 0:
+            raise SessionError("bad_channels", f"none of the {len(studio)} channels is a channel of model {name!r} "
+                                               f"(got {studio[:3]}..., model has {chans[:3]}...)")
+        s = Session(sid, name, model, mp, model.stream())
+        old = self.sessions.get(sid)
+        if old is not None:
+            s.counts = old.counts
+        self.sessions[sid] = s
+        return s
+
+    def hello(self, msg: wire.Hello) -> tuple[wire.HelloAck, Out]:
+        """(ack, answers for a frame that was waiting under the old handshake)."""
+        old = self.sessions.get(msg.stream)
+        s = self._new(msg.stream, msg.channels, msg.model)
+        mp = s.mapping
+        return wire.HelloAck(msg.stream, s.model_name, mp.channels, mp.passthrough, mp.missing), self._orphan(old)
+
+    def reset(self, sid: str) -> tuple[bool, Out]:
+        old = self.sessions.pop(sid, None)
+        return old is not None, self._orphan(old)
+
+    def _orphan(self, old: Session | None) -> Out:
+        """A frame still waiting in a session being replaced gets its answer: dropped, ``reset``."""
+        if old is None or old.pending is None:
+            return []
+        p, old.pending = old.pending, None
+        old.counts["dropped_reset"] += 1
+        self.count("dropped_reset", old.sid)
+        return [(p.origin, wire.Drop(old.sid, p.frame.seq, "reset"))]
+
+    def expire(self, now: float, idle_s: float) -> list[str]:
+        gone = [sid for sid, s in self.sessions.items() if s.pending is None and now - s.last_active > idle_s]
+        for sid in gone:
+            del self.sessions[sid]
+        self.expired += len(gone)
+        return gone
+
+    def rebind(self, name: str, model: Model) -> int:
+        """After a reload swapped model ``name``: its sessions get states of the new model.
+
+        Sequence numbers and counters stay; the filter state restarts (a new model's state is
+        not the old one's).  A stream whose channels no longer overlap keeps the old model.
+        """
+        n = 0
+        for s in self.sessions.values():
+            if s.model_name != name:
+                continue
+            chans = list(model.channels) or s.mapping.channels
+            mp = Mapping.build(s.mapping.channels, chans)
+            if chans and mp.s_idx.size == 0:
+                continue
+            s.model, s.mapping, s.state = model, mp, model.stream()
+            s.model_seq, s.last_out = None, None
+            n += 1
+        return n
+
+    # ---- frames -----------------------------------------------------------------------------
+    def frame(self, f: wire.Frame, origin: Origin, arrived: float) -> Out:
+        """Take a frame into its session's pending slot; returns the immediate answers."""
+        s = self.sessions.get(f.stream)
+        if s is None:
+            s = self._new(f.stream, None, None, f.angles.shape[0])
+        if f.angles.shape[0] != s.mapping.n_in:
+            raise SessionError("width", f"stream {f.stream!r} has {s.mapping.n_in} channels, the frame has "
+                                        f"{f.angles.shape[0]} (send a hello to change the channel list)")
+        s.last_active = time.monotonic()
+        s.counts["frames_in"] += 1
+        out: Out = []
+        if s.last_seq is not None and f.seq <= s.last_seq:
+            why = "duplicate" if f.seq == s.last_seq else "late"
+            s.counts[f"dropped_{why}"] += 1
+            self.count(f"dropped_{why}", f.stream)
+            return [(origin, wire.Drop(f.stream, f.seq, why))]
+        p = s.pending
+        if p is not None:
+            if f.seq <= p.frame.seq:
+                why = "duplicate" if f.seq == p.frame.seq else "late"
+                s.counts[f"dropped_{why}"] += 1
+                self.count(f"dropped_{why}", f.stream)
+                return [(origin, wire.Drop(f.stream, f.seq, why))]
+            s.counts["dropped_conflated"] += 1
+            self.count("dropped_conflated", f.stream)
+            out.append((p.origin, wire.Drop(f.stream, p.frame.seq, "conflated")))
+        s.pending = Pending(f, origin, arrived)
+        return out

@@ -1,0 +1,660 @@
+"""The daemon as a separate process on real loopback sockets (ZeroMQ, OSC, HTTP, unix datagram).
+
+Every test starts `python -m lacuna.cli serve --config ...` with ``tcp://127.0.0.1:*`` endpoints
+(the daemon reports the ports it bound in its ready log line), talks to it with real sockets
+(linger 0, receives with timeouts) and kills it in teardown.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+import zmq
+from pythonosc.osc_bundle import OscBundle
+from pythonosc.osc_message import OscMessage
+from pythonosc.osc_message_builder import OscMessageBuilder
+
+from daemon import loadgen, wire
+from mocap.baselines import HoldModel, NearestNeighbourModel
+
+RECV_MS = 5000
+CH = ["lfemur.rx", "lfemur.ry", "lfemur.rz", "ltibia.rx", "rfemur.rx", "rfemur.ry", "rfemur.rz", "rtibia.rx"]
+
+
+def hold_file(path, mean_value: float, channels=CH):
+    C = len(channels)
+    HoldModel(channels, np.full(C, mean_value), np.full(C, 2.0)).save(str(path))
+    return str(path)
+
+
+def write_config(tmp_path, models: dict[str, dict], *, default=None, osc=False, http=False, pull=False,
+                 budget_ms=50.0, extra="") -> str:
+    lines = ["[daemon]", f"budget_ms = {budget_ms}", "idle_timeout_s = 60", "max_gap_frames = 5"]
+    if default:
+        lines.append(f'default_model = "{default}"')
+    for name, spec in models.items():
+        lines.append(f"[models.{name}]")
+        for k, v in spec.items():
+            lines.append(f"{k} = {json.dumps(v)}")
+    lines += ["[zmq]", 'router = "tcp://127.0.0.1:*"', 'pub = "tcp://127.0.0.1:*"']
+    if pull:
+        lines.append('pull = "tcp://127.0.0.1:*"')
+    if osc:
+        lines += ["[osc]", 'listen = "127.0.0.1:0"']
+    if http:
+        lines += ["[metrics]", 'http = "127.0.0.1:0"']
+    p = tmp_path / "lacuna.toml"
+    p.write_text("\n".join(lines) + "\n" + extra)
+    return str(p)
+
+
+@pytest.fixture
+def ctx():
+    c = zmq.Context()
+    socks: list[zmq.Socket] = []
+
+    def make(kind):
+        s = c.socket(kind)
+        s.setsockopt(zmq.LINGER, 0)
+        socks.append(s)
+        return s
+
+    yield make
+    for s in socks:
+        s.close(0)
+    c.term()
+
+
+@pytest.fixture
+def daemons():
+    procs: list[loadgen.DaemonProcess] = []
+
+    def start(config, env=None):
+        d = loadgen.DaemonProcess(config, env)
+        procs.append(d)
+        return d.start()
+
+    yield start
+    for d in procs:
+        if d.proc is not None and d.proc.poll() is None:
+            d.proc.kill()
+            d.proc.wait(10)
+
+
+def recv(sock, timeout_ms=RECV_MS):
+    if not sock.poll(timeout_ms):
+        raise TimeoutError("no answer from the daemon")
+    return wire.decode(sock.recv_multipart()[-1], 64 << 20)
+
+
+def dealer(ctx, d):
+    s = ctx(zmq.DEALER)
+    s.connect(d.endpoints["router"])
+    return s
+
+
+def frame(sid, seq, values, observed=None):
+    return wire.encode(wire.Frame(sid, seq, seq / 120.0, np.asarray(values, np.float32), observed))
+
+
+# ---- request/reply ------------------------------------------------------------------------------
+def test_req_reply_round_trip_with_req_socket_passthrough(tmp_path, daemons, ctx):
+    d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"}}))
+    s = ctx(zmq.REQ)  # REQ adds the empty delimiter frame: the reply must keep the envelope
+    s.connect(d.endpoints["router"])
+    vals = np.array([1.5, np.nan, -3.25], np.float32)
+    s.send(frame("a", 0, vals))
+    m = recv(s)
+    assert isinstance(m, wire.FillMsg) and m.status == "passthrough" and m.model == "floor"
+    assert m.angles[0] == 1.5 and np.isnan(m.angles[1]) and m.angles[2] == -3.25
+    assert not m.filled.any() and m.proc_us >= 0 and (m.stream, m.seq, m.t) == ("a", 0, 0.0)
+
+
+def test_handshake_maps_studio_channels_onto_model(tmp_path, daemons, ctx):
+    model = hold_file(tmp_path / "hold.npz", 7.0)
+    d = daemons(write_config(tmp_path, {"walk": {"file": model}}))
+    s = dealer(ctx, d)
+    # the studio sends two model channels in its own order, one channel the model lacks, and
+    # omits the other six model channels
+    studio = ["rfemur.rx", "studio.prop", "lfemur.rx"]
+    s.send(wire.encode(wire.Hello("p1", studio)))
+    ack = recv(s)
+    assert isinstance(ack, wire.HelloAck) and ack.model == "walk"
+    assert ack.passthrough == ["studio.prop"]
+    assert sorted(ack.missing) == sorted(set(CH) - {"rfemur.rx", "lfemur.rx"})
+    s.send(frame("p1", 0, [11.0, 99.0, np.nan]))  # lfemur.rx missing: hold fills it with the mean
+    m = recv(s)
+    assert m.status == "ok"
+    assert m.angles.tolist() == [11.0, 99.0, 7.0]
+    assert m.filled.tolist() == [False, False, True]
+    assert m.std.tolist() == [0.0, 0.0, 2.0]
+    s.send(frame("p1", 1, [np.nan, np.nan, 5.0]))  # the pass-through channel stays missing, unfilled
+    m = recv(s)
+    assert m.angles[0] == 11.0 and np.isnan(m.angles[1]) and m.angles[2] == 5.0
+    assert m.filled.tolist() == [True, False, False]
+    # a stream without handshake uses the model's own channels
+    s.send(frame("p2", 0, np.arange(len(CH), dtype=float)))
+    assert recv(s).angles.tolist() == list(range(len(CH)))
+    s.send(frame("p2", 1, [1.0, 2.0]))  # wrong width: rejected with a reason, stream still served
+    e = recv(s)
+    assert isinstance(e, wire.ErrorMsg) and e.reason == "width" and "8 channels" in e.detail
+    s.send(wire.encode(wire.Hello("p3", ["nothing.matches"])))
+    e = recv(s)
+    assert isinstance(e, wire.ErrorMsg) and e.reason == "bad_channels"
+    s.send(wire.encode(wire.Hello("p4", CH[:2], "nosuchmodel")))
+    e = recv(s)
+    assert isinstance(e, wire.ErrorMsg) and e.reason == "unknown_model"
+
+
+def test_sequence_gaps_become_predictions_and_late_duplicates_are_dropped(tmp_path, daemons, ctx):
+    d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}}))
+    s = dealer(ctx, d)
+    row = np.arange(len(CH), dtype=float)
+    answers = []
+    for seq in (0, 1, 4, 3, 4, 2, 5, 100):
+        s.send(frame("g", seq, row))
+        answers.append(recv(s))
+    kinds = [(type(a).__name__, a.seq, getattr(a, "reason", None), getattr(a, "gap", None)) for a in answers]
+    assert kinds == [("FillMsg", 0, None, 0), ("FillMsg", 1, None, 0), ("FillMsg", 4, None, 2),
+                     ("Drop", 3, "late", None), ("Drop", 4, "duplicate", None), ("Drop", 2, "late", None),
+                     ("FillMsg", 5, None, 0), ("FillMsg", 100, None, 94)]
+    s.send(wire.encode(wire.Control("status")))
+    st = recv(s).result["streams"]["g"]
+    # 2 predictions for seq 2..3; the gap of 94 exceeds max_gap_frames = 5: a restart, no predictions
+    assert (st["predicted"], st["restarts"], st["dropped_late"], st["dropped_duplicate"]) == (2, 1, 2, 1)
+    assert (st["frames_in"], st["frames_out"], st["last_seq"]) == (8, 5, 100)
+
+
+def test_many_streams_at_once_all_answered_and_counts_agree(tmp_path, daemons):
+    d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 1.0)}}))
+    rng = np.random.default_rng(0)
+    miss = np.zeros(len(CH), bool)
+    miss[[1, 5]] = True
+    frames = loadgen.make_frames(240, len(CH), miss, rng)
+    res = loadgen.run_load(d.endpoints["router"], 48, 60.0, 1.0, frames, warmup_s=0.0)
+    assert res.lost == 0 and res.errors == 0
+    assert res.served + res.dropped == res.sent == 48 * 60
+    st = loadgen_status(d)
+    assert st["counters"]["frames_in"] == res.sent
+    assert st["counters"]["frames_out"] == res.served
+    assert len(st["streams"]) == 48
+    assert all(v["frames_in"] == 60 for v in st["streams"].values())
+
+
+def loadgen_status(d):
+    rep = __import__("daemon.server", fromlist=["control"]).control(d.endpoints["router"], "status")
+    assert rep.ok
+    return rep.result
+
+
+# ---- PUSH -> PUB ------------------------------------------------------------------------------
+def test_push_to_pub_round_trip(tmp_path, daemons, ctx):
+    d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 3.0)}}, pull=True))
+    sub = ctx(zmq.SUB)
+    sub.setsockopt(zmq.SUBSCRIBE, b"cam")
+    sub.connect(d.endpoints["pub"])
+    push = ctx(zmq.PUSH)
+    push.connect(d.endpoints["pull"])
+    time.sleep(0.3)  # PUB/SUB: a subscription takes a moment to reach the publisher (slow joiner)
+    row = np.arange(len(CH), dtype=np.float32)
+    row[2] = np.nan
+
+    def next_msg():
+        if not sub.poll(RECV_MS):
+            raise TimeoutError("nothing published")
+        topic, body = sub.recv_multipart()
+        return topic, wire.decode(body)
+
+    # paced: each frame is served before the next arrives
+    for seq in range(5):
+        push.send(frame("cam1", seq, row))
+        topic, m = next_msg()
+        assert topic == b"cam1" and isinstance(m, wire.FillMsg) and m.seq == seq
+        assert m.angles[2] == 3.0 and m.filled[2] and m.filled.sum() == 1
+    # a burst: the daemon serves the newest; every older frame is answered as conflated (or
+    # served, if the daemon got to it first): each seq exactly once, the last one filled
+    for seq in range(5, 45):
+        push.send(frame("cam1", seq, row))
+    seen = {}
+    while 44 not in seen:
+        topic, m = next_msg()
+        assert topic == b"cam1" and m.seq not in seen
+        seen[m.seq] = m
+    assert sorted(seen) == list(range(5, 45)) and isinstance(seen[44], wire.FillMsg)
+    assert all(isinstance(m, wire.FillMsg) or m.reason == "conflated" for m in seen.values())
+
+
+# ---- OSC --------------------------------------------------------------------------------------
+def _osc_frame(sid, seq, values):
+    b = OscMessageBuilder("/lacuna/frame")
+    b.add_arg(sid, "s")
+    b.add_arg(seq, "i")
+    b.add_arg(seq / 120.0, "d")
+    for v in values:
+        b.add_arg(float(v), "f")
+    return b.build().dgram
+
+
+def test_osc_round_trip(tmp_path, daemons):
+    d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", -4.0)}}, osc=True))
+    host, port = d.endpoints["osc"].rsplit(":", 1)
+    u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    u.bind(("127.0.0.1", 0))
+    u.settimeout(5.0)
+    try:
+        b = OscMessageBuilder("/lacuna/hello")
+        for a in ["osc1", "", "lfemur.ry", "lfemur.rx", "extra.z"]:
+            b.add_arg(a, "s")
+        u.sendto(b.build().dgram, (host, int(port)))
+        ack = OscMessage(u.recv(65535))
+        assert ack.address == "/lacuna/hello-ack" and ack.params == ["osc1", "walk", 3, 1, 6]
+        u.sendto(_osc_frame("osc1", 0, [1.0, float("nan"), 2.5]), (host, int(port)))
+        bundle = OscBundle(u.recv(65535))
+        msgs = {m.address: m.params for m in bundle}
+        fill = msgs["/lacuna/fill"]
+        assert fill[:7] == ["osc1", 0, 0.0, "ok", "walk", fill[5], 0]
+        assert fill[7:] == [1.0, -4.0, 2.5]
+        assert msgs["/lacuna/std"][2:] == [0.0, 2.0, 0.0]
+        assert msgs["/lacuna/filled"][2] == b"\x00\x01\x00"
+        u.sendto(b"not osc at all", (host, int(port)))
+        err = OscMessage(u.recv(65535))
+        assert err.address == "/lacuna/error" and err.params[0] == "not_osc"
+    finally:
+        u.close()
+
+
+# ---- bad input ----------------------------------------------------------------------------------
+def test_bad_messages_are_counted_rejections_and_other_streams_keep_going(tmp_path, daemons, ctx):
+    d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"}}, http=True))
+    good, bad = dealer(ctx, d), dealer(ctx, d)
+    bads = [b"", b"\xc1", b"\x81\xa1v\x02", wire.encode(wire.Frame("x", 0, 0.0, np.ones(2, np.float32)))[:-1],
+            b"\x00" * 70000]
+    for i, data in enumerate(bads):
+        bad.send(data)
+        good.send(frame("good", i, [1.0, 2.0]))
+        e = recv(bad)
+        assert isinstance(e, wire.ErrorMsg), e
+        assert isinstance(recv(good), wire.FillMsg)
+    st = loadgen_status(d)
+    assert st["counters"]["rejected"] == len(bads)
+    assert st["rejected"] == {"not_msgpack": 3, "version": 1, "too_large": 1}
+    assert st["streams"]["good"]["frames_out"] == len(bads)
+    port = d.endpoints["metrics_http"].rsplit(":", 1)[1]
+    time.sleep(0.6)  # the exposition snapshot refreshes every housekeeping tick (0.5 s)
+    text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+    assert 'lacuna_rejected_by_reason_total{reason="not_msgpack"} 3' in text
+    assert "lacuna_frames_out_total 5" in text
+    assert 'lacuna_stream_frames_out_total{stream="good",model="floor"} 5' in text
+
+
+def test_control_reset_list_models_and_status_cli(tmp_path, daemons, ctx):
+    d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"},
+                                        "walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}}, default="walk"))
+    s = dealer(ctx, d)
+    s.send(frame("r", 0, np.zeros(len(CH))))
+    recv(s)
+    s.send(wire.encode(wire.Control("list-models")))
+    lm = recv(s)
+    assert lm.ok and set(lm.result["models"]) == {"floor", "walk"} and lm.result["default"] == "walk"
+    out = subprocess.run([sys.executable, "-m", "lacuna.cli", "status", "--connect", d.endpoints["router"]],
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0, out.stderr
+    assert "walk" in out.stdout and "r " in out.stdout and "p99" in out.stdout
+    s.send(wire.encode(wire.Control("reset", "r")))
+    assert recv(s).ok
+    s.send(frame("r", 0, np.zeros(len(CH))))  # after a reset seq 0 is new again, not late
+    assert isinstance(recv(s), wire.FillMsg)
+    s.send(wire.encode(wire.Control("reset", "nobody")))
+    r = recv(s)
+    assert not r.ok and "nobody" in r.error
+
+
+# ---- reload -------------------------------------------------------------------------------------
+class Sender(threading.Thread):
+    """One stream at up to ~rate Hz over DEALER, recording every answer."""
+
+    def __init__(self, endpoint, sid, rate=200.0):
+        super().__init__(daemon=True)
+        self.endpoint, self.sid, self.period = endpoint, sid, 1.0 / rate
+        self.stop_flag = threading.Event()
+        self.answers: dict[int, wire.Message] = {}
+        self.sent = 0
+        self.error: BaseException | None = None
+
+    def run(self):
+        c = zmq.Context()
+        s = c.socket(zmq.DEALER)
+        s.setsockopt(zmq.LINGER, 0)
+        try:
+            s.connect(self.endpoint)
+            row = np.arange(len(CH), dtype=float)
+            row[0] = np.nan
+            # a handshake first, so the connection is up before the paced frames start (frames
+            # queued while connecting would arrive together and be conflated, rightly)
+            s.send(wire.encode(wire.Hello(self.sid, CH)))
+            if not s.poll(5000):
+                raise TimeoutError("no hello-ack")
+            s.recv()
+            # lock-step (each frame waits for its answer, like a REQ client): continuous traffic
+            # during the reloads, and no frame can be conflated however slow the machine is
+            while not self.stop_flag.is_set():
+                s.send(frame(self.sid, self.sent, row))
+                self.sent += 1
+                if not s.poll(10000):
+                    raise TimeoutError(f"frame {self.sent - 1} not answered within 10 s")
+                m = wire.decode(s.recv())
+                self.answers[m.seq] = m
+                time.sleep(self.period)
+        except BaseException as e:  # surfaced by the test
+            self.error = e
+        finally:
+            s.close(0)
+            c.term()
+
+
+def test_sighup_reload_under_traffic_loses_no_frame_and_bad_file_keeps_old_model(tmp_path, daemons):
+    path = hold_file(tmp_path / "walk.npz", 10.0)
+    d = daemons(write_config(tmp_path, {"walk": {"file": path}}))
+    snd = Sender(d.endpoints["router"], "live")
+    snd.start()
+    try:
+        time.sleep(0.4)
+        hold_file(tmp_path / "walk.new.npz", 20.0)
+        os.replace(tmp_path / "walk.new.npz", path)  # atomic, as `lacuna train` writes
+        d.signal(signal.SIGHUP)
+        rec = d.wait_for("reload_done", 30)
+        assert rec["ok"] is True
+        time.sleep(0.3)
+        with open(path, "r+b") as fh:  # a truncated file: the reload must refuse it
+            fh.truncate(100)
+        d.signal(signal.SIGHUP)
+        rec = d.wait_for("reload_done", 30)
+        assert rec["ok"] is False
+        refused = d.wait_for("reload_refused", 5)
+        assert refused["model"] == "walk" and "truncated" in refused["error"]
+        time.sleep(0.3)
+    finally:
+        snd.stop_flag.set()
+        snd.join(15)
+    assert snd.error is None
+    assert snd.sent > 100
+    # every frame answered with a fill: nothing lost, dropped or conflated across both reloads
+    assert sorted(snd.answers) == list(range(snd.sent))
+    assert [m for m in snd.answers.values() if not isinstance(m, wire.FillMsg)] == []
+    # channel 0 is never observed: held at the model's mean, 10 before the swap and 20 after
+    # (the swap restarts the filter state with the new model), never anything else
+    vals = [snd.answers[i].angles[0] for i in range(snd.sent)]
+    first20 = vals.index(20.0)
+    assert set(vals[:first20]) == {10.0} and set(vals[first20:]) == {20.0}
+    st = loadgen_status(d)
+    assert st["reload"]["ok"] is False and "walk" in st["reload"]["errors"]
+    assert st["counters"]["reloads"] == 1 and st["counters"]["reload_failures"] == 1
+
+
+# ---- SIGTERM, sd_notify ---------------------------------------------------------------------------
+def test_sigterm_drains_and_sd_notify_messages(tmp_path, daemons, ctx):
+    sock_path = str(tmp_path / "notify.sock")
+    ns = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    ns.bind(sock_path)
+    ns.settimeout(10.0)
+    try:
+        d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}}),
+                    env={"NOTIFY_SOCKET": sock_path, "WATCHDOG_USEC": "200000"})
+
+        def until(pred, what):
+            end = time.monotonic() + 10
+            while time.monotonic() < end:
+                msg = ns.recv(4096).decode()
+                if pred(msg):
+                    return msg
+            raise TimeoutError(what)
+
+        first = until(lambda m: "READY=1" in m, "READY=1")
+        assert "STATUS=" in first
+        until(lambda m: m == "WATCHDOG=1", "WATCHDOG=1")
+        until(lambda m: m == "WATCHDOG=1", "a second WATCHDOG=1")
+        d.signal(signal.SIGHUP)
+        rl = until(lambda m: "RELOADING=1" in m, "RELOADING=1")
+        assert "MONOTONIC_USEC=" in rl
+        until(lambda m: "READY=1" in m, "READY=1 after reload")
+        # pipeline frames, then SIGTERM: whatever reached the daemon is answered (fewer frames
+        # than the high-water mark, 100: this client reads its answers only at the end)
+        s = dealer(ctx, d)
+        n = 60
+        for i in range(n):
+            s.send(frame("t", i, np.zeros(len(CH))))
+        time.sleep(0.05)
+        d.signal(signal.SIGTERM)
+        until(lambda m: m == "STOPPING=1", "STOPPING=1")
+        assert d.proc.wait(15) == 0
+        stopped = d.wait_for("stopped", 5)
+        answers = []
+        while s.poll(500):
+            answers.append(wire.decode(s.recv()))
+        assert stopped["frames_in"] > 0
+        assert len(answers) == stopped["frames_in"]  # every frame it took in was answered
+        assert sum(isinstance(a, wire.FillMsg) for a in answers) == stopped["frames_out"]
+    finally:
+        ns.close()
+
+
+# ---- degrade --------------------------------------------------------------------------------------
+def test_over_budget_steps_degrade_to_hold_and_say_so(tmp_path, daemons, ctx):
+    rng = np.random.default_rng(1)
+    # a nearest-neighbour model over 60000 training frames costs ~ms per step: far over a 0.05 ms budget
+    NearestNeighbourModel(CH, rng.normal(size=(60000, len(CH))), np.ones(len(CH))).save(str(tmp_path / "nn.npz"))
+    d = daemons(write_config(tmp_path, {"nn": {"file": str(tmp_path / "nn.npz")}}, budget_ms=0.05))
+    s = dealer(ctx, d)
+    row = np.arange(len(CH), dtype=float)
+    s.send(frame("slow", 0, row))
+    prev = recv(s)
+    row[3] = np.nan
+    held = 0
+    for seq in range(1, 6):
+        s.send(frame("slow", seq, row))
+        m = recv(s)
+        assert m.filled[3]
+        if m.status == "degraded":  # held: hold-last-value has no std (NaN, not 0)
+            assert np.isnan(m.std[3]) and m.angles[3] == prev.angles[3]
+            held += 1
+        else:  # a probe: one real nn step per second keeps its cost estimate honest
+            assert m.status == "ok" and m.std[3] == 0.0
+        prev = m
+    assert held >= 3
+    st = loadgen_status(d)
+    assert st["streams"]["slow"]["held"] + st["probes"] == 6
+    assert st["counters"]["degraded"] == st["counters"]["degraded_held"] == st["streams"]["slow"]["held"]
+
+
+# ---- SUB ingest, expiry, control reload, real data --------------------------------------------------
+def test_sub_ingest_from_a_capture_pub_and_idle_expiry(tmp_path, daemons, ctx):
+    cap = ctx(zmq.PUB)  # the capture system's publisher; the daemon connects to it
+    port = cap.bind_to_random_port("tcp://127.0.0.1")
+    cfg = write_config(tmp_path, {"floor": {"builtin": "passthrough"}},
+                       extra=f'sub = ["tcp://127.0.0.1:{port}"]\n')
+    cfg_text = open(cfg).read().replace("idle_timeout_s = 60", "idle_timeout_s = 0.5")
+    open(cfg, "w").write(cfg_text)
+    d = daemons(cfg)
+    out = ctx(zmq.SUB)
+    out.setsockopt(zmq.SUBSCRIBE, b"")
+    out.connect(d.endpoints["pub"])
+    got = None
+    for seq in range(100):  # until both subscriptions are up (slow joiner), at most 10 s
+        cap.send_multipart([b"mocap", frame("stage", seq, [1.0, 2.0])])
+        if out.poll(100):
+            topic, body = out.recv_multipart()
+            got = wire.decode(body)
+            break
+    assert isinstance(got, wire.FillMsg) and topic == b"stage" and got.angles.tolist() == [1.0, 2.0]
+    time.sleep(1.5)  # idle longer than idle_timeout_s: the stream expires
+    st = loadgen_status(d)
+    assert "stage" not in st["streams"] and st["expired"] == 1
+    assert any(r.get("event") == "stream_expired" and r.get("stream") == "stage" for r in d.log)
+
+
+def test_control_reload_answers_when_done_and_bad_config_keeps_serving(tmp_path, daemons, ctx):
+    cfg = write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 1.0)}})
+    d = daemons(cfg)
+    s = dealer(ctx, d)
+    s.send(frame("c", 0, np.full(len(CH), np.nan)))
+    assert recv(s).angles[0] == 1.0
+    hold_file(tmp_path / "h.npz", 2.0)
+    s.send(wire.encode(wire.Control("reload")))
+    r = recv(s, 30000)
+    assert r.cmd == "reload" and r.ok and r.result["errors"] == {}
+    s.send(frame("c", 1, np.full(len(CH), np.nan)))
+    assert recv(s).angles[0] == 2.0
+    open(cfg, "a").write("\n[daemon]\nbudget_ms = -3\n")  # a broken config (duplicate table too)
+    s.send(wire.encode(wire.Control("reload")))
+    r = recv(s, 30000)
+    assert not r.ok and "config" in r.result["errors"] and str(cfg) in r.error
+    s.send(frame("c", 2, np.full(len(CH), np.nan)))
+    m = recv(s)
+    assert isinstance(m, wire.FillMsg) and m.angles[0] == 2.0
+
+
+def test_real_walk_through_daemon_matches_in_process_filler(tmp_path, daemons, ctx, data):
+    """A real CMU walk with the left arm missing, through the daemon frame by frame, gives the
+    same fill as the same model run in-process (float32 on the wire)."""
+    from mocap.protocols import get_protocol
+
+    proto = get_protocol("pan2009")
+    ts = proto.training_set()
+    model = HoldModel.fit(ts.sequences, ts.channels)
+    model.save(str(tmp_path / "hold.npz"))
+    case = proto.cases()[0]
+    truth = case.truth[:240].astype(np.float32)
+    miss = np.array([c.startswith(("lhumerus", "lradius", "lwrist")) for c in ts.channels])
+    d = daemons(write_config(tmp_path, {"hold": {"file": str(tmp_path / "hold.npz")}}))
+    s = dealer(ctx, d)
+    s.send(wire.encode(wire.Hello("walk", list(ts.channels))))
+    assert isinstance(recv(s), wire.HelloAck)
+    sent = truth.copy()
+    sent[:, miss] = np.nan
+    got = []
+    for t in range(sent.shape[0]):
+        s.send(frame("walk", t, sent[t]))
+        m = recv(s)
+        assert isinstance(m, wire.FillMsg), m
+        got.append(m)
+    ref, ref_std = model.fill_offline(sent.astype(np.float64), ~np.isnan(sent))
+    out = np.stack([m.angles for m in got])
+    assert np.array_equal(out[:, ~miss], truth[:, ~miss])  # observed values come back exactly
+    np.testing.assert_allclose(out, ref.astype(np.float32), rtol=0, atol=1e-4)
+    assert all(m.filled[miss].all() and not m.filled[~miss].any() for m in got)
+    np.testing.assert_allclose(np.stack([m.std for m in got]), ref_std.astype(np.float32), atol=1e-4)
+
+
+def test_serve_check_validates_config_and_models(tmp_path):
+    good = write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}})
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--check", "--config", good],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "model walk: ok" in r.stdout, r.stderr
+    (tmp_path / "h.npz").write_bytes(b"PK\x03\x04 not really a zip")
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--check", "--config", good],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "h.npz" in r.stderr and "model walk" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--config", str(tmp_path / "missing.toml")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.startswith("lacuna: error:") and "missing.toml" in r.stderr
+
+
+def test_osc_answers_go_to_the_configured_send_address(tmp_path, daemons):
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    out.bind(("127.0.0.1", 0))
+    out.settimeout(5.0)
+    src = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    src.bind(("127.0.0.1", 0))
+    src.settimeout(0.5)
+    try:
+        cfg = write_config(tmp_path, {"floor": {"builtin": "passthrough"}}, osc=True,
+                           extra=f'send = "127.0.0.1:{out.getsockname()[1]}"\n')
+        d = daemons(cfg)
+        host, port = d.endpoints["osc"].rsplit(":", 1)
+        src.sendto(_osc_frame("o2", 3, [0.5, 0.25]), (host, int(port)))
+        msgs = {m.address: m.params for m in OscBundle(out.recv(65535))}
+        assert msgs["/lacuna/fill"][:2] == ["o2", 3] and msgs["/lacuna/fill"][7:] == [0.5, 0.25]
+        with pytest.raises(socket.timeout):
+            src.recv(65535)  # nothing goes back to the sender when osc.send is set
+    finally:
+        out.close()
+        src.close()
+
+
+def test_a_flood_of_bad_messages_is_counted_in_full_but_logged_sparingly(tmp_path, daemons, ctx):
+    d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"}}))
+    s = dealer(ctx, d)
+    n = 300
+    for i in range(n):
+        s.send(b"\xc1" + bytes([i % 256]))
+    errors = [recv(s) for _ in range(n)]
+    assert all(isinstance(e, wire.ErrorMsg) and e.reason == "not_msgpack" for e in errors)
+    st = loadgen_status(d)
+    assert st["rejected"] == {"not_msgpack": n}
+    d.wait_for("rejected_not_logged", 5)
+    end = time.monotonic() + 5  # every rejection is either a log line or in a summary line
+    while time.monotonic() < end:
+        logged = sum(1 for r in d.log if r.get("event") == "rejected")
+        summed = sum(r["count"] for r in d.log if r.get("event") == "rejected_not_logged")
+        if logged + summed == n:
+            break
+        time.sleep(0.1)
+    assert logged + summed == n and logged <= n // 2
+
+
+def test_second_daemon_on_a_taken_port_fails_with_a_clear_error(tmp_path, daemons):
+    d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"}}))
+    taken = d.endpoints["router"]
+    cfg2 = tmp_path / "second.toml"
+    cfg2.write_text(f'[models.floor]\nbuiltin = "passthrough"\n[zmq]\nrouter = "{taken}"\n')
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "serve", "--config", str(cfg2)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.startswith("lacuna: error: zmq.router") and taken in r.stderr and "cannot bind" in r.stderr
+
+
+@pytest.mark.slow
+def test_hlm_model_through_daemon_equals_in_process_stream_with_style_and_phase(tmp_path, daemons, ctx, data):
+    """A real HLM (trained in seconds on three subject-35 walks) serves a held-out walk with the
+    left arm missing: the daemon's fills equal the model's own causal stream fed the same float32
+    frames, and every reply carries the style posterior and the gait phase."""
+    from hlm.methods import train_model
+    from mocap.datasets import load_trial
+
+    train = [load_trial(t) for t in ("35_01", "35_06", "35_07")]
+    channels = list(train[0].channels)
+    model = train_model([m.frames for m in train], channels, n_iter=3, restarts=1, styles=2)
+    model.save(str(tmp_path / "hlm.npz"))
+    test = load_trial("35_08").frames[:150].astype(np.float32)
+    miss = np.array([c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand") for c in channels])
+    sent = test.copy()
+    sent[:, miss] = np.nan
+    d = daemons(write_config(tmp_path, {"hlm": {"file": str(tmp_path / "hlm.npz")}}, budget_ms=1000.0))
+    s = dealer(ctx, d)
+    s.send(wire.encode(wire.Hello("walk", channels)))
+    assert isinstance(recv(s), wire.HelloAck)
+    from lacuna.modelfile import load_model
+
+    ref_model = load_model(str(tmp_path / "hlm.npz"))  # the same file the daemon loaded
+    st = ref_model.stream()
+    for t in range(sent.shape[0]):
+        s.send(frame("walk", t, sent[t]))
+        m = recv(s, 30000)
+        assert isinstance(m, wire.FillMsg) and m.status == "ok", m
+        ref = st.step(sent[t].astype(np.float64), ~np.isnan(sent[t]))
+        assert np.array_equal(m.angles[~miss], test[t, ~miss])
+        np.testing.assert_allclose(m.angles, ref.frame.astype(np.float32), atol=1e-3)
+        np.testing.assert_allclose(m.std, ref.std.astype(np.float32), atol=1e-3)
+        assert m.filled[miss].all() and not m.filled[~miss].any()
+        assert m.style is not None and m.style.shape == (2,) and abs(float(m.style.sum()) - 1.0) < 1e-4
+        assert m.phase is not None and 0.0 <= m.phase < 1.0
+        np.testing.assert_allclose(m.style, np.asarray(ref.extras["style"], np.float32), atol=1e-5)

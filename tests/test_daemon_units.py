@@ -1,0 +1,293 @@
+"""Config validation, OSC decoding, sessions and the scheduler's planning, without sockets."""
+from __future__ import annotations
+
+import shutil
+import time
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pythonosc.osc_message_builder import OscMessageBuilder
+
+from daemon import config, osc, wire
+from daemon.fillers import PassThroughModel
+from daemon.scheduler import CostModel, Scheduler, fill_message, levels_of
+from daemon.session import SessionError, SessionTable
+from mocap.baselines import HoldModel
+
+REPO = Path(__file__).resolve().parent.parent
+CH = ["a.rx", "b.rx", "c.rx"]
+
+
+# ---- config -----------------------------------------------------------------------------------
+def test_example_config_validates():
+    cfg = config.load(str(REPO / "systemd" / "lacuna.toml"))
+    assert cfg.default_model in cfg.models and cfg.zmq_router and cfg.budget_ms > 0
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("[daemon]\nbudget_ms = 4\n", "[models] must name at least one model"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nbudget_ms = -1\n", "daemon.budget_ms must be between"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nbudget_ms = \"fast\"\n", "daemon.budget_ms must be"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nbudgt_ms = 3\n", "unknown key daemon.budgt_ms"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[zmqq]\n", "unknown section [zmqq]"),
+    ("[models.m]\nbuiltin = \"magic\"\n", "models.m.builtin must be one of"),
+    ("[models.m]\nfile = \"a.npz\"\nbuiltin = \"passthrough\"\n", "exactly one of file"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\ndefault_model = \"x\"\n", "daemon.default_model 'x' is not under [models]"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[zmq]\nrouter = \"127.0.0.1:5555\"\n", "zmq.router must be a ZeroMQ endpoint"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[zmq]\npull = \"tcp://127.0.0.1:1\"\n", "need zmq.pub"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[osc]\nlisten = \"localhost\"\n", "osc.listen must be \"host:port\""),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[streams.s1]\nmodel = \"other\"\n", "streams.s1.model 'other' is not under"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nmax_streams = true\n", "daemon.max_streams must be an integer"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nlog_level = \"loud\"\n", "daemon.log_level must be one of"),
+    ("models = [", "not valid TOML"),
+])
+def test_raises_on_bad_config(tmp_path, text, needle):
+    p = tmp_path / "bad.toml"
+    p.write_text(text)
+    with pytest.raises(config.ConfigError) as ei:
+        config.load(str(p))
+    assert needle in str(ei.value) and str(p) in str(ei.value)
+
+
+def test_config_resolves_model_paths_against_its_directory(tmp_path):
+    p = tmp_path / "c.toml"
+    p.write_text('[models.w]\nfile = "models/w.npz"\n[streams.cam]\nmodel = "w"\n')
+    cfg = config.load(str(p))
+    assert cfg.models["w"].file == str(tmp_path / "models" / "w.npz")
+    assert cfg.stream_models == {"cam": "w"} and cfg.default_model == "w"
+
+
+def test_missing_config_file_names_it(tmp_path):
+    with pytest.raises(config.ConfigError, match="nope.toml: cannot read config"):
+        config.load(str(tmp_path / "nope.toml"))
+
+
+def test_systemd_unit_verifies(tmp_path):
+    exe = shutil.which("systemd-analyze")
+    if exe is None:
+        pytest.skip("systemd-analyze is not installed")
+    unit = (REPO / "systemd" / "lacuna.service").read_text()
+    # verify needs ExecStart's binary to exist: point it at this venv's lacuna for the check
+    lacuna = shutil.which("lacuna") or str(Path(__import__("sys").executable).parent / "lacuna")
+    unit = unit.replace("/usr/local/bin/lacuna", lacuna)
+    (tmp_path / "lacuna.service").write_text(unit)
+    r = subprocess.run([exe, "verify", "--man=no", str(tmp_path / "lacuna.service")], capture_output=True, text=True,
+                       timeout=60)
+    problems = [ln for ln in (r.stdout + r.stderr).splitlines() if "lacuna.service" in ln]
+    assert r.returncode == 0 and not problems, r.stdout + r.stderr
+
+
+# ---- OSC decode -------------------------------------------------------------------------------
+def _osc(addr, *args):
+    b = OscMessageBuilder(addr)
+    for v, t in args:
+        b.add_arg(v, t)
+    return b.build().dgram
+
+
+OSC_FRAME_S1_SEQ7_T1_5_10_NAN = bytes.fromhex(
+    "2f6c6163756e612f6672616d650000002c7369646666000073310000000000073ff80000000000004120000"
+    "07fc00000")
+
+
+def test_osc_protocol_example_frame():
+    m = osc.decode(OSC_FRAME_S1_SEQ7_T1_5_10_NAN)
+    assert isinstance(m, wire.Frame) and (m.stream, m.seq, m.t) == ("s1", 7, 1.5)
+    assert m.angles[0] == 10.0 and np.isnan(m.angles[1])
+
+
+def test_osc_masked_frame_and_hello_and_reset():
+    ang = np.array([1.0, 0.0], "<f4").tobytes()
+    m = osc.decode(_osc("/lacuna/frame/masked", ("s", "s"), (3, "h"), (0.5, "f"), (ang, "b"), (b"\x01\x00", "b")))
+    assert m.observed.tolist() == [True, False]
+    h = osc.decode(_osc("/lacuna/hello", ("s", "s"), ("", "s"), ("x.rx", "s"), ("y.rx", "s")))
+    assert h == wire.Hello("s", ["x.rx", "y.rx"], None)
+    assert osc.decode(_osc("/lacuna/reset", ("s", "s"))) == wire.Control("reset", "s")
+
+
+@pytest.mark.parametrize("data,reason", [
+    (b"garbage", "not_osc"),
+    (b"/lacuna/frame\x00\x00\x00,s", "not_osc"),
+    (_osc("/other", (1, "i")), "unknown_type"),
+    (_osc("/lacuna/frame", ("s", "s"), ("x", "s"), (0.0, "d"), (1.0, "f")), "bad_type"),
+    (_osc("/lacuna/frame", ("s", "s"), (1, "i"), (0.0, "d")), "bad_type"),
+    (_osc("/lacuna/frame", ("s", "s"), (1, "i"), (0.0, "d"), (float("inf"), "f")), "non_finite"),
+    (_osc("/lacuna/frame", ("s", "s"), (-1, "i"), (0.0, "d"), (1.0, "f")), "bad_seq"),
+    (_osc("/lacuna/hello", ("s", "s"), ("", "s")), "bad_length"),
+    (_osc("/lacuna/hello", ("s", "s"), ("", "s"), (3, "i")), "bad_type"),
+    (_osc("/lacuna/frame/masked", ("s", "s"), (1, "i"), (0.0, "d"), (b"\0\0", "b"), (b"\1", "b")), "bad_length"),
+    (b"/x" + b"\0" * 200, "too_large"),
+])
+def test_osc_raises_on_bad_datagram(data, reason):
+    with pytest.raises(wire.WireError) as ei:
+        osc.decode(data, max_bytes=150)
+    assert ei.value.reason == reason, ei.value.detail
+
+
+# ---- sessions ---------------------------------------------------------------------------------
+def _table(model, max_streams=4):
+    counted = []
+    t = SessionTable(lambda req, sid: ("m", model), max_streams, lambda name, sid: counted.append(name))
+    return t, counted
+
+
+def _frame(sid, seq, vals, observed=None):
+    return wire.Frame(sid, seq, 0.0, np.asarray(vals, np.float32), observed)
+
+
+def test_session_conflation_keeps_newest_and_answers_the_rest():
+    t, counted = _table(HoldModel(CH, np.zeros(3), np.ones(3)))
+    assert t.frame(_frame("s", 0, [1, 2, 3]), ("router", ["a"]), 0.0) == []
+    out = t.frame(_frame("s", 1, [1, 2, 3]), ("router", ["b"]), 0.0)
+    assert out == [(("router", ["a"]), wire.Drop("s", 0, "conflated"))]
+    out = t.frame(_frame("s", 1, [1, 2, 3]), ("router", ["c"]), 0.0)
+    assert out == [(("router", ["c"]), wire.Drop("s", 1, "duplicate"))]
+    assert t.sessions["s"].pending.frame.seq == 1 and counted == ["dropped_conflated", "dropped_duplicate"]
+
+
+def test_session_limit_and_width():
+    t, _ = _table(HoldModel(CH, np.zeros(3), np.ones(3)), max_streams=2)
+    t.frame(_frame("a", 0, [1, 2, 3]), ("pull", None), 0.0)
+    t.frame(_frame("b", 0, [1, 2, 3]), ("pull", None), 0.0)
+    with pytest.raises(SessionError) as ei:
+        t.frame(_frame("c", 0, [1, 2, 3]), ("pull", None), 0.0)
+    assert ei.value.reason == "too_many_streams"
+    with pytest.raises(SessionError) as ei:
+        t.frame(_frame("a", 1, [1, 2]), ("pull", None), 0.0)
+    assert ei.value.reason == "width"
+
+
+def test_observed_mask_wins_over_values_and_passthrough_channels_untouched():
+    model = HoldModel(CH, np.array([5.0, 6.0, 7.0]), np.ones(3))
+    t, _ = _table(model)
+    t.hello(wire.Hello("s", ["c.rx", "zz", "a.rx"]))
+    # a.rx carries a number but is marked unobserved: the model must fill it
+    t.frame(_frame("s", 0, [1.0, 42.0, 9.0], np.array([1, 0, 0], bool)), ("pull", None), 0.0)
+    sched = Scheduler(100.0, 5, 64)
+    s = t.sessions["s"]
+    [(sess, fill, status)] = sched.run({id(model): (model, [s])}, 0.0)
+    msg = fill_message(sess, fill, status, 0.001)
+    assert msg.angles.tolist() == [1.0, 42.0, 5.0]
+    assert msg.filled.tolist() == [False, False, True] and msg.status == "ok"
+
+
+# ---- scheduler --------------------------------------------------------------------------------
+def test_cost_model_recovers_affine_cost():
+    cm = CostModel()
+    for n in [1, 4, 16, 64, 8, 2] * 5:
+        cm.observe(n, 1e-4 + 2e-5 * n)
+    a, b = cm.coef()
+    assert a == pytest.approx(1e-4, rel=1e-6) and b == pytest.approx(2e-5, rel=1e-6)
+    cm2 = CostModel()
+    for _ in range(5):
+        cm2.observe(8, 8e-4)  # one batch size only: cost taken as proportional to n
+    assert cm2.estimate(16) == pytest.approx(1.25 * 16e-4)
+
+
+class KnobModel(HoldModel):
+    """A hold model with a CRBM-style Gibbs knob (set_iterations / n_gibbs), to test planning."""
+
+    def __init__(self, *a, k=30):
+        super().__init__(*a)
+        self.n_gibbs = k
+        self.calls: list[int] = []
+
+    def set_iterations(self, k: int) -> None:
+        self.n_gibbs = int(k)
+
+    def step_batch(self, states, frames, observed):
+        self.calls.append(self.n_gibbs)
+        return super().step_batch(states, frames, observed)
+
+
+def test_levels_and_plan_degrades_iterations_then_holds():
+    m = KnobModel(CH, np.zeros(3), np.ones(3))
+    assert levels_of(m) == [30, 15, 7, 3, 1]
+    assert levels_of(HoldModel(CH, np.zeros(3), np.ones(3))) == [None]
+    t, _ = _table(m, max_streams=100)
+    for i in range(10):
+        t.frame(_frame(f"s{i}", 0, [1.0, np.nan, 3.0]), ("pull", None), 0.0)
+    group = list(t.sessions.values())
+    sched = Scheduler(budget_ms=1.0, max_gap=5, max_batch=64)
+    sched.reply_cost = 0.0
+    # cost per stream: 1 ms at K=30 ... proportional to K
+    for lv in levels_of(m):
+        for _ in range(3):
+            sched.cost(m, lv).observe(1, 1e-3 * lv / 30)
+            sched.cost(m, lv).observe(10, 1e-2 * lv / 30)
+    plan = sched.plan(m, group, now=0.0)  # 10 streams: K=30 would cost 12.5 ms, K=3 1.25 ms, K=1 0.42 ms
+    assert plan.iterations == 1 and plan.degraded and not plan.hold
+    sched.budget_s = 0.23e-3
+    plan = sched.plan(m, group, now=0.0)  # even K=1 is too slow for all ten: five step, five hold
+    assert plan.iterations == 1 and plan.degraded and len(plan.step) == 5 and len(plan.hold) == 5
+    sched.budget_s = 1.0
+    plan = sched.plan(m, group, now=0.0)
+    assert plan.iterations == 30 and not plan.degraded and len(plan.step) == 10
+    # the knob is used for a degraded step and restored afterwards
+    sched.budget_s = 1e-3
+    for s in group:
+        s.pending.arrived = time.perf_counter()
+    res = sched.run({id(m): (m, group)}, 0.0)
+    assert m.n_gibbs == 30 and all(st == "degraded" for _, _, st in res) and len(res) == 10
+    assert m.calls and set(m.calls) <= {1, 3}
+
+
+def test_rehandshake_or_reset_answers_the_waiting_frame():
+    t, counted = _table(HoldModel(CH, np.zeros(3), np.ones(3)))
+    t.frame(_frame("s", 5, [1, 2, 3]), ("router", ["a"]), 0.0)
+    ack, out = t.hello(wire.Hello("s", ["a.rx", "b.rx"]))
+    assert ack.channels == ["a.rx", "b.rx"]
+    assert out == [(("router", ["a"]), wire.Drop("s", 5, "reset"))]
+    t.frame(_frame("s", 6, [1, 2]), ("router", ["b"]), 0.0)
+    ok, out = t.reset("s")
+    assert ok and out == [(("router", ["b"]), wire.Drop("s", 6, "reset"))] and "s" not in t.sessions
+    assert counted == ["dropped_reset", "dropped_reset"]
+    assert t.reset("s") == (False, [])
+
+
+def test_passthrough_filler_fills_nothing():
+    m = PassThroughModel(CH)
+    st = m.stream()
+    f = st.step(np.array([1.0, np.nan, 3.0]))
+    assert np.isnan(f.frame[1]) and f.frame[0] == 1.0 and not f.filled.any() and not f.std.any()
+    assert np.isnan(st.predict().frame).all()
+    fills = m.step_batch([st, m.stream()], np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]), np.array([[1, 0, 1], [1, 1, 1]], bool))
+    assert np.isnan(fills[0].frame[1]) and fills[1].frame.tolist() == [4.0, 5.0, 6.0]
+    assert PassThroughModel().stream().step(np.ones(5)).frame.tolist() == [1.0] * 5  # "any" channels
+
+
+def test_model_held_everywhere_still_gets_a_probe_step():
+    """A pessimistic estimate must not hold every stream forever: one real step per PROBE_S."""
+    m = HoldModel(CH, np.zeros(3), np.ones(3))
+    t, _ = _table(m, max_streams=100)
+    sched = Scheduler(budget_ms=1.0, max_gap=5, max_batch=64)
+    for _ in range(3):
+        sched.cost(m, None).observe(1, 10.0)  # "10 s per step": far over any budget
+
+    def tick(seq):
+        for i in range(4):
+            t.frame(_frame(f"s{i}", seq, [1.0, np.nan, 3.0]), ("pull", None), time.perf_counter())
+        return sched.run({id(m): (m, list(t.sessions.values()))}, 0.0)
+
+    first = tick(0)
+    assert sum(not f.degraded for _, f, _ in first) == 1 and sched.probes == 1  # one stream stepped
+    second = tick(1)
+    assert all(f.degraded for _, f, _ in second) and sched.probes == 1  # not again within PROBE_S
+    stepped = next(s for s, f, _ in first if not f.degraded)
+    assert stepped.model_seq == 1 and stepped.held_streak == 1  # its held frame 1 is skipped, not replayed
+
+
+def test_partial_step_without_knob_is_full_quality_not_degraded():
+    m = HoldModel(CH, np.zeros(3), np.ones(3))
+    t, _ = _table(m, max_streams=100)
+    for i in range(10):
+        t.frame(_frame(f"s{i}", 0, [1.0, np.nan, 3.0]), ("pull", None), 0.0)
+    sched = Scheduler(budget_ms=0.23, max_gap=5, max_batch=64)
+    sched.reply_cost = 0.0
+    for _ in range(3):
+        sched.cost(m, None).observe(1, 1e-3 / 30)
+        sched.cost(m, None).observe(10, 1e-2 / 30)
+    plan = sched.plan(m, list(t.sessions.values()), now=0.0)
+    assert len(plan.step) == 5 and len(plan.hold) == 5 and not plan.degraded

@@ -1,0 +1,175 @@
+"""Wire schema v1 on literal bytes (the examples of docs/PROTOCOL.md), no sockets."""
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+
+from daemon import wire as w
+
+# Literal fixtures named by content; the same bytes are printed in docs/PROTOCOL.md.
+FRAME_S1_SEQ7_T1_5_NAN_MIDDLE = bytes.fromhex(
+    "86a17601a474797065a56672616d65a673747265616da27331a373657107a174cb3ff8000000000000"
+    "a6616e676c6573c40c000020410000c07f000020c0"
+)
+FRAME_S1_SEQ7_MASK_101 = bytes.fromhex(
+    "87a17601a474797065a56672616d65a673747265616da27331a373657107a174cb3ff8000000000000"
+    "a6616e676c6573c40c0000204100000000000020c0a86f62736572766564c403010001"
+)
+HELLO_S1_THREE_CHANNELS_WALK = bytes.fromhex(
+    "85a17601a474797065a568656c6c6fa673747265616da27331a86368616e6e656c7393a96c66656d75722e7278"
+    "a96c66656d75722e7279ac73747564696f2e6578747261a56d6f64656ca477616c6b"
+)
+FILL_S1_SEQ7_CH1_3_25_STD_0_5 = bytes.fromhex(
+    "8ba17601a474797065a466696c6ca673747265616da27331a373657107a174cb3ff8000000000000"
+    "a6616e676c6573c40c0000204100005040000020c0a666696c6c6564c403000100a3737464c40c000000000000"
+    "003f00000000a6737461747573a26f6ba56d6f64656ca477616c6ba770726f635f7573cd019c"
+)
+CONTROL_STATUS = bytes.fromhex("83a17601a474797065a7636f6e74726f6ca3636d64a6737461747573")
+
+
+def test_protocol_example_frame_nan_means_missing():
+    m = w.decode(FRAME_S1_SEQ7_T1_5_NAN_MIDDLE)
+    assert isinstance(m, w.Frame)
+    assert (m.stream, m.seq, m.t) == ("s1", 7, 1.5)
+    assert m.angles[0] == 10.0 and np.isnan(m.angles[1]) and m.angles[2] == -2.5
+    assert m.observed is None
+    assert w.encode(m) == FRAME_S1_SEQ7_T1_5_NAN_MIDDLE
+
+
+def test_protocol_example_frame_with_mask():
+    m = w.decode(FRAME_S1_SEQ7_MASK_101)
+    assert isinstance(m, w.Frame)
+    assert m.observed.tolist() == [True, False, True]
+    assert w.encode(m) == FRAME_S1_SEQ7_MASK_101
+
+
+def test_protocol_example_hello():
+    m = w.decode(HELLO_S1_THREE_CHANNELS_WALK)
+    assert m == w.Hello("s1", ["lfemur.rx", "lfemur.ry", "studio.extra"], "walk")
+    assert w.encode(m) == HELLO_S1_THREE_CHANNELS_WALK
+
+
+def test_protocol_example_fill():
+    m = w.decode(FILL_S1_SEQ7_CH1_3_25_STD_0_5)
+    assert isinstance(m, w.FillMsg)
+    assert m.angles.tolist() == [10.0, 3.25, -2.5]
+    assert m.filled.tolist() == [False, True, False]
+    assert m.std.tolist() == [0.0, 0.5, 0.0]
+    assert (m.status, m.model, m.proc_us, m.gap, m.style, m.phase) == ("ok", "walk", 412, 0, None, None)
+    assert w.encode(m) == FILL_S1_SEQ7_CH1_3_25_STD_0_5
+
+
+def test_protocol_example_control_status():
+    assert w.decode(CONTROL_STATUS) == w.Control("status")
+    assert w.encode(w.Control("status")) == CONTROL_STATUS
+
+
+def test_fill_with_style_phase_gap_round_trip():
+    m = w.FillMsg("a", 3, 0.25, np.ones(2, np.float32), np.array([1, 0], bool), np.zeros(2, np.float32),
+                  "degraded", "m", 5, style=np.array([0.75, 0.25], np.float32), phase=0.5, gap=2)
+    back = w.decode(w.encode(m))
+    assert back.style.tolist() == [0.75, 0.25] and back.phase == 0.5 and back.gap == 2
+    assert back.status == "degraded"
+
+
+@pytest.mark.parametrize("msg", [
+    w.HelloAck("s", "walk", ["a", "b"], ["b"], ["c"]),
+    w.Drop("s", 4, "late"),
+    w.Control("reset", "s9"),
+    w.ControlReply("status", True, {"uptime_s": 1.0, "streams": {}}),
+    w.ControlReply("reload", False, {}, "bad file"),
+    w.ErrorMsg("version", "schema version must be 1 (got 2)", "s", 3),
+])
+def test_other_messages_round_trip(msg):
+    assert w.decode(w.encode(msg)) == msg
+
+
+def _pack(d):
+    return msgpack.packb(d, use_bin_type=True)
+
+
+GOOD = {"v": 1, "type": "frame", "stream": "s1", "seq": 1, "t": 0.0, "angles": b"\0" * 8}
+
+# (bytes, expected reason): every one must come out as a WireError with that code.
+BAD_CASES = [
+    (b"", "not_msgpack"),
+    (b"\xc1", "not_msgpack"),
+    (FRAME_S1_SEQ7_T1_5_NAN_MIDDLE + b"\x00", "not_msgpack"),  # trailing garbage
+    (FRAME_S1_SEQ7_T1_5_NAN_MIDDLE[:-3], "not_msgpack"),  # truncated
+    (b"hello world", "not_msgpack"),
+    (_pack([1, 2, 3]), "not_a_map"),
+    (_pack(7), "not_a_map"),
+    (_pack({**GOOD, "v": 2}), "version"),
+    (_pack({k: v for k, v in GOOD.items() if k != "v"}), "version"),
+    (_pack({**GOOD, "v": True}), "version"),
+    (_pack({**GOOD, "type": "frobnicate"}), "unknown_type"),
+    (_pack({**GOOD, "type": 3}), "unknown_type"),
+    (_pack({k: v for k, v in GOOD.items() if k != "seq"}), "missing_field"),
+    (_pack({k: v for k, v in GOOD.items() if k != "angles"}), "missing_field"),
+    (_pack({**GOOD, "seq": "1"}), "bad_type"),
+    (_pack({**GOOD, "seq": True}), "bad_type"),
+    (_pack({**GOOD, "seq": -1}), "bad_seq"),
+    (_pack({**GOOD, "t": float("nan")}), "bad_timestamp"),
+    (_pack({**GOOD, "t": "now"}), "bad_type"),
+    (_pack({**GOOD, "angles": b"\0" * 7}), "bad_length"),
+    (_pack({**GOOD, "angles": b""}), "bad_length"),
+    (_pack({**GOOD, "angles": [1.0, 2.0]}), "bad_type"),
+    (_pack({**GOOD, "angles": b"\0" * (4 * (w.MAX_CHANNELS + 1))}), "bad_length"),
+    (_pack({**GOOD, "observed": b"\1"}), "bad_length"),
+    (_pack({**GOOD, "observed": b"\1\2"}), "bad_mask"),
+    (_pack({**GOOD, "angles": np.array([np.nan, 1], "<f4").tobytes(), "observed": b"\1\1"}), "non_finite"),
+    (_pack({**GOOD, "angles": np.array([np.inf, 1], "<f4").tobytes()}), "non_finite"),
+    (_pack({**GOOD, "stream": ""}), "bad_stream"),
+    (_pack({**GOOD, "stream": "x" * 200}), "bad_stream"),
+    (_pack({**GOOD, "stream": "a\nb"}), "bad_stream"),
+    (_pack({"v": 1, "type": "hello", "stream": "s"}), "missing_field"),
+    (_pack({"v": 1, "type": "hello", "stream": "s", "channels": []}), "bad_length"),
+    (_pack({"v": 1, "type": "hello", "stream": "s", "channels": ["a", "a"]}), "bad_channels"),
+    (_pack({"v": 1, "type": "hello", "stream": "s", "channels": ["a", 3]}), "bad_type"),
+    (_pack({"v": 1, "type": "control", "cmd": "format-disk"}), "unknown_command"),
+    (_pack({"v": 1, "type": "control", "cmd": "reset"}), "missing_field"),
+    (b"\xdd\xff\xff\xff\xff", "not_msgpack"),  # array claiming 4 billion entries
+    (b"\xc6\x7f\xff\xff\xff", "not_msgpack"),  # bin claiming 2 GiB
+]
+
+
+@pytest.mark.parametrize("data,reason", BAD_CASES, ids=[r for _, r in BAD_CASES])
+def test_raises_on_bad_message(data, reason):
+    with pytest.raises(w.WireError) as ei:
+        w.decode(data)
+    assert ei.value.reason == reason, ei.value.detail
+
+
+def test_raises_on_oversize_before_unpacking():
+    with pytest.raises(w.WireError) as ei:
+        w.decode(b"\x00" * 101, max_bytes=100)
+    assert ei.value.reason == "too_large" and "101 bytes" in ei.value.detail
+
+
+def test_rejection_carries_stream_and_seq_when_readable():
+    with pytest.raises(w.WireError) as ei:
+        w.decode(_pack({**GOOD, "stream": "cam3", "seq": 41, "angles": b"\0" * 5}))
+    assert (ei.value.stream, ei.value.seq) == ("cam3", 41)
+    err = w.decode(w.encode(w.error_for(ei.value)))
+    assert isinstance(err, w.ErrorMsg) and err.reason == "bad_length" and err.stream == "cam3"
+
+
+def test_random_bytes_never_raise_anything_but_wire_error(rng):
+    for _ in range(3000):
+        n = int(rng.integers(0, 80))
+        data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        try:
+            w.decode(data)
+        except w.WireError:
+            pass
+    # mutate a good frame byte by byte: each result is a message or a WireError, never a crash
+    base = bytearray(FRAME_S1_SEQ7_MASK_101)
+    for i in range(len(base)):
+        for val in (0x00, 0xC1, 0xFF, base[i] ^ 0x01):
+            b = bytearray(base)
+            b[i] = val
+            try:
+                w.decode(bytes(b))
+            except w.WireError:
+                pass
