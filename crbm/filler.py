@@ -57,7 +57,9 @@ class CRBMModel(FeatureModel):
     n_chains : S, parallel chains averaged into the fill (1 = the paper).
     mode : "gibbs" (the paper) or "mean-field" (deterministic).
     init_noise : std of the noise added to the previous frame to start the missing visibles.
-    seed : seeds the filler's sampler (one generator per model, created once; ``reseed``).
+    seed : seeds the filler's sampler.  The noise of stream frame t comes from a generator keyed
+        by (seed, t), so a fill is reproducible and the same whether a stream runs alone, in a
+        batch, offline or in the daemon (``reseed`` changes the seed for following frames).
     meta : training metadata kept for the model file.
 
     Degrading under load
@@ -121,7 +123,8 @@ class CRBMModel(FeatureModel):
         self.mode = mode
 
     def reseed(self, seed: int | None) -> None:
-        self._rng = np.random.default_rng(seed)
+        self._seed = int(np.random.SeedSequence(seed).entropy if seed is None else seed)
+        self._rng = np.random.default_rng(self._seed)   # kept for callers that save/restore it
 
     def info(self) -> dict[str, Any]:
         d = super().info()
@@ -182,13 +185,14 @@ class CRBMModel(FeatureModel):
             W, WT = Wm, WmT
         else:
             vb, prev, W, WT = bv, hist[:, :F], self._W, self._WT
+            mi = slice(None)
         if S > 1:
             vb, bh, prev = (np.repeat(a, S, axis=0) for a in (vb, bh, prev))
             if bv2 is not None:
                 bv2, bh2 = np.repeat(bv2, S, axis=0), np.repeat(bh2, S, axis=0)
-        rng = self._rng
         if self.mode == "gibbs":
-            v = prev + self.init_noise * rng.standard_normal(prev.shape)
+            noise, L, L2 = self._draws(state["count"][rows], S, H)
+            v = prev + self.init_noise * (noise[:, mi] if same else noise)
         else:
             v = prev.copy()
         if not same:
@@ -202,12 +206,6 @@ class CRBMModel(FeatureModel):
         half = K // 2
         keep = np.empty((K - half,) + v.shape)
         gibbs = self.mode == "gibbs"
-        if gibbs:
-            # h ~ Bernoulli(logistic(a))  <=>  h = [a > L] with L ~ Logistic(0, 1): drawing L up
-            # front spares a logistic function per iteration
-            L = _logistic32(rng, (K, nr, H))
-            if self.level2 is not None:
-                L2 = _logistic32(rng, (K, nr, self.level2.n_hidden))
         for it in range(K):
             np.matmul(v, W, out=a)
             a += bh                                        # eq. 2 logits: b* + v W
@@ -248,6 +246,23 @@ class CRBMModel(FeatureModel):
             fill[:, mi], std[:, mi] = mean, sd
             return fill, std
         return np.where(obs, zc, mean), np.where(obs, 0.0, sd)
+
+    def _draws(self, counts: np.ndarray, S: int, H: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The frame's random numbers, per stream from a generator keyed by (seed, frame index):
+        init noise (m*S, F) and logistic noise (K, m*S, H) [and (K, m*S, H2) for level 2].
+        h ~ Bernoulli(logistic(a))  <=>  h = [a > L] with L ~ Logistic(0, 1), so drawing L up
+        front spares a logistic function per iteration."""
+        K, F = self.n_gibbs, self._F
+        H2 = self.level2.n_hidden if self.level2 is not None else 0
+        noise, L, L2 = [], [], []
+        for c in counts:
+            g = np.random.default_rng([self._seed, int(c)])
+            noise.append(g.standard_normal((S, F)))
+            L.append(_logistic32(g, (K, S, H)))
+            if H2:
+                L2.append(_logistic32(g, (K, S, H2)))
+        return (np.concatenate(noise), np.concatenate(L, axis=1),
+                np.concatenate(L2, axis=1) if H2 else None)
 
     def _mask_parts(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         key = np.packbits(obs).tobytes()

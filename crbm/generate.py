@@ -26,7 +26,7 @@ def generate(model: CRBMModel, seed_frames: np.ndarray, n_frames: int, seed: int
         raise ValueError("seed frames contain NaN or infinity")
     if int(n_frames) != n_frames or n_frames < 0:
         raise ValueError(f"frames must be a non-negative integer (got {n_frames!r})")
-    saved = (model.n_gibbs, model.n_chains, model.mode, model._rng)
+    saved = (model.n_gibbs, model.n_chains, model.mode, model._seed, model._rng)
     try:
         model.reseed(seed)
         model.set_chains(1)          # one sample path: averaging chains would blur the motion
@@ -38,5 +38,5 @@ def generate(model: CRBMModel, seed_frames: np.ndarray, n_frames: int, seed: int
         for _ in range(int(n_frames)):
             out.append(st.predict().frame)
     finally:
-        model.n_gibbs, model.n_chains, model.mode, model._rng = saved
+        model.n_gibbs, model.n_chains, model.mode, model._seed, model._rng = saved
     return np.vstack(out)

@@ -117,9 +117,11 @@ def test_model_file_with_wrong_shapes_is_refused_by_name(model, tmp_path):
         load(str(tmp_path / "bad2.npz"))
 
 
-def test_batched_step_equals_single_streams(model, split):
+@pytest.mark.parametrize("mode", ["mean-field", "gibbs"])
+def test_batched_step_equals_single_streams(model, split, mode):
     """Three streams, two masks (the general path) against one stream at a time (the shared-mask
-    path); deterministic in mean-field mode."""
+    path).  The Gibbs noise is keyed by (seed, frame index), so sampling agrees too: a stream's
+    fill does not depend on what else is in the batch (the daemon equals the offline fill)."""
     cases = split[1]
     leg = next(c for c in cases if c.test == "35_29" and c.erased == "right-leg")
     body = next(c for c in cases if c.test == "35_29" and c.erased == "upper-body")
@@ -127,9 +129,11 @@ def test_batched_step_equals_single_streams(model, split):
     T = 44
     streams = [(leg.truth[:T], leg.observed[:T]), (body.truth[:T], np.roll(body.observed[:T], -40, 0)),
                (jog.truth[:T], jog.observed[:T])]
-    model.set_mode("mean-field")
+    model.set_mode(mode)
+    model.set_chains(2)
     try:
         single = [run(model, f, o)[0] for f, o in streams]
+        model.reseed(0)
         states = [model.stream() for _ in streams]
         batched = []
         for t in range(T):
@@ -138,6 +142,7 @@ def test_batched_step_equals_single_streams(model, split):
             batched.append([x.frame for x in model.step_batch(states, fr, ob)])
     finally:
         model.set_mode("gibbs")
+        model.set_chains(1)
     batched = np.array(batched)
     for i in range(3):
         np.testing.assert_allclose(batched[:, i], single[i], rtol=0, atol=1e-9)
