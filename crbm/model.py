@@ -34,7 +34,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy.special import expit
 
-from crbm._threads import single_thread_blas
+from lacuna.blas import single_thread_blas
 
 # name: (type, lower bound, upper bound or None); checked once in _check() before fit.
 _PARAM_RANGES: dict[str, tuple[type, float, float | None]] = {
