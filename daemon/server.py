@@ -417,7 +417,10 @@ class Daemon:
 
 
 def serve(path: str) -> int:
+    from lacuna.blas import limit_process_blas
+
     cfg = config_mod.load(path)
+    blas = limit_process_blas()  # noqa: F841  (kept alive for the daemon's lifetime)
     log = Log(cfg.log_level)
     d = Daemon(cfg, log)
     d.install_signals()

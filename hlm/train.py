@@ -30,6 +30,7 @@ import numpy as np
 
 from hlm import cyclic, hmm
 from hlm.emissions import LOG2PI
+from lacuna.blas import single_thread_blas
 from hlm.params import BoundWarning, FitResult, HLMParams
 
 __all__ = ["VariationalEM", "fit", "HLMParams", "FitResult", "BoundWarning"]
@@ -310,6 +311,13 @@ def fit(sequences: Sequence[np.ndarray], n_styles: int, cycle_frames: int, *, n_
     on the bound shows within the first iterations); ``screen_iters=None`` runs every restart to
     the end and compares final bounds.
     """
+    with single_thread_blas():  # E-step products are small; a second BLAS thread only spins
+        return _fit(sequences, n_styles, cycle_frames, n_restarts=n_restarts, seed=seed, n_iter=n_iter,
+                    n_var=n_var, screen_iters=screen_iters, tol=tol, progress=progress, **options)
+
+
+def _fit(sequences, n_styles, cycle_frames, *, n_restarts, seed, n_iter, n_var, screen_iters, tol, progress,
+         **options) -> FitResult:
     t0 = time.perf_counter()
     ems = []
     screen = n_iter if screen_iters is None or n_restarts == 1 else min(screen_iters, n_iter)

@@ -1,0 +1,8 @@
+"""What studio people touch: the plugin library, the OSC bridge, recorder, replay, benchmark, demo.
+
+``clients.client.Client`` (blocking) and ``clients.aio.AsyncClient`` (asyncio) speak wire schema
+v1 (``daemon/wire.py``, docs/PROTOCOL.md) to ``lacuna serve`` over ZeroMQ request/reply.
+"""
+from clients.client import Client, DaemonUnavailable
+
+__all__ = ["Client", "DaemonUnavailable"]

@@ -1,0 +1,205 @@
+"""`lacuna bridge | record | replay | bench | demo`."""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from pathlib import Path
+
+from lacuna.errors import LacunaError
+
+DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
+
+
+def _hostport(s: str) -> tuple[str, int]:
+    host, sep, port = s.rpartition(":")
+    if not sep or not port.isdigit():
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT (got {s!r})")
+    return host or "127.0.0.1", int(port)
+
+
+def _endpoint(s: str) -> str:
+    return s if "://" in s else f"tcp://{s}"
+
+
+def add_commands(cli) -> None:
+    p = cli.command("bridge", help="relay OSC frames from a capture system through the daemon and re-emit them filled")
+    p.add_argument("--connect", type=_endpoint, default=DEFAULT_ENDPOINT, metavar="ADDR",
+                   help=f"the daemon's ROUTER (default {DEFAULT_ENDPOINT})")
+    p.add_argument("--listen", type=_hostport, default=("127.0.0.1", 9001), metavar="HOST:PORT",
+                   help="receive the capture system's OSC here (default 127.0.0.1:9001)")
+    p.add_argument("--send", type=_hostport, metavar="HOST:PORT", help="send filled frames as OSC bundles here")
+    p.add_argument("--pub", metavar="ENDPOINT", help="also publish filled frames on a ZeroMQ PUB bound here")
+    p.add_argument("--timeout-ms", type=float, default=20.0,
+                   help="wait this long for the daemon before passing a frame through unfilled (default 20)")
+    p.add_argument("--record", metavar="PATH", help="record raw+filled frames; {stream} in PATH becomes the stream id")
+    p.set_defaults(func=_bridge)
+
+    p = cli.command("record", help="save a live stream from the daemon's PUB output to a .lrec file")
+    p.add_argument("--connect", type=_endpoint, required=True, metavar="ADDR", help="the daemon's PUB endpoint")
+    p.add_argument("--stream", required=True, help="stream id to record")
+    p.add_argument("--out", required=True, metavar="FILE.lrec")
+    p.add_argument("--what", choices=["raw", "filled", "both"], default="both", help="what to keep (default both)")
+    p.add_argument("--channels", metavar="NAMES", help="comma-separated channel names of the stream (for the file header)")
+    p.add_argument("--fps", type=float, help="frame rate to note in the file (else estimated from timestamps)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--seconds", type=float, help="stop after this long")
+    g.add_argument("--frames", type=int, help="stop after this many frames")
+    p.add_argument("--quiet", "-q", action="store_true")
+    p.set_defaults(func=_record)
+
+    p = cli.command("replay", help="stream a recorded take to the daemon, write the filled take, report the error")
+    p.add_argument("file", metavar="FILE", help="take to replay (.amc, .bvh, .csv or a .lrec recording)")
+    p.add_argument("--connect", type=_endpoint, metavar="ADDR", help=f"the daemon's ROUTER (default {DEFAULT_ENDPOINT})")
+    p.add_argument("--model", help="model name in the daemon's config (default: the daemon's choice)")
+    p.add_argument("--serve", metavar="MODEL.npz", help="instead of --connect, start a daemon serving this model file")
+    p.add_argument("--speed", type=float, default=1.0, help="times real time; 0 = as fast as the daemon answers (default 1)")
+    p.add_argument("--drop", default="none", metavar="PATTERN",
+                   help="erase values before sending: none, gaps[:GROUP,...], pan2009, taylor2007:right-leg|upper-body")
+    p.add_argument("--seed", type=int, default=0, help="seed of the gaps pattern (default 0)")
+    p.add_argument("--asf", help="ASF skeleton for an AMC take that has none beside it")
+    p.add_argument("--out", metavar="FILE", help="filled take (default FILE's name + '.filled' in the current directory)")
+    p.add_argument("--stream", default="replay", help="stream id (default replay)")
+    p.add_argument("--json", dest="json_out", metavar="OUT")
+    p.add_argument("--plot", metavar="OUT.png", help="truth vs fill on the most-erased channels")
+    p.add_argument("--quiet", "-q", action="store_true")
+    p.set_defaults(func=_replay)
+
+    p = cli.command("bench", help="latency of the daemon under N streams at R Hz (p50..max, drops, CPU)")
+    p.add_argument("--streams", type=int, default=1)
+    p.add_argument("--rate", type=float, default=120.0, help="frames per second per stream (default 120)")
+    p.add_argument("--seconds", type=float, default=10.0)
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--model", metavar="FILE", help="start a daemon serving this model file")
+    g.add_argument("--connect", metavar="ADDR", help="drive a running daemon at this ROUTER endpoint")
+    p.add_argument("--model-name", help="with --connect: the model to use (default: the daemon's default)")
+    p.add_argument("--floor", action="store_true", help="also run the same load against a pass-through filler")
+    p.add_argument("--floor-model", default="floor", help="with --connect --floor: the daemon's pass-through model name")
+    p.add_argument("--budget-ms", type=float, default=4.0, help="with --model: the daemon's per-frame budget (default 4)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", dest="json_out", metavar="OUT")
+    p.add_argument("--plot", metavar="OUT.png")
+    p.add_argument("--quiet", "-q", action="store_true")
+    p.set_defaults(func=_bench)
+
+    p = cli.command("demo", help="train small HLM and CRBM models, serve them, replay a held-out walk with dropouts")
+    p.add_argument("--out", default="lacuna-demo", metavar="DIR", help="where models, plots and JSON go (default ./lacuna-demo)")
+    p.add_argument("--source", choices=["auto", "data", "synthetic"], default="auto",
+                   help="motion: auto (data dir, else fetch, else synthetic), data, synthetic")
+    p.add_argument("--methods", help="comma-separated model methods to train (default hlm,crbm)")
+    p.add_argument("--speed", type=float, default=1.0, help="replay speed, times real time (default 1)")
+    p.add_argument("--budget-ms", type=float, default=8.0, help="the daemon's per-frame budget (default 8: one 120 Hz period)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", "-q", action="store_true")
+    p.set_defaults(func=_demo)
+
+
+def _stop_on_signals(flag_owner) -> None:
+    def handler(signum, frame):  # only sets a flag the loop reads
+        flag_owner.stop_flag = True
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+def _bridge(args: argparse.Namespace) -> int:
+    from clients.bridge import Bridge
+
+    with Bridge(args.connect, args.listen, args.send, args.pub, timeout_s=args.timeout_ms / 1000.0,
+                record=args.record) as b:
+        _stop_on_signals(b)
+        b.log(f"listening for OSC on {b.address[0]}:{b.address[1]}, daemon {args.connect}, "
+              f"out {'OSC ' + ':'.join(map(str, args.send)) if args.send else ''} {args.pub or ''}".rstrip())
+        b.serve_forever()
+        c = b.counts
+        b.log(f"stopped: {c.frames} frames, {c.filled} filled, {c.passed_through} passed through, "
+              f"{c.dropped} dropped, {c.rejected} rejected")
+    return 0
+
+
+def _record(args: argparse.Namespace) -> int:
+    from clients.record import record
+
+    class Flag:
+        stop_flag = False
+
+    f = Flag()
+    _stop_on_signals(f)
+    ch = [c for c in args.channels.split(",") if c] if args.channels else None
+    n = record(args.connect, args.stream, args.out, what=args.what, channels=ch, seconds=args.seconds,
+               frames=args.frames, fps=args.fps, stop=lambda: f.stop_flag, progress=not args.quiet)
+    print(f"recorded {n} frames of {args.stream} -> {args.out}")
+    return 0 if n else 1
+
+
+def _replay(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from clients import replay as rp
+    from clients.daemon_proc import DaemonProcess
+    from clients.takes import drop_mask, read_take, write_take
+
+    if args.serve and args.connect:
+        raise LacunaError("give --connect ADDR or --serve MODEL.npz, not both")
+    motion, captured = read_take(args.file, args.asf)
+    keep, bursts = drop_mask(args.drop, motion, args.seed)
+    known = np.isfinite(motion.frames) if captured is None else captured & np.isfinite(motion.frames)
+    observed = keep & known
+    p = Path(args.file)
+    out = args.out or f"{p.stem}.filled{p.suffix}"
+    if not args.quiet:
+        print(f"replaying {args.file}: {motion.n_frames} frames x {len(motion.channels)} channels at {motion.fps:g} Hz, "
+              f"drop {args.drop} ({int((known & ~keep).sum())} values erased)", file=sys.stderr)
+    daemon = None
+    try:
+        if args.serve:
+            daemon = DaemonProcess({"model": args.serve}).start()
+            endpoint = daemon.endpoint
+        else:
+            endpoint = args.connect or DEFAULT_ENDPOINT
+        res = rp.replay(endpoint, motion, observed, speed=args.speed, stream=args.stream, model=args.model,
+                        progress=not args.quiet)
+    finally:
+        if daemon is not None:
+            daemon.stop()
+    from mocap.motion import Motion
+
+    filled = Motion(res.filled, list(motion.channels), motion.fps, motion.skeleton, out, dict(motion.meta))
+    is_rec = p.suffix.lower() == ".lrec"
+    write_take(out, filled, args.asf, observed=observed if is_rec else None,
+               fills=rp.fill_messages(res, args.stream) if is_rec else None)
+    summ = rp.summary(res, known)
+    summ["drop"] = args.drop
+    summ["output"] = out
+    acc, lat = summ["accuracy"], summ["latency"]
+    rms = "-" if acc["rms_deg"] is None else f"{acc['rms_deg']:.2f}"
+    print(f"filled take: {out}")
+    print(f"model {summ['model']}: RMS error on {acc['erased_angle_values']} erased angle values {rms} deg; "
+          f"status {summ['status']}; dropped {summ['dropped']}; held {summ['held_values']} values")
+    if lat["p50_ms"] is not None:
+        print(f"round trip ms: p50 {lat['p50_ms']:.3f}  p90 {lat['p90_ms']:.3f}  p99 {lat['p99_ms']:.3f}  "
+              f"p99.9 {lat['p999_ms']:.3f}  max {lat['max_ms']:.3f}")
+    if args.json_out:
+        rp.write_json(args.json_out, summ)
+        print(f"json: {args.json_out}")
+    if args.plot:
+        erased = known & ~observed
+        rp.plot_fills(args.plot, motion.frames, {summ["model"] or "fill": res.filled}, erased, motion.channels,
+                      motion.fps, f"{p.name}: drop {args.drop}")
+        print(f"plot: {args.plot}")
+    return 0
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from clients import bench
+
+    if args.streams < 1 or args.rate <= 0 or args.seconds <= 0:
+        raise LacunaError(f"--streams >= 1, --rate > 0 and --seconds > 0 please "
+                          f"(got {args.streams}, {args.rate}, {args.seconds})")
+    return bench.run(args)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from clients import demo
+
+    return demo.run(args)

@@ -1,0 +1,235 @@
+"""Blocking client for pipeline code: one stream to ``lacuna serve`` over ZeroMQ request/reply.
+
+    from clients import Client
+    with Client("tcp://127.0.0.1:5555", "actor1", channels=studio_names) as c:
+        fill = c.fill(angles, observed)        # wire.FillMsg: .angles, .filled, .std, .status
+        c.send(angles); reply = c.recv()       # or pipelined
+
+It uses a DEALER socket (the daemon's side is a ROUTER), so it may pipeline frames and match the
+answers by ``seq``.  A request that gets no answer within ``timeout_s`` rebuilds the socket
+(Lazy Pirate, zguide ch. 4) and retries; a TCP disconnect seen on the socket monitor makes the
+next frame re-send the handshake first, so a daemon restarted under the client maps the studio's
+channels the same way.  Stream id, handshake and sequence numbers survive; the daemon's filter
+state for the stream does not (it lived in the old process).
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import msgpack
+import zmq
+
+from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS, DaemonRefused,
+                             DaemonUnavailable, StreamSession, dealer_socket, open_monitor)
+from daemon import wire
+
+
+class Client:
+    """One stream's connection to the daemon.
+
+    Parameters
+    ----------
+    endpoint : the daemon's ROUTER, e.g. ``tcp://127.0.0.1:5555``.
+    stream : stream id.
+    channels : studio channel names (frame order); None = the model's own list, no handshake.
+    model : model name in the daemon's config, or None for its default.
+    timeout_s : how long one request waits for its answer.
+    retries : how many times a request is re-sent on a fresh socket before DaemonUnavailable.
+    """
+
+    def __init__(self, endpoint: str, stream: str, channels: list[str] | None = None, model: str | None = None,
+                 *, timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
+                 ctx: zmq.Context | None = None, first_seq: int = 0):
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be positive (got {timeout_s})")
+        self.endpoint = endpoint
+        self.session = StreamSession(stream, channels, model, first_seq)
+        self.timeout_s = float(timeout_s)
+        self.retries = int(retries)
+        self._own_ctx = ctx is None
+        self.ctx = ctx or zmq.Context()
+        self.sock: zmq.Socket | None = None
+        self._mon: zmq.Socket | None = None
+        self._open()
+
+    # ---- socket lifecycle ------------------------------------------------------------------
+    def _open(self) -> None:
+        self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)
+        self._mon = open_monitor(self.ctx, self.sock, self.session.stream.encode().hex()[:32])
+
+    def _close_socket(self) -> None:
+        if self.sock is not None:
+            try:
+                self.sock.disable_monitor()
+            except zmq.ZMQError:
+                pass
+            self.sock.close(linger=0)
+            self.sock = None
+        if self._mon is not None:
+            self._mon.close(linger=0)
+            self._mon = None
+
+    def reconnect(self) -> None:
+        """Throw the socket away and open a fresh one; the handshake is re-sent before the next frame."""
+        self._close_socket()
+        self.session.reconnects += 1
+        self.session.link_lost()
+        self._open()
+
+    def close(self) -> None:
+        self._close_socket()
+        if self._own_ctx:
+            self.ctx.term()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ---- raw send / receive ----------------------------------------------------------------
+    def _send(self, data: bytes) -> None:
+        assert self.sock is not None
+        try:
+            self.sock.send(data, copy=False)
+        except zmq.Again:
+            raise TimeoutError("no daemon connected") from None
+
+    def recv(self, timeout_s: float | None = None) -> wire.Message | None:
+        """The next message from the daemon, or None after ``timeout_s`` (default: the client's)."""
+        assert self.sock is not None
+        t = self.timeout_s if timeout_s is None else timeout_s
+        if not self.sock.poll(int(t * 1000), zmq.POLLIN):
+            return None
+        return decode_reply(self.sock.recv())
+
+    def _ensure_handshake(self) -> None:
+        self.session.drain_monitor(self._mon)
+        if not self.session.handshaken:
+            self.hello()
+
+    def hello(self) -> wire.HelloAck:
+        """Send the handshake and wait for its ``hello-ack`` (retrying on a fresh socket)."""
+        if self.session.channels is None:
+            raise ValueError("this client has no channel list to hand over (channels=None)")
+        for attempt in range(self.retries + 1):
+            try:
+                self._send(self.session.hello_bytes())
+                deadline = time.monotonic() + self.timeout_s
+                while True:
+                    msg = self.recv(max(0.0, deadline - time.monotonic()))
+                    if msg is None:
+                        raise TimeoutError("no hello-ack")
+                    if isinstance(msg, (wire.HelloAck, wire.ErrorMsg)):
+                        if attempt:
+                            self.session.rehellos += 1
+                        return self.session.on_ack(msg)
+                    # answers to frames pipelined before the handshake: not ours to keep here
+            except TimeoutError:
+                if attempt == self.retries:
+                    break
+                self.reconnect()
+        raise DaemonUnavailable(f"no answer from {self.endpoint} to the handshake of {self.session.stream!r} "
+                                f"after {self.retries + 1} tries of {self.timeout_s:g} s")
+
+    def send(self, angles: Any, observed: Any = None, t: float | None = None, seq: int | None = None) -> int:
+        """Send one frame without waiting; returns its sequence number.  Read answers with recv()."""
+        self._ensure_handshake()
+        seq, data = self.session.frame_bytes(angles, observed, t, seq)
+        self._send(data)
+        return seq
+
+    def fill(self, angles: Any, observed: Any = None, t: float | None = None,
+             seq: int | None = None) -> wire.FillMsg | wire.Drop:
+        """Send one frame and wait for its answer: a FillMsg, or a Drop naming why it was not served.
+
+        angles : (C,) degrees, NaN where missing; observed : (C,) bool or None.
+        Raises DaemonUnavailable after every retry timed out, DaemonRefused on an ``error`` reply.
+        """
+        seq, data = self.session.frame_bytes(angles, observed, t, seq)
+        for attempt in range(self.retries + 1):
+            try:
+                self._ensure_handshake()
+                self._send(data)
+                msg = self._await_seq(seq)
+            except TimeoutError:
+                if attempt == self.retries:
+                    break
+                self.reconnect()
+                continue
+            if isinstance(msg, wire.ErrorMsg):
+                if msg.reason in REHELLO_REASONS and self.session.channels is not None and attempt < self.retries:
+                    self.session.handshaken = False  # the daemon lost our mapping: say it again
+                    continue
+                raise DaemonRefused(msg)
+            return msg
+        raise DaemonUnavailable(f"no answer from {self.endpoint} for frame {seq} of {self.session.stream!r} "
+                                f"after {self.retries + 1} tries of {self.timeout_s:g} s")
+
+    def _await_seq(self, seq: int) -> wire.Message:
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            msg = self.recv(max(0.0, deadline - time.monotonic()))
+            if msg is None:
+                raise TimeoutError(f"frame {seq}")
+            if isinstance(msg, (wire.FillMsg, wire.Drop)) and msg.seq == seq:
+                return msg
+            if isinstance(msg, wire.ErrorMsg) and msg.seq in (seq, None):
+                return msg
+            # an answer to an earlier pipelined frame or a stale handshake: skip it
+
+    # ---- control ---------------------------------------------------------------------------
+    def control(self, cmd: str, stream: str | None = None) -> wire.ControlReply:
+        """A control request (status, reset, reload, list-models) on this client's socket."""
+        return control(self.endpoint, cmd, stream, timeout_s=self.timeout_s, ctx=self.ctx)
+
+    def status(self) -> dict[str, Any]:
+        r = self.control("status")
+        if not r.ok:
+            raise DaemonRefused(wire.ErrorMsg("status", r.error or "status failed"))
+        return r.result
+
+
+def decode_reply(data: bytes) -> wire.Message:
+    """Decode an answer from the daemon.
+
+    ``wire.decode`` caps maps at 64 keys and arrays at MAX_CHANNELS (right for untrusted
+    input), but a ``status`` reply lists every stream in one map; a daemon's reply is trusted
+    and is read without those caps.
+    """
+    try:
+        return wire.decode(data, max_bytes=1 << 26)
+    except wire.WireError:
+        m = msgpack.unpackb(data, raw=False, strict_map_key=False)
+        if isinstance(m, dict) and m.get("type") == "control-reply":
+            return wire.ControlReply(str(m.get("cmd")), bool(m.get("ok")), m.get("result") or {}, m.get("error"))
+        raise
+
+
+def control(endpoint: str, cmd: str, stream: str | None = None, *, timeout_s: float = DEFAULT_TIMEOUT_S,
+            ctx: zmq.Context | None = None) -> wire.ControlReply:
+    """One control request on a short-lived DEALER; DaemonUnavailable on timeout.
+
+    A separate socket keeps control answers out of a stream's pipelined frame answers.
+    """
+    own = ctx is None
+    ctx = ctx or zmq.Context()
+    s = dealer_socket(ctx, endpoint, timeout_s)
+    try:
+        try:
+            s.send(wire.encode(wire.Control(cmd, stream)))
+        except zmq.Again:
+            raise DaemonUnavailable(f"no daemon at {endpoint} (control {cmd})") from None
+        if not s.poll(int(timeout_s * 1000), zmq.POLLIN):
+            raise DaemonUnavailable(f"no answer from {endpoint} to control {cmd} within {timeout_s:g} s")
+        msg = decode_reply(s.recv())
+        if isinstance(msg, wire.ErrorMsg):
+            raise DaemonRefused(msg)
+        if not isinstance(msg, wire.ControlReply):
+            raise DaemonRefused(wire.ErrorMsg("unexpected", f"control {cmd} answered with {type(msg).__name__}"))
+        return msg
+    finally:
+        s.close(linger=0)
+        if own:
+            ctx.term()

@@ -1,0 +1,209 @@
+"""Drive N streams at R Hz against a daemon and time every frame's round trip.
+
+One thread, one DEALER per stream (as N capture plugins would have), one ``zmq.Poller``.  Frame
+k of every stream is due at ``t0 + k / R`` (absolute deadlines from ``perf_counter``, so the
+pace never drifts however late one tick was); between deadlines the loop polls for answers.
+The poll sleeps in whole milliseconds and spins the last fraction, so ticks go out within
+about 0.1 ms of their deadline without burning a core.
+
+Messages are built and read with msgpack directly in the hot loop (the wire schema's own map
+layout, angle/mask bytes precomputed once per take frame), because ``wire.encode``/``decode``
+validate every field and the generator must not become the bottleneck it is measuring; the
+handshake goes through ``daemon.wire``.
+
+Each frame's round trip runs from just before its ``send`` to just after its answer was read;
+with many streams an answer may wait while the loop sends the rest of a tick, and that wait
+is part of the figure (a real plugin in one process would see it too).
+"""
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgpack
+import numpy as np
+import zmq
+
+from clients.client import decode_reply
+from clients.session import DEFAULT_TIMEOUT_S, dealer_socket
+from daemon import wire
+
+DRAIN_S = 10.0  # after the last tick, wait up to this long for every outstanding answer (an overloaded
+# daemon answers each frame eventually, with a fill or a drop; counts are compared only then)
+HANDSHAKE_TIMEOUT_S = 5.0
+PROGRESS_EVERY_S = 2.0
+
+
+@dataclass
+class LoadResult:
+    """Per-frame outcome of one run.
+
+    rtt_ms : (n_served,) round trips of served frames, milliseconds.
+    proc_us : (n_served,) the daemon's own processing time of each, microseconds.
+    lateness_ms : (n_ticks,) how late each tick's first send was after its deadline.
+    """
+
+    streams: list[str]
+    rate: float
+    seconds: float
+    sent: int = 0
+    served: int = 0
+    degraded: int = 0
+    passthrough: int = 0
+    dropped: int = 0
+    errors: int = 0
+    unsent: int = 0
+    drop_reasons: dict[str, int] = field(default_factory=dict)
+    error_reasons: dict[str, int] = field(default_factory=dict)
+    rtt_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    proc_us: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    lateness_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    wall_s: float = 0.0
+
+    @property
+    def lost(self) -> int:
+        """Frames sent that got no answer at all before the drain ended."""
+        return self.sent - self.served - self.dropped - self.errors
+
+
+def percentiles(rtt_ms: np.ndarray) -> dict[str, float | None]:
+    if rtt_ms.size == 0:
+        return {k: None for k in ("p50_ms", "p90_ms", "p99_ms", "p999_ms", "max_ms")}
+    q = np.percentile(rtt_ms, [50, 90, 99, 99.9])
+    return {"p50_ms": float(q[0]), "p90_ms": float(q[1]), "p99_ms": float(q[2]), "p999_ms": float(q[3]),
+            "max_ms": float(rtt_ms.max())}
+
+
+def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: np.ndarray, *, n_streams: int,
+             rate: float, seconds: float, model: str | None = None, prefix: str = "bench",
+             progress: bool = True) -> LoadResult:
+    """Offer ``n_streams`` x ``rate`` frames/s for ``seconds``; every stream replays ``frames``
+    (T, C) with mask ``observed`` (T, C) from its own starting offset, cycling."""
+    if n_streams < 1 or rate <= 0 or seconds <= 0:
+        raise ValueError(f"need streams >= 1, rate > 0, seconds > 0 (got {n_streams}, {rate}, {seconds})")
+    T, C = frames.shape
+    if C != len(channels) or observed.shape != frames.shape:
+        raise ValueError(f"frames {frames.shape} / observed {observed.shape} do not match {len(channels)} channels")
+    given = np.where(observed, frames, np.nan).astype(wire.F32)
+    angle_bytes = [given[j].tobytes() for j in range(T)]
+    mask_bytes = [observed[j].astype(np.uint8).tobytes() for j in range(T)]
+    pack = msgpack.Packer(use_bin_type=True).pack
+    n_ticks = max(1, int(round(seconds * rate)))
+    ids = [f"{prefix}-{i:03d}" for i in range(n_streams)]
+    res = LoadResult(ids, rate, seconds)
+    ctx = zmq.Context()
+    socks = [dealer_socket(ctx, endpoint, DEFAULT_TIMEOUT_S) for _ in ids]
+    index = {s: i for i, s in enumerate(socks)}
+    poller = zmq.Poller()
+    for s in socks:
+        poller.register(s, zmq.POLLIN)
+    send_t = np.full((n_streams, n_ticks), np.nan)
+    rtt = np.full((n_streams, n_ticks), np.nan)
+    proc = np.full((n_streams, n_ticks), np.nan)
+    lateness = np.zeros(n_ticks)
+    try:
+        _handshake(socks, ids, channels, model)
+        offsets = (np.arange(n_streams) * (T // max(1, n_streams))) % T
+        # header bytes are constant per stream; the frame body is built per send (seq, t, angles)
+        t0 = time.perf_counter() + 0.05
+        next_report = t0 + PROGRESS_EVERY_S
+        for k in range(n_ticks):
+            due = t0 + k / rate
+            _wait_until(due, poller, index, send_t, rtt, proc, res)
+            now = time.perf_counter()
+            lateness[k] = (now - due) * 1000.0
+            for i, s in enumerate(socks):
+                j = (offsets[i] + k) % T
+                body = pack({"v": wire.SCHEMA_VERSION, "type": "frame", "stream": ids[i], "seq": k, "t": time.time(),
+                             "angles": angle_bytes[j], "observed": mask_bytes[j]})
+                t = time.perf_counter()
+                try:
+                    s.send(body, zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    res.unsent += 1
+                    continue
+                send_t[i, k] = t
+                res.sent += 1
+            if progress and now >= next_report:
+                next_report += PROGRESS_EVERY_S
+                print(f"\r  bench: {k + 1}/{n_ticks} ticks, {res.served} served, {res.dropped} dropped",
+                      end="", file=sys.stderr, flush=True)
+        end = time.perf_counter() + DRAIN_S
+        while res.served + res.dropped + res.errors < res.sent and time.perf_counter() < end:
+            _wait_until(min(end, time.perf_counter() + 0.05), poller, index, send_t, rtt, proc, res)
+        res.wall_s = time.perf_counter() - t0
+        if progress:
+            print(f"\r  bench: {n_ticks}/{n_ticks} ticks, {res.served} served, {res.dropped} dropped   ",
+                  file=sys.stderr, flush=True)
+    finally:
+        for s in socks:
+            s.close(linger=0)
+        ctx.term()
+    ok = np.isfinite(rtt)
+    res.rtt_ms = rtt[ok]
+    res.proc_us = proc[ok]
+    res.lateness_ms = lateness
+    return res
+
+
+def _handshake(socks: list[zmq.Socket], ids: list[str], channels: list[str], model: str | None) -> None:
+    for s, sid in zip(socks, ids):
+        s.send(wire.encode(wire.Hello(sid, channels, model)))
+    for s, sid in zip(socks, ids):
+        if not s.poll(int(HANDSHAKE_TIMEOUT_S * 1000), zmq.POLLIN):
+            raise TimeoutError(f"no hello-ack for stream {sid} within {HANDSHAKE_TIMEOUT_S:g} s")
+        msg = decode_reply(s.recv())
+        if isinstance(msg, wire.ErrorMsg):
+            raise ValueError(f"daemon refused the handshake of {sid}: {msg.reason}: {msg.detail}")
+
+
+def _wait_until(deadline: float, poller: zmq.Poller, index: dict[Any, int], send_t: np.ndarray, rtt: np.ndarray,
+                proc: np.ndarray, res: LoadResult) -> None:
+    while True:
+        left = deadline - time.perf_counter()
+        if left <= 0:
+            return
+        # sleep whole milliseconds in the poll, spin the remainder (ms-resolution poll timeout)
+        ms = int(left * 1000.0 - 0.3)
+        for sock, _ in poller.poll(ms if ms > 0 else 0):
+            i = index[sock]
+            while True:
+                try:
+                    data = sock.recv(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                t = time.perf_counter()
+                _account(data, i, t, send_t, rtt, proc, res)
+
+
+def _account(data: bytes, i: int, t: float, send_t: np.ndarray, rtt: np.ndarray, proc: np.ndarray,
+             res: LoadResult) -> None:
+    """Count one answer.  Reads only the fields it needs; anything unreadable counts as an error."""
+    try:
+        m = msgpack.unpackb(data, raw=False)
+        typ = m["type"]
+    except Exception:  # noqa: BLE001 - a malformed answer is counted, never fatal to the run
+        res.errors += 1
+        res.error_reasons["unreadable"] = res.error_reasons.get("unreadable", 0) + 1
+        return
+    if typ == "fill":
+        k = m.get("seq", -1)
+        if 0 <= k < send_t.shape[1] and send_t[i, k] == send_t[i, k]:  # sent (not NaN)
+            rtt[i, k] = (t - send_t[i, k]) * 1000.0
+            proc[i, k] = m.get("proc_us", np.nan)
+        res.served += 1
+        st = m.get("status")
+        if st == "degraded":
+            res.degraded += 1
+        elif st == "passthrough":
+            res.passthrough += 1
+    elif typ == "drop":
+        res.dropped += 1
+        r = str(m.get("reason"))
+        res.drop_reasons[r] = res.drop_reasons.get(r, 0) + 1
+    else:
+        res.errors += 1
+        r = str(m.get("reason", typ))
+        res.error_reasons[r] = res.error_reasons.get(r, 0) + 1

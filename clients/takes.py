@@ -1,0 +1,116 @@
+"""Takes for replay, bench and demo: read/write any supported file, and erasure patterns.
+
+Formats: ``.lrec`` recordings (clients/recording.py), ``.amc`` (mocap.asf), and ``.bvh`` /
+``.csv`` through ``mocap.io`` when that module is present in this build.
+
+Erasure patterns (``--drop``), all from ``mocap/protocols.py``:
+
+* ``none``                              nothing erased
+* ``gaps``                              the gaps protocol's seeded bursts on every joint group
+* ``gaps:left-arm,head-neck``           the same bursts, on the named joint groups only
+* ``pan2009``                           second half, everything but the 14 leg channels
+* ``taylor2007:right-leg``              from the middle on, the right leg (or ``upper-body``)
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from clients import recording
+from lacuna.errors import LacunaError
+from mocap.motion import Motion
+from mocap.protocols import JOINT_GROUPS, LEG_BONES, RIGHT_LEG, Gaps, bone
+
+
+def _io():
+    try:
+        from mocap import io as mio
+    except ImportError:  # mocap.io (BVH/CSV) is not in this build yet
+        return None
+    return mio
+
+
+def read_take(path: str | os.PathLike, asf: str | None = None) -> tuple[Motion, np.ndarray | None]:
+    """(motion, observed mask or None).  A recording's own mask says which values were captured."""
+    p = os.fspath(path)
+    ext = Path(p).suffix.lower()
+    if not os.path.exists(p):
+        raise LacunaError(f"{p}: no such file")
+    if ext == recording.SUFFIX:
+        rec = recording.read_recording(p)
+        if not rec.has_raw and rec.filled_angles is None:
+            raise LacunaError(f"{p}: the recording holds neither raw nor filled frames")
+        m = rec.to_motion(p)
+        obs = rec.observed if rec.has_raw else np.isfinite(m.frames)
+        return m, obs
+    mio = _io()
+    if mio is not None:
+        return mio.read_motion(p, asf=asf), None
+    if ext == ".amc":
+        from mocap.asf import read_amc
+
+        return read_amc(p, asf), None
+    raise LacunaError(f"{p}: this build reads .amc and {recording.SUFFIX} takes (mocap.io for BVH/CSV is not installed)")
+
+
+def write_take(path: str | os.PathLike, motion: Motion, asf: str | None = None, observed: np.ndarray | None = None,
+               fills: list | None = None) -> None:
+    """Write in the format the extension names (the input's format for replay)."""
+    p = os.fspath(path)
+    ext = Path(p).suffix.lower()
+    if ext == recording.SUFFIX:
+        recording.write_motion_recording(p, motion, observed, fills)
+        return
+    mio = _io()
+    if mio is not None:
+        mio.write_motion(p, motion, asf=asf)
+        return
+    if ext == ".amc":
+        from mocap.asf import read_asf, write_amc
+
+        write_amc(p, motion, motion.skeleton if asf is None else read_asf(asf))
+        return
+    raise LacunaError(f"{p}: this build writes .amc and {recording.SUFFIX} (mocap.io for BVH/CSV is not installed)")
+
+
+def drop_mask(pattern: str, motion: Motion, seed: int = 0) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
+    """The observed mask (T, C) a pattern leaves, and the bursts (group, start, stop) it erased.
+
+    Raises LacunaError naming the pattern when it is unknown.
+    """
+    T, C = motion.frames.shape
+    ch = motion.channels
+    obs = np.ones((T, C), bool)
+    name, _, arg = pattern.partition(":")
+    if name == "none":
+        return obs, []
+    if name == "gaps":
+        groups = [g for g in arg.split(",") if g] if arg else list(JOINT_GROUPS)
+        bad = [g for g in groups if g not in JOINT_GROUPS]
+        if bad:
+            raise LacunaError(f"--drop {pattern}: unknown joint group {bad[0]!r} (known: {', '.join(JOINT_GROUPS)})")
+        gobs, bursts = Gaps(seed).occlusion(Path(motion.source).stem or "take", T, ch, motion.fps)
+        keep = [b for b in bursts if b[0] in groups]
+        for g, a, b in keep:
+            cols = np.array([bone(c) in JOINT_GROUPS[g] for c in ch])
+            obs[a:b, cols] = False
+        return obs, keep
+    if name == "pan2009":
+        cols = np.array([bone(c) not in LEG_BONES for c in ch])
+        obs[T // 2:, cols] = False
+        return obs, [("all-but-legs", T // 2, T)]
+    if name == "taylor2007":
+        which = arg or "right-leg"
+        if which == "right-leg":
+            cols = np.array([bone(c) in RIGHT_LEG for c in ch])
+        elif which == "upper-body":
+            first = [bone(c) for c in ch].index("lowerback") if any(bone(c) == "lowerback" for c in ch) else C
+            cols = np.zeros(C, bool)
+            cols[first:] = True
+        else:
+            raise LacunaError(f"--drop {pattern}: taylor2007 erases right-leg or upper-body (got {which!r})")
+        obs[T // 2:, cols] = False
+        return obs, [(which, T // 2, T)]
+    raise LacunaError(f"--drop {pattern!r}: unknown pattern (none, gaps[:GROUP,...], pan2009, taylor2007:right-leg|upper-body)")

@@ -1,0 +1,295 @@
+"""The online CRBM filler behind the Filler seam: clamped alternating Gibbs, batched over
+streams x chains, constant time per frame.
+
+Per frame t (section 5 of the paper and the released code, papers/NOTES.md):
+
+1. the past n completed frames set the dynamic biases once: c* = c + x A, b* = b + x B;
+2. observed features are clamped to the data; missing ones start from the previous completed
+   frame plus N(0, ``init_noise``^2) noise;
+3. K alternating Gibbs iterations: h ~ p(h | v, x) (eq. 2, binary samples), then the missing
+   visibles are set to their Gaussian mean c* + h W^T (eq. 3); observed ones stay clamped;
+4. a final mean-field step: the missing visibles become c* + p(h | v, x) W^T, using the hidden
+   probabilities of the last iteration instead of its sample ("otherwise very noisy").
+
+S chains run in parallel from the same history; the fill is their mean.  The per-channel std
+is the spread of the visible means E[v | h] over the chains and over the second half of the
+iterations (so it is informative even for S = 1).  The completed (mean) frame becomes history.
+
+``mode="mean-field"`` is deterministic: hidden probabilities instead of samples, no init noise;
+its std is the spread of E[v | h] under the factorial hidden posterior,
+sqrt(sum_j W_ij^2 p_j (1 - p_j)).
+
+Runtime knobs (not learned; the daemon turns them under load, see ``set_iterations``):
+``n_gibbs`` (K), ``n_chains`` (S).  Every fill reports ``extras["gibbs_iterations"]``.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.special import expit
+
+from crbm.model import CRBM
+from lacuna.feature_model import CoreOut, FeatureModel
+from mocap.representation import Representation
+
+MODES = ("gibbs", "mean-field")
+_TINY32 = np.float32(1e-30)
+
+
+def _logistic32(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Logistic(0, 1) noise as log(u / (1 - u)) from float32 uniforms: three times faster than
+    ``rng.logistic`` and ample resolution for Bernoulli draws (u is kept off 0 so log is finite)."""
+    u = rng.random(shape, dtype=np.float32)
+    np.maximum(u, _TINY32, out=u)
+    return np.log(u / (np.float32(1.0) - u))
+
+
+class CRBMModel(FeatureModel):
+    """A trained CRBM (optionally with a second level, section 6) as a causal filler.
+
+    Parameters
+    ----------
+    representation : the fitted feature space (Taylor's root motion, unit variance).
+    crbm : the trained first level, visible width = representation.n_features.
+    level2 : optional CRBM with binary visibles trained on ``crbm``'s hidden probabilities.
+    n_gibbs : K, alternating Gibbs iterations per frame (30).
+    n_chains : S, parallel chains averaged into the fill (1 = the paper).
+    mode : "gibbs" (the paper) or "mean-field" (deterministic).
+    init_noise : std of the noise added to the previous frame to start the missing visibles.
+    seed : seeds the filler's sampler.  The noise of stream frame t comes from a generator keyed
+        by (seed, t), so a fill is reproducible and the same whether a stream runs alone, in a
+        batch, offline or in the daemon (``reseed`` changes the seed for following frames).
+    meta : training metadata kept for the model file.
+
+    Degrading under load
+    --------------------
+    ``set_iterations(k)`` changes K for every following step (k >= 1; cost is linear in k) and
+    ``set_chains(s)`` changes S; both take effect at the next frame, keep all stream state, and
+    the value used is returned in ``Fill.extras["gibbs_iterations"]`` / ``["chains"]``.  A daemon
+    that needs a cheaper fill calls ``set_iterations(5)`` (or ``mode="mean-field"`` via
+    ``set_mode``), marks its replies degraded, and restores the default when the load drops.
+    """
+
+    method = "crbm"
+    causal = True
+
+    def __init__(self, representation: Representation, crbm: CRBM, level2: CRBM | None = None,
+                 n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs", init_noise: float = 0.01,
+                 seed: int = 0, meta: dict[str, Any] | None = None):
+        crbm._check_fitted()
+        if crbm.n_visible_ != representation.n_features:
+            raise ValueError(f"CRBM has {crbm.n_visible_} visible units but the representation has "
+                             f"{representation.n_features} features")
+        if level2 is not None and level2.n_visible_ != crbm.n_hidden:
+            raise ValueError(f"second level has {level2.n_visible_} visible units, first level has {crbm.n_hidden} hidden")
+        self.representation = representation
+        self.crbm = crbm
+        self.level2 = level2
+        self.init_noise = float(init_noise)
+        self.meta = dict(meta or {})
+        self.set_iterations(n_gibbs)
+        self.set_chains(n_chains)
+        self.set_mode(mode)
+        self.reseed(seed)
+        F, o = crbm.n_visible_, crbm.order
+        # one matmul gives both dynamic biases: x [A | B]
+        self._AB = np.ascontiguousarray(np.hstack([crbm.A_, crbm.B_]))
+        self._cb = np.concatenate([crbm.c_, crbm.b_])
+        self._W = np.ascontiguousarray(crbm.W_)
+        self._WT = np.ascontiguousarray(crbm.W_.T)
+        self._F, self._o = F, o
+        self._mask_cache: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        if level2 is not None:
+            self._AB2 = np.ascontiguousarray(np.hstack([level2.A_, level2.B_]))
+            self._cb2 = np.concatenate([level2.c_, level2.b_])
+
+    # ---- runtime knobs ----------------------------------------------------------------------------
+    def set_iterations(self, k: int) -> None:
+        """K alternating Gibbs iterations per frame for the following steps (k >= 1)."""
+        if isinstance(k, bool) or int(k) != k or k < 1:
+            raise ValueError(f"Gibbs iterations must be an integer >= 1 (got {k!r})")
+        self.n_gibbs = int(k)
+
+    def set_chains(self, s: int) -> None:
+        """S parallel chains per stream for the following steps (s >= 1)."""
+        if isinstance(s, bool) or int(s) != s or s < 1:
+            raise ValueError(f"chains must be an integer >= 1 (got {s!r})")
+        self.n_chains = int(s)
+
+    def set_mode(self, mode: str) -> None:
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES} (got {mode!r})")
+        self.mode = mode
+
+    def reseed(self, seed: int | None) -> None:
+        self._seed = int(np.random.SeedSequence(seed).entropy if seed is None else seed)
+        self._rng = np.random.default_rng(self._seed)   # kept for callers that save/restore it
+
+    def info(self) -> dict[str, Any]:
+        d = super().info()
+        d.update(levels=2 if self.level2 is not None else 1, hidden=self.crbm.n_hidden, order=self.crbm.order,
+                 gibbs_iterations=self.n_gibbs, chains=self.n_chains, mode=self.mode)
+        return d
+
+    # ---- core -------------------------------------------------------------------------------------
+    def core_init(self, n: int) -> dict[str, np.ndarray]:
+        st = {"hist": np.zeros((n, self._o * self._F)), "count": np.zeros(n, dtype=np.int64)}
+        if self.level2 is not None:
+            st["hhist"] = np.zeros((n, self.level2.order * self.crbm.n_hidden))
+        return st
+
+    def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> CoreOut:
+        hist, F = state["hist"], self._F
+        first = state["count"] == 0
+        if first.any():
+            # no past yet: the first frame (missing features at the mean, 0) stands for it
+            hist[first] = np.tile(np.where(zobs[first], z[first], 0.0), self._o)
+        out = np.where(zobs, z, 0.0)
+        std = np.zeros_like(out)
+        need = ~zobs.all(1)
+        k = self.n_gibbs
+        rows = np.flatnonzero(need)
+        if rows.size:
+            fill, sd = self._fill_rows(state, rows, out[rows], zobs[rows])
+            out[rows], std[rows] = fill, sd
+        if self.level2 is not None:
+            self._push_level2(state, out, first)
+        hist[:, F:] = hist[:, :-F].copy()
+        hist[:, :F] = out
+        state["count"] += 1
+        info = {"gibbs_iterations": k if self.mode == "gibbs" else 0, "chains": self.n_chains}
+        return CoreOut(out, std, [dict(info) for _ in range(z.shape[0])])
+
+    def _fill_rows(self, state: dict[str, np.ndarray], rows: np.ndarray, zc: np.ndarray,
+                   obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """zc (m, F): observed values, 0 elsewhere; obs (m, F).  Returns fill and std (m, F)."""
+        hist = state["hist"][rows]
+        m, F, H = zc.shape[0], self._F, self.crbm.n_hidden
+        S = self.n_chains if self.mode == "gibbs" else 1
+        dyn = hist @ self._AB + self._cb                  # (m, F + H): c*, b*  (section 3)
+        bv, bh = dyn[:, :F], dyn[:, F:]
+        if self.level2 is not None:
+            dyn2 = state["hhist"][rows] @ self._AB2 + self._cb2
+            bv2, bh2 = dyn2[:, :H], dyn2[:, H:]
+        else:
+            bv2 = bh2 = None
+        same = m == 1 or bool((obs == obs[0]).all())
+        if same:
+            # one mask for every row: only the missing columns are iterated; the observed ones
+            # enter once, through the hidden input (b* + v_obs W_obs)
+            mi, ob, Wm, WmT = self._mask_parts(obs[0])
+            bh = bh + zc[:, ob] @ self._W[ob]
+            vb = bv[:, mi]
+            prev = hist[:, :F][:, mi]
+            W, WT = Wm, WmT
+        else:
+            vb, prev, W, WT = bv, hist[:, :F], self._W, self._WT
+            mi = slice(None)
+        if S > 1:
+            vb, bh, prev = (np.repeat(a, S, axis=0) for a in (vb, bh, prev))
+            if bv2 is not None:
+                bv2, bh2 = np.repeat(bv2, S, axis=0), np.repeat(bh2, S, axis=0)
+        if self.mode == "gibbs":
+            noise, L, L2 = self._draws(state["count"][rows], S, H)
+            v = prev + self.init_noise * (noise[:, mi] if same else noise)
+        else:
+            v = prev.copy()
+        if not same:
+            obsS = np.repeat(obs, S, axis=0) if S > 1 else obs
+            zS = np.repeat(zc, S, axis=0) if S > 1 else zc
+            np.copyto(v, zS, where=obsS)
+        K = self.n_gibbs
+        nr = v.shape[0]
+        a = np.empty((nr, H))
+        h = np.empty_like(a)
+        half = K // 2
+        keep = np.empty((K - half,) + v.shape)
+        gibbs = self.mode == "gibbs"
+        for it in range(K):
+            np.matmul(v, W, out=a)
+            a += bh                                        # eq. 2 logits: b* + v W
+            if self.level2 is not None:
+                # second level (section 6): its hiddens, driven by the current first-level hidden
+                # state, add top-down input c2* + h2 W2^T to the first-level hidden logits
+                h1 = expit(a) if it == 0 else h
+                a2 = h1 @ self.level2.W_ + bh2
+                h2 = (a2 > L2[it]).astype(float) if gibbs else expit(a2)
+                a += h2 @ self.level2.W_.T + bv2
+            if gibbs:
+                np.greater(a, L[it], out=h)               # binary samples
+            else:
+                expit(a, out=h)
+            np.matmul(h, WT, out=v)
+            v += vb                                        # eq. 3: the mean, not a sample
+            if not same:
+                np.copyto(v, zS, where=obsS)
+            if it >= half:
+                keep[it - half] = v
+        # final mean-field step from the last iteration's hidden probabilities
+        ph = expit(a)
+        np.matmul(ph, WT, out=v)
+        v += vb
+        if gibbs:
+            var = keep.var(0)
+        else:
+            var = (ph * (1.0 - ph)) @ (WT * WT)
+        if S > 1:
+            mean = v.reshape(m, S, -1).mean(1)
+            # pooled spread: within-chain (second half) plus between chains
+            var = var.reshape(m, S, -1).mean(1) + v.reshape(m, S, -1).var(1)
+        else:
+            mean = v
+        sd = np.sqrt(var)
+        if same:
+            fill, std = zc.copy(), np.zeros_like(zc)
+            fill[:, mi], std[:, mi] = mean, sd
+            return fill, std
+        return np.where(obs, zc, mean), np.where(obs, 0.0, sd)
+
+    def _draws(self, counts: np.ndarray, S: int, H: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The frame's random numbers, per stream from a generator keyed by (seed, frame index):
+        init noise (m*S, F) and logistic noise (K, m*S, H) [and (K, m*S, H2) for level 2].
+        h ~ Bernoulli(logistic(a))  <=>  h = [a > L] with L ~ Logistic(0, 1), so drawing L up
+        front spares a logistic function per iteration."""
+        K, F = self.n_gibbs, self._F
+        H2 = self.level2.n_hidden if self.level2 is not None else 0
+        noise, L, L2 = [], [], []
+        for c in counts:
+            g = np.random.default_rng([self._seed, int(c)])
+            noise.append(g.standard_normal((S, F)))
+            L.append(_logistic32(g, (K, S, H)))
+            if H2:
+                L2.append(_logistic32(g, (K, S, H2)))
+        return (np.concatenate(noise), np.concatenate(L, axis=1),
+                np.concatenate(L2, axis=1) if H2 else None)
+
+    def _mask_parts(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        key = np.packbits(obs).tobytes()
+        got = self._mask_cache.get(key)
+        if got is None:
+            mi, ob = np.flatnonzero(~obs), np.flatnonzero(obs)
+            Wm = np.ascontiguousarray(self._W[mi])
+            got = (mi, ob, Wm, np.ascontiguousarray(Wm.T))
+            if len(self._mask_cache) > 256:
+                self._mask_cache.clear()
+            self._mask_cache[key] = got
+        return got
+
+    def _push_level2(self, state: dict[str, np.ndarray], out: np.ndarray, first: np.ndarray) -> None:
+        """The second level's history is the first level's bottom-up hidden probabilities of the
+        completed frames, as in its training data."""
+        H = self.crbm.n_hidden
+        dyn = state["hist"] @ self.crbm.B_ + self.crbm.b_
+        h1 = expit(out @ self._W + dyn)
+        hh = state["hhist"]
+        if first.any():
+            hh[first] = np.tile(h1[first], self.level2.order)
+        hh[:, H:] = hh[:, :-H].copy()
+        hh[:, :H] = h1
+
+    # ---- persistence ------------------------------------------------------------------------------
+    def save(self, path: str) -> None:
+        from crbm.persist import save_model
+
+        save_model(self, path)

@@ -1,0 +1,55 @@
+"""Registers the CRBM methods with ``lacuna.registry`` and the model-file loader.
+
+* ``crbm``         the paper, faithfully: CD-1 as in section 3, fill by K = 30 clamped Gibbs
+                   iterations plus a final mean-field step, one chain (section 5).
+* ``crbm-mf``      same training, deterministic mean-field fill (hidden probabilities, no noise).
+* ``crbm-2level``  a second CRBM on the first level's hidden activities (section 6), filled by
+                   Gibbs over both levels.
+* ``crbm-imp``     improvements: hidden probabilities in the data term of CD-1 (as the released
+                   code does), parameters averaged over the last 20% of epochs, and S = 8
+                   chains averaged in the fill.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from crbm.persist import METHODS, load_model_arrays
+from crbm.train import train_model
+from lacuna.modelfile import register_loader
+from lacuna.registry import MethodSpec, register_method
+
+# option name -> keyword of train_model; anything else a protocol passes is ignored
+_OPTIONS = ("hidden", "order", "epochs", "seed", "history_noise", "positive_hidden", "average_last", "levels",
+            "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "fps", "progress",
+            "progress_every")
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "crbm": {},
+    "crbm-mf": {"mode": "mean-field"},
+    "crbm-2level": {"levels": 2},
+    "crbm-imp": {"positive_hidden": "prob", "average_last": 0.2, "n_chains": 8},
+}
+
+
+def _trainer(name: str):
+    def train(training_set: Any, **options: Any):
+        kw = {**VARIANTS[name], **{k: v for k, v in options.items() if k in _OPTIONS and v is not None}}
+        kw.setdefault("progress", True)       # a progress line on stderr every 200 epochs
+        kw.setdefault("progress_every", 200)
+        return train_model(training_set.sequences, training_set.channels, names=list(getattr(training_set, "names", []) or []),
+                           method=name, **kw)
+
+    return train
+
+
+def _describe(name: str) -> str:
+    """The method's bullet from this module's docstring, on one line."""
+    doc = __doc__ or ""
+    part = doc.split(f"``{name}``", 1)[1].split("\n* ")[0]
+    return " ".join(part.split())
+
+
+for _name in METHODS:
+    register_method(MethodSpec(_name, _trainer(_name), description=_describe(_name), causal=True,
+                               defaults=dict(VARIANTS[_name])))
+    register_loader(_name, load_model_arrays)

@@ -1,0 +1,66 @@
+"""CRBM model files: ``lacuna.modelfile`` npz arrays + JSON meta, never pickle.
+
+Arrays: ``W, A, B, c, b`` (first level) and ``l2_W, l2_A, l2_B, l2_c, l2_b`` (second level,
+optional).  Meta: channels, representation, hyperparameters of each level, fill settings,
+training data names / seconds / date / epochs / last reconstruction error.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+from crbm.filler import CRBMModel
+from crbm.model import CRBM
+from lacuna.modelfile import ModelFileError, load_arrays, save_arrays
+from mocap.representation import Representation
+
+METHODS = ("crbm", "crbm-mf", "crbm-2level", "crbm-imp")
+
+
+def save_model(model: CRBMModel, path: str | os.PathLike) -> None:
+    meta: dict[str, Any] = {
+        "method": model.method,
+        "channels": list(model.channels),
+        "representation": model.representation.to_dict(),
+        "hyperparameters": {"level1": {**model.crbm.hyperparameters(), "n_epochs_done": model.crbm.n_epochs_done_}},
+        "fill": {"n_gibbs": model.n_gibbs, "n_chains": model.n_chains, "mode": model.mode,
+                 "init_noise": model.init_noise},
+        "training": model.meta.get("training", {}),
+    }
+    arrays = model.crbm.get_arrays()
+    if model.level2 is not None:
+        meta["hyperparameters"]["level2"] = {**model.level2.hyperparameters(), "n_epochs_done": model.level2.n_epochs_done_}
+        arrays.update(model.level2.get_arrays("l2_"))
+    save_arrays(path, meta, arrays)
+
+
+def load_model_arrays(path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> CRBMModel:
+    """The registered loader: rebuilds the model, ModelFileError naming the file on bad content."""
+    try:
+        rep = Representation.from_dict(meta["representation"])
+        hyper = meta["hyperparameters"]
+        l1 = CRBM.from_arrays(hyper["level1"], arrays)
+        l2 = CRBM.from_arrays(hyper["level2"], arrays, "l2_") if "level2" in hyper else None
+        fill = meta.get("fill", {})
+        model = CRBMModel(rep, l1, l2, n_gibbs=fill.get("n_gibbs", 30), n_chains=fill.get("n_chains", 1),
+                          mode=fill.get("mode", "gibbs"), init_noise=fill.get("init_noise", 0.01),
+                          meta={"training": meta.get("training", {})})
+    except KeyError as e:
+        raise ModelFileError(f"{path}: crbm model lacks {e.args[0]!r}") from None
+    except ValueError as e:
+        raise ModelFileError(f"{path}: crbm model is malformed ({e})") from None
+    if list(meta["channels"]) != list(model.channels):
+        raise ModelFileError(f"{path}: metadata channels do not match the representation's channels")
+    if meta.get("method") in METHODS:
+        model.method = meta["method"]
+    return model
+
+
+def load(path: str | os.PathLike) -> CRBMModel:
+    path = os.fspath(path)
+    meta, arrays = load_arrays(path)
+    if meta.get("method") not in METHODS:
+        raise ModelFileError(f"{path}: method {meta.get('method')!r} is not a CRBM model")
+    return load_model_arrays(path, meta, arrays)

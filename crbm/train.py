@@ -1,0 +1,75 @@
+"""Train a CRBM filler from raw sequences: fit the representation, CD-1 on the first level,
+optionally a second level on its hidden activities (section 6)."""
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import sys
+import time
+from typing import Sequence
+
+import numpy as np
+
+from crbm.filler import CRBMModel
+from crbm.model import CRBM
+from mocap.representation import Representation
+
+# The released demo: 2000 epochs of mini-batches of 100 on ~2600 frames, i.e. ~52k updates.
+# Bigger training sets get fewer epochs so the number of updates (and the time) stays there.
+DEMO_EPOCHS = 2000
+DEMO_UPDATES = 52_000
+
+
+def auto_epochs(n_cases: int, batch_size: int = 100) -> int:
+    per_epoch = max(1, math.ceil(n_cases / batch_size))
+    return int(min(DEMO_EPOCHS, max(50, DEMO_UPDATES // per_epoch)))
+
+
+def _progress_printer(what: str, every: int):
+    t0 = time.perf_counter()
+
+    def show(epoch: int, err: float) -> None:
+        if epoch % every == 0 or epoch == 1:
+            print(f"{what} epoch {epoch}: reconstruction error {err:.4f} per frame "
+                  f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr, flush=True)
+
+    return show
+
+
+def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hidden: int = 150, order: int = 3,
+                epochs: int | None = None, seed: int = 0, history_noise: float = 0.0,
+                positive_hidden: str = "sample", average_last: float = 0.0, levels: int = 1, level2_hidden: int | None = None,
+                level2_epochs: int | None = None, n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs",
+                method: str | None = None, names: Sequence[str] = (), fps: float | None = None,
+                root_mode: str = "relative", progress: bool = False, progress_every: int = 100) -> CRBMModel:
+    """sequences: raw (n_i, C) frames in ``channels``.  Returns a trained CRBMModel.
+
+    ``epochs=None`` picks ``auto_epochs`` (2000 on the taylor2007 split, fewer on bigger sets).
+    """
+    if levels not in (1, 2):
+        raise ValueError(f"levels must be 1 or 2 (got {levels!r})")
+    t0 = time.perf_counter()
+    rep = Representation.fit(sequences, channels, root_mode=root_mode, normalize=True)
+    Z = [rep.transform(s) for s in sequences]
+    n_cases = sum(max(0, z.shape[0] - order) for z in Z)
+    ep = auto_epochs(n_cases) if epochs is None else int(epochs)
+    l1 = CRBM(n_hidden=hidden, order=order, n_epochs=ep, history_noise=history_noise,
+              positive_hidden=positive_hidden, average_last=average_last, random_state=seed,
+              progress=_progress_printer("crbm", progress_every) if progress else None)
+    l1.fit(Z)
+    l2 = None
+    if levels == 2:
+        Hs = l1.hidden_probabilities(Z)
+        ep2 = ep if level2_epochs is None else int(level2_epochs)
+        l2 = CRBM(n_hidden=level2_hidden or hidden, order=order, n_epochs=ep2, visible="binary",
+                  positive_hidden=positive_hidden, random_state=seed + 1,
+                  progress=_progress_printer("crbm level 2", progress_every) if progress else None)
+        l2.fit([h for h in Hs if h.shape[0] > order])
+    seconds = time.perf_counter() - t0
+    meta = {"training": {"data": list(names), "frames": int(sum(z.shape[0] for z in Z)), "fps": fps,
+                         "seconds": round(seconds, 2), "epochs": ep,
+                         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                         "reconstruction_error": l1.recon_errors_[-1] if l1.recon_errors_ else None}}
+    model = CRBMModel(rep, l1, l2, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta)
+    model.method = method or ("crbm-2level" if levels == 2 else "crbm")
+    return model

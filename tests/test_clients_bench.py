@@ -1,0 +1,94 @@
+"""`lacuna bench` against real daemon processes: its counts must agree with the daemon's status."""
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+
+from clients import bench
+from clients.client import control
+from clients.daemon_proc import DaemonProcess, cpu_seconds
+from lacuna.cli import main
+from mocap.baselines import HoldModel
+from mocap.datasets import load_trial
+
+
+def test_bench_counts_agree_with_daemon_status(tmp_path, data):
+    m = load_trial("07_02")
+    HoldModel.fit([m.frames], m.channels).save(str(tmp_path / "hold.npz"))
+    d = DaemonProcess({"hold": str(tmp_path / "hold.npz")}, workdir=str(tmp_path / "d"),
+                      daemon={"budget_ms": 4.0})
+    d.start()
+    try:
+        frames, observed, src = bench.bench_take(m.channels)
+        assert src == "CMU 07_01" and (~observed).any()
+        row, rtt = bench.run_one(d.endpoint, m.channels, frames, observed, streams=3, rate=100.0, seconds=1.5,
+                                 model="hold", prefix="t1", pid=d.pid, progress=False)
+        st = control(d.endpoint, "status").result
+    finally:
+        d.stop()
+    mine = {sid: s for sid, s in st["streams"].items() if sid.startswith("t1-")}
+    assert len(mine) == 3
+    assert row["served"] == sum(s["frames_out"] for s in mine.values())
+    assert row["dropped"] == sum(s["dropped"] for s in mine.values())
+    assert row["degraded"] == sum(s["degraded"] for s in mine.values())
+    assert row["counts_agree"]
+    assert row["sent"] == sum(s["frames_in"] for s in mine.values())
+    assert row["served"] + row["dropped"] + row["errors"] + row["lost"] == row["sent"] == 3 * 150
+    assert row["served"] > 0 and rtt.size == row["served"]
+    assert row["p50_ms"] <= row["p90_ms"] <= row["p99_ms"] <= row["p999_ms"] <= row["max_ms"]
+    assert row["cpu_percent"] is not None and row["cpu_percent"] > 0
+
+
+def test_bench_command_with_floor_writes_table_json_and_plot(tmp_path, capsys):
+    from clients import synth
+
+    g = synth.gait(2.0, seed=3)
+    HoldModel.fit([g.frames], g.channels).save(str(tmp_path / "hold.npz"))
+    rc = main(["bench", "--streams", "2", "--rate", "60", "--seconds", "1", "--model", str(tmp_path / "hold.npz"),
+               "--floor", "--json", str(tmp_path / "b.json"), "--plot", str(tmp_path / "b.png"), "-q"])
+    assert rc == 0
+    out = json.loads((tmp_path / "b.json").read_text())
+    for k in ("p50_ms", "p90_ms", "p99_ms", "p999_ms", "max_ms", "served", "degraded", "dropped", "cpu_percent"):
+        assert k in out, k
+    assert set(out["runs"]) == {"model", "floor"}
+    assert out["runs"]["floor"]["model"] == "floor" and out["runs"]["floor"]["passthrough"] > 0
+    assert all(r["counts_agree"] for r in out["runs"].values())
+    assert (tmp_path / "b.png").stat().st_size > 0
+    assert "floor" in capsys.readouterr().out
+
+
+def test_cpu_seconds_reads_proc():
+    before = cpu_seconds(os.getpid())
+    t = time.process_time()
+    x = 0.0
+    while time.process_time() - t < 0.2:
+        x += float(np.sum(np.arange(1000)))
+    after = cpu_seconds(os.getpid())
+    assert before is not None and after is not None and after - before >= 0.1
+    assert cpu_seconds(2**22 + 12345) is None
+
+
+def test_bench_connect_drives_a_running_daemon_and_its_floor_model(tmp_path, capsys):
+    from clients import synth
+
+    g = synth.gait(2.0, seed=4)
+    HoldModel.fit([g.frames], g.channels).save(str(tmp_path / "hold.npz"))
+    d = DaemonProcess({"hold": str(tmp_path / "hold.npz"), "floor": {"builtin": "passthrough", "channels": g.channels}},
+                      workdir=str(tmp_path / "d"))
+    d.start()
+    try:
+        rc = main(["bench", "--connect", d.endpoint, "--streams", "2", "--rate", "50", "--seconds", "0.6", "--floor",
+                   "--json", str(tmp_path / "c.json"), "-q"])
+        assert rc == 0
+        out = json.loads((tmp_path / "c.json").read_text())
+        assert out["runs"]["model"]["model"] == "hold" and out["runs"]["floor"]["model"] == "floor"
+        assert all(r["counts_agree"] and r["sent"] == 2 * 30 for r in out["runs"].values())
+        assert out["cpu_percent"] is not None  # a loopback daemon: its pid came from status
+        # a daemon without the floor model: a clear error naming the fix
+        assert main(["bench", "--connect", d.endpoint, "--floor", "--floor-model", "nope", "--seconds", "0.1", "-q"]) == 2
+        assert 'builtin = "passthrough"' in capsys.readouterr().err
+    finally:
+        d.stop()
