@@ -57,5 +57,5 @@ def _run_eval(args: argparse.Namespace) -> int:
 def _run_methods(args: argparse.Namespace) -> int:
     for name in registry.methods():
         spec = registry.get_method(name)
-        print(f"{name:<14} {'causal ' if spec.causal else 'offline'}  {spec.description}")
+        print(f"{name:<22} {'causal ' if spec.causal else 'offline'}  {spec.description}")
     return 0
