@@ -187,3 +187,74 @@ def test_stream_cycle_adaptation_learns_a_performers_offset(world):
         errs[kappa] = np.sqrt(np.mean((filled[45:, 0] - x[45:, 0]) ** 2))
     assert errs[0.0] > 2.5                 # the offset itself
     assert errs[3.0] < 0.5 * errs[0.0]
+
+
+def _accumulate_per_stream(tab, D, W, P, z, zobs):
+    """The stream-by-stream statistics update that ``online.accumulate`` vectorises (reference)."""
+    o = zobs.astype(np.float64)
+    for i in range(P.shape[0]):
+        if not zobs[i].any():
+            continue
+        Pf = P[i].reshape(-1)
+        rows = np.flatnonzero(Pf > online.LIVE_STATS * Pf.max())
+        p, a = Pf[rows], tab.bin_a[rows]
+        dev = o[i] * (np.where(zobs[i], z[i], 0.0) - tab.mu[rows])
+        bins = np.concatenate([tab.bin0[rows], tab.bin1[rows]])
+        wts = np.concatenate([p * (1.0 - a), p * a])[:, None]
+        np.add.at(D[i], bins, wts * np.concatenate([dev, dev]))
+        np.add.at(W[i], bins, wts * o[i])
+
+
+def _fill_per_stream(tab, P, z, zobs, D, W):
+    """The stream-by-stream fill that ``online.fill`` vectorises (reference)."""
+    out, sd = z.copy(), np.zeros_like(z)
+    for i in range(P.shape[0]):
+        miss = ~zobs[i]
+        if not miss.any():
+            continue
+        Pf = P[i].reshape(-1)
+        rows = np.flatnonzero(Pf > online.LIVE * Pf.max())
+        p = Pf[rows] / Pf[rows].sum()
+        if D is None:
+            mu = tab.mu[rows]
+        else:
+            mu = tab.mu[rows] + online.stream_offset(tab, rows, D[i], W[i])
+        lam = tab.lam_rows[rows]
+        val = (p @ (lam * mu)) / (p @ lam)
+        mean, m2 = p @ mu, p @ (mu * mu + tab.var_q[rows])
+        out[i, miss] = val[miss]
+        sd[i, miss] = np.sqrt(np.maximum(m2 - mean * mean, 0.0) + (mean - val) ** 2)[miss]
+    return out, sd
+
+
+@pytest.mark.parametrize("kappa, kappa_global", [(0.0, 0.0), (0.5, 0.0), (0.5, 2.0)])
+def test_vectorised_batch_step_equals_per_stream_loop(world, rng, kappa, kappa_global):
+    model, test, _, _ = world
+    m = model.with_options(kappa=kappa, kappa_global=kappa_global, width=2)
+    tab = m.tables
+    n = 7
+    z_all = m.representation.transform(np.concatenate(test))
+    st = m.core_init(n)
+    D = W = None
+    if kappa > 0:
+        D, W = np.zeros_like(st["D"]), np.zeros_like(st["W"])
+    for t in range(70):
+        rows = (t + np.arange(n) * 11) % z_all.shape[0]
+        zobs = rng.random((n, F)) > 0.4
+        zobs[0] = False            # a frame that never arrived
+        zobs[1] = True             # nothing missing
+        zobs[2, :3] = False        # the long gap on half the features
+        z = np.where(zobs, z_all[rows], np.nan)
+        online.update(tab, st, z, zobs)
+        online.accumulate(tab, st, z, zobs)
+        if D is not None:
+            _accumulate_per_stream(tab, D, W, st["post"], z, zobs)
+            np.testing.assert_allclose(st["D"], D, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(st["W"], W, rtol=0, atol=1e-9)
+        got = online.fill(tab, st["post"], z, zobs, *online.cycle_stats(st))
+        want = _fill_per_stream(tab, st["post"], z, zobs, D, W)
+        np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-9)
+        assert np.array_equal(np.isnan(got[0]), np.isnan(want[0]))
+    if D is not None:
+        assert np.abs(st["D"]).max() > 0.0    # the statistics did move: the comparison is not of zeros
