@@ -71,7 +71,7 @@ def main(argv=None) -> int:
             s.step(frames[t], case.observed[t])
             ts_seam.append(time.perf_counter() - t0)
         print(f"{label}: seam step, 1 stream     {pct(ts_seam)}")
-        for n in (8, 32):
+        for n in (8, 32, 64):
             streams = [m.stream() for _ in range(n)]
             offs = np.arange(n) * 37
             tb = []

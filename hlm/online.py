@@ -44,7 +44,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from scipy.ndimage import correlate1d
-from scipy.sparse import csr_matrix
 
 from hlm.emissions import EmissionTables
 
@@ -154,39 +153,35 @@ def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, z
     sel = np.flatnonzero(zobs.any(1))
     if sel.size == 0:
         return
+    if sel.size == 1:
+        # a lone stream: the direct path costs fewer numpy calls than the batched gather
+        i = sel[0]
+        Pf = P[i].reshape(-1)
+        rows = np.flatnonzero(Pf > LIVE_STATS * Pf.max())
+        p, a = Pf[rows], tab.bin_a[rows]
+        o = zobs[i].astype(np.float64)
+        dev = o * (np.where(zobs[i], z[i], 0.0) - tab.mu[rows])                  # (k, F)
+        bins = np.concatenate([tab.bin0[rows], tab.bin1[rows]])
+        wts = np.concatenate([p * (1.0 - a), p * a])[:, None]
+        np.add.at(state["D"][i], bins, wts * np.concatenate([dev, dev]))
+        np.add.at(state["W"][i], bins, wts * o)
+        return
     s, rows, p = _live(P, sel, LIVE_STATS)
     a = tab.bin_a[rows]
     ob = zobs[s]
     o = ob.astype(np.float64)                                                    # (K, F)
     dev = o * (np.where(ob, z[s], 0.0) - tab.mu[rows])
     cb = tab.em.C * tab.n_bins
-    dest = np.concatenate([s * cb + tab.bin0[rows], s * cb + tab.bin1[rows]])
-    wts = np.concatenate([p * (1.0 - a), p * a])
-    # one sparse (knots, K) product sums every knot's terms (row by row in the per-stream order),
-    # then each touched knot is added once: far cheaper than np.add.at over (2K, F) rows
-    knots, inv = np.unique(dest, return_inverse=True)
-    k2 = np.arange(rows.size)
-    B = csr_matrix((wts, (inv, np.concatenate([k2, k2]))), shape=(knots.size, rows.size))
-    ks, kb = knots // cb, knots % cb                   # unique pairs: the fancy += never collides
-    state["D"][ks, kb] += B @ dev
-    state["W"][ks, kb] += B @ o
-
-
-def knot_offsets(tab: FilterTables, D: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """Per-knot terms of ``stream_offset`` for a batch of statistics D, W (n, C nb, F).
-
-    Returns (E, g): E (n, C nb, F) the knot values (D - W g) / (kappa + W) and g (n, C, F) the
-    per-style constant (None without ``kappa_global``); delta(m) = g_c + (1 - a) E[b0] + a E[b1]."""
-    k = tab.kappa
-    if tab.kappa_global <= 0.0:
-        return D / (k + W), None
-    n, cb, F = D.shape
-    nb = tab.n_bins
-    Dg = D.reshape(n, -1, nb, F).sum(2)                  # (n, C, F): knot weights sum to 1 per frame
-    Wg = W.reshape(n, -1, nb, F).sum(2)
-    g = Dg / (tab.kappa_global + Wg)
-    gk = np.repeat(g, nb, axis=1)                        # (n, C nb, F): each knot's style constant
-    return (D - W * gk) / (k + W), g
+    D, W = state["D"], state["W"]
+    # the pairs come grouped by stream with states ascending, so the pairs sending a term to one
+    # knot form one contiguous run (for bin1 too: only a style's last states wrap to its knot 0)
+    # and a reduceat over the runs sums each knot's terms; each touched knot is then added once
+    for bins, w in ((tab.bin0[rows], p * (1.0 - a)), (tab.bin1[rows], p * a)):
+        dest = s * cb + bins
+        first = np.flatnonzero(np.r_[True, dest[1:] != dest[:-1]])
+        ks, kb = s[first], bins[first]          # distinct runs are distinct knots: += never collides
+        D[ks, kb] += np.add.reduceat(w[:, None] * dev, first)
+        W[ks, kb] += np.add.reduceat(w, first)[:, None] * o[first]
 
 
 def stream_offset(tab: FilterTables, rows: np.ndarray, D: np.ndarray, W: np.ndarray) -> np.ndarray:
@@ -195,10 +190,16 @@ def stream_offset(tab: FilterTables, rows: np.ndarray, D: np.ndarray, W: np.ndar
     With ``kappa_global > 0`` the offset is two-level: a constant per style g_c (all the stream's
     residuals, prior pseudo-count kappa_global) plus knot deviations from it, so phases the stream
     has not shown yet still move by the offset seen elsewhere in the cycle."""
-    E, g = knot_offsets(tab, D[None], W[None])
-    a = tab.bin_a[rows, None]
-    off = (1.0 - a) * E[0, tab.bin0[rows]] + a * E[0, tab.bin1[rows]]
-    return off if g is None else g[0, tab.style_of[rows]] + off
+    k = tab.kappa
+    b0, b1, a = tab.bin0[rows], tab.bin1[rows], tab.bin_a[rows, None]
+    if tab.kappa_global <= 0.0:
+        return (1.0 - a) * D[b0] / (k + W[b0]) + a * D[b1] / (k + W[b1])
+    nb = tab.n_bins
+    c = tab.style_of[rows]
+    Dg = D.reshape(-1, nb, D.shape[1]).sum(1)                   # (C, F): knot weights sum to 1 per frame
+    Wg = W.reshape(-1, nb, W.shape[1]).sum(1)
+    g = (Dg / (tab.kappa_global + Wg))[c]                        # (k, F)
+    return g + (1.0 - a) * (D[b0] - W[b0] * g) / (k + W[b0]) + a * (D[b1] - W[b1] * g) / (k + W[b1])
 
 
 def predict_shared(post: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -291,14 +292,35 @@ def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: n
     sel = np.flatnonzero(miss.any(1))
     if sel.size == 0:
         return out, sd
+    if sel.size == 1:
+        # a lone stream: the direct path costs fewer numpy calls than the batched gather
+        i = sel[0]
+        Pf = P[i].reshape(-1)
+        rows = np.flatnonzero(Pf > LIVE * Pf.max())
+        p = Pf[rows] / Pf[rows].sum()
+        if R is None:
+            s4 = p @ tab.pack[rows]
+            val, mean, m2 = s4[:F] / s4[F : 2 * F], s4[2 * F : 3 * F], s4[3 * F :]
+        else:
+            mu = tab.mu[rows] + stream_offset(tab, rows, R[i], W[i])
+            lam = tab.lam_rows[rows]
+            val = (p @ (lam * mu)) / (p @ lam)
+            mean, m2 = p @ mu, p @ (mu * mu + tab.var_q[rows])
+        var = np.maximum(m2 - mean * mean, 0.0) + (mean - val) ** 2
+        out[i, miss[i]] = val[miss[i]]
+        sd[i, miss[i]] = np.sqrt(var[miss[i]])
+        return out, sd
     s, rows, p = _live(P, sel, LIVE)
     starts = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])       # first pair of each stream in sel
     p = p / np.add.reduceat(p, starts)[np.repeat(np.arange(starts.size), np.diff(np.r_[starts, s.size]))]
-    # the per-stream sums sum_k p_k X_k as one sparse (n_sel, K) product: row j holds stream j's p
-    S = csr_matrix((p, np.arange(p.size), np.r_[starts, p.size]), shape=(starts.size, p.size))
+
+    def S(X: np.ndarray) -> np.ndarray:
+        """Per-stream sums sum_k p_k X_k (n_sel, ...) over the contiguous runs of each stream."""
+        return (p @ X)[None] if starts.size == 1 else np.add.reduceat(p[:, None] * X, starts)
+
     if R is None:
         # one gather of the packed per-state table [lam mu | lam | mu | mu^2 + var + 1/lam]
-        s4 = S @ tab.pack[rows]                                                 # (n_sel, 4F)
+        s4 = S(tab.pack[rows])                                                # (n_sel, 4F)
         val = s4[:, :F] / s4[:, F : 2 * F]
         mean, m2 = s4[:, 2 * F : 3 * F], s4[:, 3 * F :]
     else:
@@ -325,9 +347,9 @@ def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: n
             off = gu[inv[:K]] + ((1.0 - a) * Eu[inv[:K]] + a * Eu[inv[K:]])
         mu = tab.mu[rows] + off
         lam = tab.lam_rows[rows]
-        val = (S @ (lam * mu)) / (S @ lam)
-        mean = S @ mu
-        m2 = S @ (mu * mu + tab.var_q[rows])
+        val = S(lam * mu) / S(lam)
+        mean = S(mu)
+        m2 = S(mu * mu + tab.var_q[rows])
     var = np.maximum(m2 - mean * mean, 0.0) + (mean - val) ** 2
     ms = miss[sel]
     out[sel] = np.where(ms, val, z[sel])
