@@ -43,7 +43,7 @@ BASELINES = ("hold", "nn")
 # the options it does not know (lacuna.registry.MethodSpec).
 SMALL = {
     "hlm": {"n_iter": 10, "styles": 2, "restarts": 1, "progress": False},
-    "crbm": {"hidden": 100, "epochs": 40, "order": 3, "progress": False},
+    "crbm": {"hidden": 100, "epochs": 400, "order": 3, "progress": False},
 }
 TRAIN_OPTIONS = {"fps": 120.0, "cycle_frames": 140}
 SEED_TRIES = 10
