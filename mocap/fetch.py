@@ -18,7 +18,6 @@ import os
 import re
 import socket
 import sys
-import tempfile
 import time
 import urllib.error
 import urllib.request
@@ -28,6 +27,7 @@ from typing import TextIO
 
 from lacuna import __version__
 from lacuna.errors import DataError, ParseError
+from mocap.atomic import atomic_write_bytes
 from mocap.asf import Skeleton, parse_amc, parse_asf, read_asf
 from mocap.datasets import SUBJECT35_RUNS, SUBJECT35_WALKS, cache_dir
 
@@ -212,19 +212,7 @@ def _remove_stale_parts(item: Item) -> None:
 def _keep(item: Item, body: bytes) -> None:
     """Write atomically: temp file in the same directory, fsync, rename."""
     item.path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{item.filename}.", suffix=".part", dir=item.path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(body)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, item.path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_write_bytes(item.path, body)
 
 
 def fetch_cmu(
