@@ -12,13 +12,13 @@ from typing import Any
 import zmq
 import zmq.asyncio
 
-from clients.client import decode_reply
+from clients.client import _DealerLink, decode_reply
 from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS, DaemonRefused,
                              DaemonUnavailable, StreamSession, dealer_socket, open_monitor)
 from daemon import wire
 
 
-class AsyncClient:
+class AsyncClient(_DealerLink):
     """One stream's connection; every method that talks to the daemon is a coroutine.
 
     Parameters are those of :class:`clients.client.Client`.
@@ -44,29 +44,6 @@ class AsyncClient:
     def _open(self) -> None:
         self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)  # type: ignore[arg-type]
         self._mon = open_monitor(self._sync_ctx, self.sock, "a" + self.session.stream.encode().hex()[:32])
-
-    def _close_socket(self) -> None:
-        if self.sock is not None:
-            try:
-                self.sock.disable_monitor()
-            except zmq.ZMQError:
-                pass
-            self.sock.close(linger=0)
-            self.sock = None
-        if self._mon is not None:
-            self._mon.close(linger=0)
-            self._mon = None
-
-    def reconnect(self) -> None:
-        self._close_socket()
-        self.session.reconnects += 1
-        self.session.link_lost()
-        self._open()
-
-    def close(self) -> None:
-        self._close_socket()
-        if self._own_ctx:
-            self.ctx.term()
 
     async def __aenter__(self) -> "AsyncClient":
         return self

@@ -25,7 +25,42 @@ from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS
 from daemon import wire
 
 
-class Client:
+class _DealerLink:
+    """Socket lifecycle shared by the blocking and the asyncio client: subclasses set ``sock``,
+    ``_mon``, ``ctx``, ``_own_ctx``, ``session`` and implement ``_open``."""
+
+    sock: Any
+    _mon: Any
+
+    def _open(self) -> None:
+        raise NotImplementedError
+
+    def _close_socket(self) -> None:
+        if self.sock is not None:
+            try:
+                self.sock.disable_monitor()
+            except zmq.ZMQError:
+                pass
+            self.sock.close(linger=0)
+            self.sock = None
+        if self._mon is not None:
+            self._mon.close(linger=0)
+            self._mon = None
+
+    def reconnect(self) -> None:
+        """Throw the socket away and open a fresh one; the handshake is re-sent before the next frame."""
+        self._close_socket()
+        self.session.reconnects += 1
+        self.session.link_lost()
+        self._open()
+
+    def close(self) -> None:
+        self._close_socket()
+        if self._own_ctx:
+            self.ctx.term()
+
+
+class Client(_DealerLink):
     """One stream's connection to the daemon.
 
     Parameters
@@ -57,30 +92,6 @@ class Client:
     def _open(self) -> None:
         self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)
         self._mon = open_monitor(self.ctx, self.sock, self.session.stream.encode().hex()[:32])
-
-    def _close_socket(self) -> None:
-        if self.sock is not None:
-            try:
-                self.sock.disable_monitor()
-            except zmq.ZMQError:
-                pass
-            self.sock.close(linger=0)
-            self.sock = None
-        if self._mon is not None:
-            self._mon.close(linger=0)
-            self._mon = None
-
-    def reconnect(self) -> None:
-        """Throw the socket away and open a fresh one; the handshake is re-sent before the next frame."""
-        self._close_socket()
-        self.session.reconnects += 1
-        self.session.link_lost()
-        self._open()
-
-    def close(self) -> None:
-        self._close_socket()
-        if self._own_ctx:
-            self.ctx.term()
 
     def __enter__(self) -> "Client":
         return self
