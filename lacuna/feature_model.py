@@ -7,12 +7,21 @@ A subclass supplies a *core* that works on normalised features, batched over str
                                                     zobs: (n, F) bool.  Updates state in place.
 
 and this class turns it into the Filler seam: raw frames in, representation encode, core step,
-decode, exact pass-through of observed channels, commit.  ``step_batch`` stacks the per-stream
-states, runs one vectorised core step and scatters the rows back, so the daemon serves many
-performers with one call.
+decode, exact pass-through of observed channels, commit.
+
+Per-stream state lives batch-shaped in a pool owned by the model (``StatePool``): every stream
+holds a row (a *slot*) of each state array, so ``step_batch`` over the streams of a daemon tick
+works on views of the pool when their slots are contiguous (the usual case: a stream takes the
+lowest free slot) and otherwise gathers and scatters the rows with one fancy index per array,
+instead of restacking per-stream arrays every frame.  A core whose large arrays it only reads
+and writes by row (the HLM's stream-cycle statistics) names them in ``core_sparse_keys``: those
+are never gathered; the core gets the whole pool array and the batch's slots (``rows``) and
+indexes them itself, so a tick touches only the rows it needs.  The state must be updated in
+place (``state[k][...] = ...``, ``+=``), never by rebinding ``state[k]``.
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -20,6 +29,8 @@ import numpy as np
 
 from lacuna.filler import Fill, FillerState, Model, check_frame
 from mocap.representation import Representation, ReprState
+
+REPR_ATTRS = ("prev_u", "prev_raw", "prev_yaw", "started")
 
 
 @dataclass
@@ -32,20 +43,78 @@ class CoreOut:
     extras: list[dict[str, Any]] = field(default_factory=list)
 
 
+class StatePool:
+    """Batch-shaped per-stream state of one FeatureModel: each array is (capacity, ...), a stream
+    owns one row.  Rows are handed out lowest-free-first and start from the model's initial state
+    (``core_init(1)`` and a fresh representation state); capacity doubles when full."""
+
+    def __init__(self, model: "FeatureModel"):
+        self._core0 = model.core_init(1)
+        rs = model.representation.new_state(1)
+        self._repr0 = {a: getattr(rs, a) for a in REPR_ATTRS}
+        self.core: dict[str, np.ndarray] = {}
+        self.repr: dict[str, np.ndarray] = {}
+        self.capacity = 0
+        self._free: list[int] = []
+        self._grow(4)
+
+    def _grow(self, cap: int) -> None:
+        for store, init in ((self.core, self._core0), (self.repr, self._repr0)):
+            for k, v in init.items():
+                new = np.repeat(v, cap, axis=0)
+                if k in store:
+                    new[: self.capacity] = store[k]
+                store[k] = new
+        self._free = sorted(set(self._free) | set(range(self.capacity, cap)))
+        self.capacity = cap
+
+    def acquire(self) -> int:
+        if not self._free:
+            self._grow(2 * self.capacity)
+        slot = self._free.pop(0)
+        self.reset(slot)
+        return slot
+
+    def reset(self, slot: int) -> None:
+        for store, init in ((self.core, self._core0), (self.repr, self._repr0)):
+            for k, v in init.items():
+                store[k][slot] = v[0]
+
+    def release(self, slot: int) -> None:
+        self._free.append(slot)
+        self._free.sort()
+
+    @property
+    def in_use(self) -> int:
+        return self.capacity - len(self._free)
+
+
 class FeatureModel(Model):
     representation: Representation
+    core_sparse_keys: tuple[str, ...] = ()   # state arrays the core indexes by row itself (module doc)
 
     # ---- hooks ----------------------------------------------------------------------------------
     def core_init(self, n: int) -> dict[str, np.ndarray]:
         raise NotImplementedError
 
-    def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> CoreOut:
+    def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
+                  rows: np.ndarray | None = None) -> CoreOut:
+        """``rows`` (n,) int: only for a core with ``core_sparse_keys``; the pool rows of the batch,
+        which index the arrays named there (those are then the whole pool).  None: every array
+        of ``state`` is the batch's own (n, ...)."""
         raise NotImplementedError
 
     # ---- seam -----------------------------------------------------------------------------------
     @property
     def channels(self) -> list[str]:  # type: ignore[override]
         return self.representation.channels
+
+    @property
+    def pool(self) -> StatePool:
+        pool = self.__dict__.get("_pool")
+        if pool is None:
+            pool = self.__dict__["_pool"] = StatePool(self)
+        return pool
 
     def stream(self) -> "FeatureStream":
         return FeatureStream(self)
@@ -56,14 +125,21 @@ class FeatureModel(Model):
         return rep.raw_std(z_std * rep._plan()["std"] if rep.normalize else z_std)
 
     def step_arrays(self, repr_state: ReprState, core_state: dict[str, np.ndarray],
-                    frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
+                    frames: np.ndarray, observed: np.ndarray,
+                    rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
         """One vectorised step over n streams.  frames, observed: (n, C).  Returns (completed, std, extras)."""
         z, zobs = repr_state.encode(frames, observed)
-        out = self.core_step(core_state, z, zobs)
+        out = self.core_step(core_state, z, zobs) if rows is None else self.core_step(core_state, z, zobs, rows=rows)
         completed = repr_state.decode(out.z, frames, observed)
         repr_state.commit(completed)
         std = np.where(observed, 0.0, self._raw_std(out.z_std))
         return completed, std, out.extras
+
+    def _views(self, lo: int, hi: int) -> tuple[ReprState, dict[str, np.ndarray]]:
+        """The representation and core state of pool rows lo..hi-1, as views (writes go to the pool)."""
+        pool = self.pool
+        rs = ReprState.of(self.representation, *(pool.repr[a][lo:hi] for a in REPR_ATTRS))
+        return rs, {k: v[lo:hi] for k, v in pool.core.items()}
 
     def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray) -> list[Fill]:
         mine = [s for s in states if isinstance(s, FeatureStream) and s.model is self]
@@ -72,30 +148,54 @@ class FeatureModel(Model):
         frames = np.asarray(frames, dtype=np.float64)
         observed = np.asarray(observed, dtype=bool)
         n = len(mine)
-        rs = self.representation.new_state(n)
-        for attr in ("prev_u", "prev_raw", "prev_yaw", "started"):
-            setattr(rs, attr, np.concatenate([getattr(s.repr_state, attr) for s in mine]))
-        cs = {k: np.concatenate([s.core_state[k] for s in mine]) for k in mine[0].core_state}
-        done, std, extras = self.step_arrays(rs, cs, np.where(observed, frames, np.nan), observed)
-        fills = []
-        for i, s in enumerate(mine):
-            for attr in ("prev_u", "prev_raw", "prev_yaw", "started"):
-                getattr(s.repr_state, attr)[:] = getattr(rs, attr)[i : i + 1]
-            for k in cs:
-                s.core_state[k][:] = cs[k][i : i + 1]
-            fills.append(Fill(done[i], std[i], ~observed[i], extras[i] if extras else {}))
+        slots = np.fromiter((s.slot for s in mine), dtype=np.intp, count=n)
+        order = np.argsort(slots, kind="stable")
+        srt = slots[order]
+        if n and np.unique(srt).size != n:
+            raise ValueError("step_batch was given the same stream twice")
+        frames, observed = frames[order], observed[order]
+        given = np.where(observed, frames, np.nan)
+        pool = self.pool
+        if n and srt[-1] - srt[0] == n - 1:
+            # contiguous slots: step the pool in place through views, nothing copied
+            rs, cs = self._views(int(srt[0]), int(srt[-1]) + 1)
+            done, std, extras = self.step_arrays(rs, cs, given, observed)
+        else:
+            rs = ReprState.of(self.representation, *(pool.repr[a][srt] for a in REPR_ATTRS))
+            sparse = set(self.core_sparse_keys)
+            cs = {k: (v if k in sparse else v[srt]) for k, v in pool.core.items()}
+            done, std, extras = self.step_arrays(rs, cs, given, observed, rows=srt if sparse else None)
+            for a in REPR_ATTRS:
+                pool.repr[a][srt] = getattr(rs, a)
+            for k, v in cs.items():
+                if k not in sparse:
+                    pool.core[k][srt] = v
+        fills: list[Fill] = [None] * n  # type: ignore[list-item]
+        for j, i in enumerate(order):
+            fills[i] = Fill(done[j], std[j], ~observed[j], extras[j] if extras else {})
         return fills
 
 
 class FeatureStream(FillerState):
-    """One stream of a FeatureModel: its representation state and its core state (n = 1)."""
+    """One stream of a FeatureModel: a slot of the model's state pool, released when the stream
+    is garbage-collected.  ``repr_state`` and ``core_state`` are views of that slot (n = 1)."""
 
     def __init__(self, model: FeatureModel):
         self.model = model
-        self.repr_state = model.representation.new_state(1)
-        self.core_state = model.core_init(1)
+        pool = model.pool
+        self.slot = pool.acquire()
+        weakref.finalize(self, pool.release, self.slot)
+
+    @property
+    def repr_state(self) -> ReprState:
+        return self.model._views(self.slot, self.slot + 1)[0]
+
+    @property
+    def core_state(self) -> dict[str, np.ndarray]:
+        return self.model._views(self.slot, self.slot + 1)[1]
 
     def step(self, frame: np.ndarray | None, observed: np.ndarray | None = None) -> Fill:
         f, obs = check_frame(frame, observed, self.model.n_channels)
-        done, std, extras = self.model.step_arrays(self.repr_state, self.core_state, f[None], obs[None])
+        rs, cs = self.model._views(self.slot, self.slot + 1)
+        done, std, extras = self.model.step_arrays(rs, cs, f[None], obs[None])
         return Fill(done[0], std[0], ~obs, extras[0] if extras else {})

@@ -309,6 +309,16 @@ class ReprState:
         self.started = np.zeros(n, bool)     # has a completed frame been committed
         self._C = C
 
+    @classmethod
+    def of(cls, rep: Representation, prev_u: np.ndarray, prev_raw: np.ndarray, prev_yaw: np.ndarray,
+           started: np.ndarray) -> "ReprState":
+        """A state over existing arrays (n, C), (n, C), (n,), (n,): writes go to them (views of a
+        model's state pool, see ``lacuna.feature_model``)."""
+        st = cls.__new__(cls)
+        st.rep, st.n, st._C = rep, started.shape[0], len(rep.channels)
+        st.prev_u, st.prev_raw, st.prev_yaw, st.started = prev_u, prev_raw, prev_yaw, started
+        return st
+
     def reset(self, i: int) -> None:
         rep = self.rep
         self.prev_u[i] = rep.center

@@ -74,3 +74,26 @@ def test_fully_observed_frames_come_back_unchanged(model):
     for t in range(50):
         fill = st.step(m.frames[t])
         assert np.array_equal(fill.frame, m.frames[t]) and not fill.filled.any()
+
+
+def test_state_pool_grows_reuses_freed_slots_and_starts_them_fresh(model):
+    """Streams own rows of the model's state pool: the pool grows past its first capacity without
+    disturbing live streams, a stream that is dropped frees its row, and the next stream takes the
+    lowest free row starting from the initial state, not the previous owner's."""
+    m = load_trial("07_01")
+    pool = model.pool
+    before = pool.in_use
+    streams = [model.stream() for _ in range(10)]      # more than the first capacity of 4
+    assert pool.capacity >= before + 10 and pool.in_use == before + 10
+    for t in range(5):
+        fills = model.step_batch(streams, np.stack([m.frames[t]] * 10), np.ones((10, 62), bool))
+        assert [f.extras["t"] for f in fills] == [t + 1] * 10
+    freed = streams[3].slot
+    del streams[3]
+    assert pool.in_use == before + 9
+    fresh = model.stream()
+    assert fresh.slot == freed
+    assert fresh.step(m.frames[0]).extras["t"] == 1             # the old owner's count is gone
+    assert streams[4].step(m.frames[5]).extras["t"] == 6        # neighbours untouched
+    with pytest.raises(ValueError, match="same stream twice"):
+        model.step_batch([fresh, fresh], np.stack([m.frames[0]] * 2), np.ones((2, 62), bool))
