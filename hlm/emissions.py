@@ -38,6 +38,7 @@ class EmissionTables:
     lam_q: np.ndarray
     log_norm: np.ndarray
     fused: np.ndarray | None = None   # (3F, C*M): rows for [x, o, x^2]: one GEMM for every term
+    fused_t: np.ndarray | None = None  # (C*M, 3F): the same, a row per state, for a few states at a time
 
     @classmethod
     def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray) -> "EmissionTables":
@@ -50,18 +51,27 @@ class EmissionTables:
         per_o = -0.5 * lam_q + np.repeat(log_norm, M, axis=0)        # (C*M, F) weight of o_f
         per_x2 = -0.5 * np.repeat(lam, M, axis=0)                      # (C*M, F) weight of x_f^2
         return cls(C, M, np.ascontiguousarray(lam), lam_mu, lam_q, log_norm,
-                   np.ascontiguousarray(np.hstack([lam_mu, per_o, per_x2]).T))
+                   np.ascontiguousarray(np.hstack([lam_mu, per_o, per_x2]).T),
+                   np.ascontiguousarray(np.hstack([lam_mu, per_o, per_x2])))
+
+    @staticmethod
+    def terms(x: np.ndarray, obs: np.ndarray | None = None) -> np.ndarray:
+        """(n, 3F) [o x, o, o x^2]: the left factor of the fused product (NaN-free)."""
+        if obs is None:
+            return np.hstack([x, np.ones_like(x), x * x])
+        xo = np.where(obs, x, 0.0)
+        return np.hstack([xo, obs.astype(np.float64), xo * xo])
+
+    def loglik_at(self, v: np.ndarray, s: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """ell of K (stream, flat state) pairs: v (n, 3F) from ``terms``; s, rows (K,).  Returns (K,).
+        The same sums as ``loglik`` for only the states asked for (the live ones of a filter)."""
+        if v.shape[0] == 1:
+            return self.fused_t[rows] @ v[0]
+        return np.einsum("kf,kf->k", self.fused_t[rows], v[s])
 
     def loglik(self, x: np.ndarray, obs: np.ndarray | None = None) -> np.ndarray:
         """x: (n, F) features (NaN allowed where unobserved); obs: (n, F) bool or None (all).
 
         Returns (n, C, M) expected log-likelihoods of the observed entries of each row.
         """
-        n = x.shape[0]
-        if obs is None:
-            o = np.ones_like(x)
-            xo = x
-        else:
-            o = obs.astype(np.float64)
-            xo = np.where(obs, x, 0.0)
-        return (np.hstack([xo, o, xo * xo]) @ self.fused).reshape(n, self.C, self.M)
+        return (self.terms(x, obs) @ self.fused).reshape(x.shape[0], self.C, self.M)

@@ -65,6 +65,7 @@ class HLMModel(FeatureModel):
 
     method = METHOD
     causal = True
+    core_sparse_keys = ("D", "W")   # the stream-cycle statistics: touched only at live knots
 
     def __init__(self, representation: Representation, params: HLMParams, options: HLMOptions | None = None,
                  meta: dict[str, Any] | None = None):
@@ -89,10 +90,11 @@ class HLMModel(FeatureModel):
     def core_init(self, n: int) -> dict[str, np.ndarray]:
         return online.init_state(self.tables, n)
 
-    def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> CoreOut:
+    def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
+                  rows: np.ndarray | None = None) -> CoreOut:
         online.update(self.tables, state, z, zobs)
-        online.accumulate(self.tables, state, z, zobs)
-        zf, sd = online.fill(self.tables, state["post"], z, zobs, *online.cycle_stats(state))
+        online.accumulate(self.tables, state, z, zobs, prow=rows)
+        zf, sd = online.fill(self.tables, state["post"], z, zobs, *online.cycle_stats(state), prow=rows)
         return CoreOut(zf, sd, online.extras(self.tables, state["post"]))
 
     # ---- offline ----------------------------------------------------------------------------------

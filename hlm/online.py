@@ -97,6 +97,11 @@ class FilterTables:
         self.bin0 = (np.arange(C)[:, None] * nb + b0[None]).ravel()
         self.bin1 = (np.arange(C)[:, None] * nb + (b0[None] + 1) % nb).ravel()
         self.bin_a = np.tile(u - b0, C)
+        # (C M, C n_bins): state m's weights 1 - a and a on its two knots (dense, for a lone stream)
+        kw = np.zeros((C * M, C * nb))
+        np.add.at(kw, (np.arange(C * M), self.bin0), 1.0 - self.bin_a)
+        np.add.at(kw, (np.arange(C * M), self.bin1), self.bin_a)
+        self.knot_weights = kw
         self.lam_rows = np.ascontiguousarray(np.repeat(self.em.lam, M, axis=0))
         self.var_q = np.ascontiguousarray(self.var + np.repeat(self.inv_lam, M, axis=0))
         self.pack = np.ascontiguousarray(np.hstack([self.em.lam_mu, self.lam_rows, self.mu, self.q2]))
@@ -140,8 +145,11 @@ def _live(P: np.ndarray, sel: np.ndarray, frac: float) -> tuple[np.ndarray, np.n
 
 
 def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
-               P: np.ndarray | None = None) -> None:
+               P: np.ndarray | None = None, prow: np.ndarray | None = None) -> None:
     """Add this frame's residuals to the stream-cycle statistics D, W (only when ``kappa > 0``).
+
+    prow (n,): when given, D and W are a state pool's (capacity, C n_bins, F) arrays and stream i
+    of the batch owns their row prow[i] (``lacuna.feature_model``); else they are the batch's own.
 
     Vectorised over the batch: the live (stream, state) pairs of every stream that observed
     something are scattered at once into the (n, C n_bins, F) statistics.  Each knot belongs to
@@ -153,18 +161,19 @@ def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, z
     sel = np.flatnonzero(zobs.any(1))
     if sel.size == 0:
         return
+    D, W = state["D"], state["W"]
     if sel.size == 1:
         # a lone stream: the direct path costs fewer numpy calls than the batched gather
         i = sel[0]
         Pf = P[i].reshape(-1)
         rows = np.flatnonzero(Pf > LIVE_STATS * Pf.max())
-        p, a = Pf[rows], tab.bin_a[rows]
+        p = Pf[rows]
         o = zobs[i].astype(np.float64)
         dev = o * (np.where(zobs[i], z[i], 0.0) - tab.mu[rows])                  # (k, F)
-        bins = np.concatenate([tab.bin0[rows], tab.bin1[rows]])
-        wts = np.concatenate([p * (1.0 - a), p * a])[:, None]
-        np.add.at(state["D"][i], bins, wts * np.concatenate([dev, dev]))
-        np.add.at(state["W"][i], bins, wts * o)
+        r = i if prow is None else prow[i]
+        B = tab.knot_weights[rows] * p[:, None]        # (k, C n_bins): each state's share of its two knots
+        D[r] += B.T @ dev
+        W[r] += B.sum(0)[:, None] * o
         return
     s, rows, p = _live(P, sel, LIVE_STATS)
     a = tab.bin_a[rows]
@@ -172,14 +181,15 @@ def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, z
     o = ob.astype(np.float64)                                                    # (K, F)
     dev = o * (np.where(ob, z[s], 0.0) - tab.mu[rows])
     cb = tab.em.C * tab.n_bins
-    D, W = state["D"], state["W"]
     # the pairs come grouped by stream with states ascending, so the pairs sending a term to one
     # knot form one contiguous run (for bin1 too: only a style's last states wrap to its knot 0)
     # and a reduceat over the runs sums each knot's terms; each touched knot is then added once
     for bins, w in ((tab.bin0[rows], p * (1.0 - a)), (tab.bin1[rows], p * a)):
         dest = s * cb + bins
-        first = np.flatnonzero(np.r_[True, dest[1:] != dest[:-1]])
+        first = _runs(dest)
         ks, kb = s[first], bins[first]          # distinct runs are distinct knots: += never collides
+        if prow is not None:
+            ks = prow[ks]
         D[ks, kb] += np.add.reduceat(w[:, None] * dev, first)
         W[ks, kb] += np.add.reduceat(w, first)[:, None] * o[first]
 
@@ -200,6 +210,19 @@ def stream_offset(tab: FilterTables, rows: np.ndarray, D: np.ndarray, W: np.ndar
     Wg = W.reshape(-1, nb, W.shape[1]).sum(1)
     g = (Dg / (tab.kappa_global + Wg))[c]                        # (k, F)
     return g + (1.0 - a) * (D[b0] - W[b0] * g) / (k + W[b0]) + a * (D[b1] - W[b1] * g) / (k + W[b1])
+
+
+def knot_offsets(tab: FilterTables, D: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """The offset at every knot of one stream (C nb, F), so that ``stream_offset`` at states rows
+    is ``tab.knot_weights[rows] @ knot_offsets(...)`` (the knot weights of a state sum to 1, so the
+    per-style constant g moves inside the knots).  Cheaper for a lone stream: whole (C nb, F)
+    arrays in a few calls instead of gathers per state."""
+    if tab.kappa_global <= 0.0:
+        return D / (tab.kappa + W)
+    nb, F = tab.n_bins, D.shape[1]
+    D3, W3 = D.reshape(-1, nb, F), W.reshape(-1, nb, F)
+    g = D3.sum(1, keepdims=True) / (tab.kappa_global + W3.sum(1, keepdims=True))    # (C, 1, F)
+    return (g + (D3 - W3 * g) / (tab.kappa + W3)).reshape(D.shape)
 
 
 def predict_shared(post: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -228,15 +251,44 @@ def prior(tab: FilterTables, state: dict[str, np.ndarray]) -> np.ndarray:
     return pr
 
 
+def _runs(s: np.ndarray) -> np.ndarray:
+    """Start of each run of equal values in s (K,), which is grouped (as np.nonzero returns)."""
+    return np.flatnonzero(np.concatenate(([True], s[1:] != s[:-1])))
+
+
+def _update_one(tab: FilterTables, state: dict[str, np.ndarray], pr: np.ndarray, z: np.ndarray,
+                zobs: np.ndarray) -> np.ndarray:
+    """``update`` of a lone stream without transition adaptation, given its prediction pr (C M,):
+    the same arithmetic with fewer numpy calls."""
+    rows = np.flatnonzero(pr)
+    if zobs.any():
+        llp = tab.em.fused_t[rows] @ tab.em.terms(z, zobs)[0]
+        wp = np.exp(llp - llp.max())
+    else:
+        llp, wp = np.zeros(rows.size), np.ones(rows.size)
+    newp = pr[rows] * wp
+    post = state["post"].reshape(-1)
+    post[:] = 0.0
+    post[rows] = newp / newp.sum()
+    ll = np.full(pr.shape[0], -np.inf)
+    ll[rows] = llp
+    state["t"] += 1
+    return ll.reshape(state["post"].shape)
+
+
 def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> np.ndarray:
     """Consume one frame per stream (z: (n, F) NaN where missing; zobs: (n, F) bool) and return
-    the emission log-likelihoods ell (n, C, M) it used.  Updates ``state`` in place."""
+    the emission log-likelihoods ell (n, C, M) it used.  Updates ``state`` in place.
+
+    The emission is evaluated only on the support of the prediction (states with p(c, m | x_<t) > 0,
+    a few dozen of C M once the phase is known): elsewhere the posterior is 0 whatever the
+    emission, so the result is the full recursion's, and ell is -inf there.  The weights are
+    exp(ell - max over the support), so the best supported state has weight 1 and the product
+    never underflows as a whole."""
     post, d = state["post"], state["d"]
     first = state["t"] == 0
     n = z.shape[0]
     anyobs = zobs.any(1)
-    ll = tab.em.loglik(z, zobs) if anyobs.any() else np.zeros((n,) + tab.shape)
-    w = np.exp(ll - ll.max(axis=(1, 2), keepdims=True))
     if tab.adapt_rate > 0.0:
         # P(jump = j | x_<=t) needs the per-jump split of the prediction
         parts = np.zeros((d.shape[1], n) + tab.shape)
@@ -250,34 +302,45 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
         pr = predict(post, d)
     if first.any():
         pr[first] = np.exp(tab.log_prior)
-    new = pr * w
-    tot = new.sum(axis=(1, 2))
-    bad = ~(tot > 0.0)
-    if bad.any():
-        # every predicted state got an emission weight that underflowed: redo those rows in logs
-        with np.errstate(divide="ignore"):  # log 0 = -inf for states the prediction excludes
-            lg = np.log(pr[bad]) + ll[bad]
-        lg -= lg.max(axis=(1, 2), keepdims=True)
-        new[bad] = np.exp(lg)
-        tot[bad] = new[bad].sum(axis=(1, 2))
-    new /= tot[:, None, None]
+    prf = pr.reshape(n, -1)
+    if n == 1 and tab.adapt_rate == 0.0:
+        return _update_one(tab, state, prf[0], z, zobs)
+    si, rows = np.nonzero(prf > 0.0)               # the support, grouped by stream
+    p = prf[si, rows]
+    if anyobs.any():
+        llp = tab.em.loglik_at(tab.em.terms(z, zobs), si, rows)
+        llp[~anyobs[si]] = 0.0                       # nothing observed: a pure prediction step
+    else:
+        llp = np.zeros(si.size)
+    starts = _runs(si)
+    which = np.repeat(np.arange(starts.size), np.diff(np.append(starts, si.size)))
+    wp = np.exp(llp - np.maximum.reduceat(llp, starts)[which])
+    newp = p * wp
+    tot = np.add.reduceat(newp, starts)
+    post.reshape(n, -1)[...] = 0.0
+    post.reshape(n, -1)[si, rows] = newp / tot[which]
+    ll = np.full((n, prf.shape[1]), -np.inf)
+    ll[si, rows] = llp
+    ll = ll.reshape(pr.shape)
     if tab.adapt_rate > 0.0:
-        xi = (parts * w[None]).sum(axis=(2, 3)).T                         # (n, J)
+        w = np.zeros_like(prf)
+        w[si, rows] = wp
+        xi = (parts * w.reshape(pr.shape)[None]).sum(axis=(2, 3)).T       # (n, J)
         xi /= np.maximum(xi.sum(1, keepdims=True), 1e-300)
-        xi[first | bad | ~anyobs] = 0.0    # no information about the jump in these frames
+        xi[first | ~anyobs] = 0.0    # no information about the jump in these frames
         state["counts"] *= 1.0 - tab.adapt_rate
         state["counts"] += xi
         dn = tab.prior_strength * tab.d_pop[None] + state["counts"]
-        state["d"] = dn / dn.sum(1, keepdims=True)
-    state["post"][...] = new
+        state["d"][...] = dn / dn.sum(1, keepdims=True)
     state["t"] += 1
     return ll
 
 
 def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: np.ndarray | None = None,
-         W: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+         W: np.ndarray | None = None, prow: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fill the missing features from a joint posterior P (n, C, M).  Returns (z completed, std),
-    both (n, F); std is 0 where observed.  R, W (n, C*n_bins, F): the stream-cycle statistics D, W, if adapting.
+    both (n, F); std is 0 where observed.  R, W (n, C*n_bins, F): the stream-cycle statistics D, W, if adapting;
+    with prow (n,) they are a state pool's arrays and stream i owns row prow[i] (see ``accumulate``).
 
     Eq. (18) with the joint posterior in place of psi(c) gamma(m):
     x_dag = (sum_c P(c) Lambda^c)^-1 sum_cm P(c, m) Lambda^c mu^{c,m}.  Only states holding more
@@ -302,7 +365,8 @@ def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: n
             s4 = p @ tab.pack[rows]
             val, mean, m2 = s4[:F] / s4[F : 2 * F], s4[2 * F : 3 * F], s4[3 * F :]
         else:
-            mu = tab.mu[rows] + stream_offset(tab, rows, R[i], W[i])
+            r = i if prow is None else prow[i]
+            mu = tab.mu[rows] + tab.knot_weights[rows] @ knot_offsets(tab, R[r], W[r])
             lam = tab.lam_rows[rows]
             val = (p @ (lam * mu)) / (p @ lam)
             mean, m2 = p @ mu, p @ (mu * mu + tab.var_q[rows])
@@ -311,8 +375,8 @@ def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: n
         sd[i, miss[i]] = np.sqrt(var[miss[i]])
         return out, sd
     s, rows, p = _live(P, sel, LIVE)
-    starts = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])       # first pair of each stream in sel
-    p = p / np.add.reduceat(p, starts)[np.repeat(np.arange(starts.size), np.diff(np.r_[starts, s.size]))]
+    starts = _runs(s)                                             # first pair of each stream in sel
+    p = p / np.add.reduceat(p, starts)[np.repeat(np.arange(starts.size), np.diff(np.append(starts, s.size)))]
 
     def S(X: np.ndarray) -> np.ndarray:
         """Per-stream sums sum_k p_k X_k (n_sel, ...) over the contiguous runs of each stream."""
@@ -329,7 +393,8 @@ def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: n
         n, cb = R.shape[0], R.shape[1]
         nb = tab.n_bins
         K = rows.size
-        u, inv = np.unique(np.concatenate([s * cb + tab.bin0[rows], s * cb + tab.bin1[rows]]),
+        ps = s if prow is None else prow[s]
+        u, inv = np.unique(np.concatenate([ps * cb + tab.bin0[rows], ps * cb + tab.bin1[rows]]),
                            return_inverse=True)
         Du, Wu = R.reshape(-1, F)[u], W.reshape(-1, F)[u]
         a = tab.bin_a[rows, None]

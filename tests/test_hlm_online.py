@@ -48,18 +48,30 @@ def test_online_posterior_equals_offline_forward_pass(world, rng):
         np.testing.assert_allclose(np.array(posts), ref, atol=1e-10)
 
 
-def test_batched_step_equals_single_streams(world, rng):
+@pytest.mark.parametrize("layout", ["contiguous", "interleaved"])
+def test_batched_step_equals_single_streams(world, rng, layout):
+    """Batched == one stream at a time, whether the batch's pool slots are contiguous (stepped
+    through views of the pool) or interleaved with other streams' and given out of order (rows
+    gathered; the stream-cycle statistics indexed in the pool by row)."""
     model, test, _, _ = world
-    m = model.with_options(kappa=0.5)
+    m = model.with_options(kappa=0.5, kappa_global=1.0)
     xs = [test[0], test[1], test[0][::-1].copy()]
     obs = [_mask(rng, x.shape[0]) for x in xs]
     obs[2][10:15] = False          # frames that never arrived, in one stream only
-    singles = [m.stream() for _ in xs]
-    batch = [m.stream() for _ in xs]
+    if layout == "contiguous":
+        singles = [m.stream() for _ in xs]
+        batch = [m.stream() for _ in xs]
+        order = np.arange(3)
+    else:
+        pairs = [(m.stream(), m.stream()) for _ in xs]
+        singles, batch = [p[0] for p in pairs], [p[1] for p in pairs]
+        order = np.array([2, 0, 1])
+        assert [b.slot for b in batch] == [1, 3, 5]
     for t in range(60):
         fr = np.stack([np.where(o[t], x[t], np.nan) for x, o in zip(xs, obs)])
         ob = np.stack([o[t] for o in obs])
-        got = m.step_batch(batch, fr, ob)
+        got = m.step_batch([batch[i] for i in order], fr[order], ob[order])
+        got = [got[int(np.flatnonzero(order == i)[0])] for i in range(3)]
         for i, s in enumerate(singles):
             want = s.step(fr[i], ob[i])
             np.testing.assert_allclose(got[i].frame, want.frame, rtol=1e-12, atol=1e-12)
@@ -258,3 +270,34 @@ def test_vectorised_batch_step_equals_per_stream_loop(world, rng, kappa, kappa_g
         assert np.array_equal(np.isnan(got[0]), np.isnan(want[0]))
     if D is not None:
         assert np.abs(st["D"]).max() > 0.0    # the statistics did move: the comparison is not of zeros
+
+
+@pytest.mark.parametrize("kappa_global", [0.0, 2.0])
+def test_lone_stream_paths_equal_the_per_stream_reference(world, rng, kappa_global):
+    """A batch of one takes the direct paths of ``update``, ``accumulate`` and ``fill`` (fewer numpy
+    calls; the offset from ``knot_offsets``); they must equal the reference loops above."""
+    model, test, _, _ = world
+    m = model.with_options(kappa=0.5, kappa_global=kappa_global, width=2)
+    tab = m.tables
+    z_all = m.representation.transform(test[0])
+    st, ref = m.core_init(1), m.core_init(2)     # ref row 0 steps through the batched update
+    D, W = np.zeros_like(st["D"]), np.zeros_like(st["W"])
+    for t in range(70):
+        zobs = rng.random((1, F)) > 0.4
+        zobs[:, :3] = t < 30
+        if t % 17 == 5:
+            zobs[:] = False                       # a frame that never arrived
+        z = np.where(zobs, z_all[t % z_all.shape[0]], np.nan)
+        ll = online.update(tab, st, z, zobs)
+        ll2 = online.update(tab, ref, np.repeat(z, 2, 0), np.repeat(zobs, 2, 0))
+        np.testing.assert_allclose(st["post"][0], ref["post"][0], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(np.isfinite(ll[0]), np.isfinite(ll2[0]))
+        online.accumulate(tab, st, z, zobs)
+        _accumulate_per_stream(tab, D, W, st["post"], z, zobs)
+        np.testing.assert_allclose(st["D"], D, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(st["W"], W, rtol=0, atol=1e-9)
+        got = online.fill(tab, st["post"], z, zobs, st["D"], st["W"])
+        want = _fill_per_stream(tab, st["post"], z, zobs, D, W)
+        np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-9)
+    assert np.abs(D).max() > 0.0
