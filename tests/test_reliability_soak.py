@@ -1,6 +1,7 @@
 """Issue 7, item 4: overload soak.  64 performers at 120 Hz each, served by a nearest-neighbour
-filler over 2,400 real training frames (one batched step for 64 streams costs ~20 ms, five times
-the 4 ms budget), for SOAK_S seconds, against the real daemon process.
+filler over twelve real walks (a batched step for 64 streams costs several times the 4 ms budget;
+with six walks a quiet machine kept up with most of the load and the overload check below
+became a coin toss), for SOAK_S seconds, against the real daemon process.
 
 What must hold, and how it is checked:
 * the daemon was really overloaded: most served frames were degraded (hold-last-value instead of
@@ -38,7 +39,7 @@ RSS_GROWTH_KIB = 8 * 1024
 P99_BOUND_MS = 250.0  # far above any budget, far below what a growing queue reaches in 20 s
 
 
-def soak(tmp_path, n_streams=N_STREAMS, rate_hz=RATE_HZ, seconds=SOAK_S, budget_ms=BUDGET_MS, n_train=6,
+def soak(tmp_path, n_streams=N_STREAMS, rate_hz=RATE_HZ, seconds=SOAK_S, budget_ms=BUDGET_MS, n_train=12,
          sample_s=0.5) -> dict:
     """Run one soak; returns the load result, daemon status before/after and the RSS samples."""
     seqs = [load_trial(t).frames for t in SUBJECT35_WALKS[1:1 + n_train]]
