@@ -53,7 +53,8 @@ def main(argv=None) -> int:
     p = model.params
     print(f"model: C={p.n_styles} M={p.n_states} F={model.representation.n_features}; {args.frames} frames of {case.test}")
     for label, kappa in (("faithful", 0.0), ("stream-cycle", 3.0)):
-        m = model.with_options(kappa=3.0 if kappa else 0.0, kappa_global=3.0 if kappa else 0.0, width=8)
+        m = model.with_options(kappa=3.0 if kappa else 0.0, kappa_global=3.0 if kappa else 0.0, width=8,
+                               style_switch=1e-3 if kappa else 0.0)
         # core step in feature space
         z_all, o_all = m.encode_recording(case.truth, case.observed)
         z_all = np.where(o_all, z_all, np.nan)

@@ -45,8 +45,9 @@ DEFAULTS: dict[str, Any] = {
     "kappa": 3.0,          # stream-cycle adaptation (hlm.online); chosen on pan2009 and gaps
     "width": 8,
     "kappa_global": 3.0,
+    "style_switch": 1e-3,  # a change of style (walk -> run) about once in 1000 frames; 0 = the paper
 }
-FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0}
+FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0}
 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
@@ -75,7 +76,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
         },
     }
     opts = HLMOptions(adapt_rate=float(o["adapt_rate"]), lag=int(o["lag"]), kappa=float(o["kappa"]), width=int(o["width"]),
-                       kappa_global=float(o["kappa_global"]))
+                       kappa_global=float(o["kappa_global"]), style_switch=float(o["style_switch"]))
     return HLMModel(rep, res.params, opts, meta)
 
 

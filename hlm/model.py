@@ -32,6 +32,8 @@ class HLMOptions:
     kappa, width : stream-cycle adaptation (prior pseudo-count of each knot of the stream's offset,
         knots 2 width + 1 states apart); kappa = 0 is the paper's filler.  See ``hlm.online``.
     kappa_global : pseudo-count of the stream's constant offset under the knots (0 = none).
+    style_switch : probability per frame that the performer changes style (walk -> run) in the
+        online filter and the fixed-lag smoother; 0 is the paper's model (one style per recording).
     """
 
     adapt_rate: float = 0.0
@@ -41,12 +43,15 @@ class HLMOptions:
     kappa: float = 0.0
     width: int = 5
     kappa_global: float = 0.0
+    style_switch: float = 0.0
 
     def check(self) -> None:
         if not (0.0 <= self.adapt_rate < 1.0):
             raise ValueError(f"adapt_rate must be in [0, 1) (got {self.adapt_rate})")
         if self.prior_strength <= 0:
             raise ValueError(f"prior_strength must be positive (got {self.prior_strength})")
+        if not (0.0 <= self.style_switch < 1.0):
+            raise ValueError(f"style_switch must be in [0, 1) (got {self.style_switch})")
         if self.kappa < 0 or self.width < 0 or self.kappa_global < 0:
             raise ValueError(f"kappa, width and kappa_global must be >= 0 "
                              f"(got {self.kappa}, {self.width}, {self.kappa_global})")
@@ -79,7 +84,8 @@ class HLMModel(FeatureModel):
             raise ValueError(f"HLM parameters have {params.mu.shape[2]} features, representation has {F}")
         self.tables = online.FilterTables.build(params.mu, params.var, params.lam, params.tau, params.d_population(),
                                                 self.options.adapt_rate, self.options.prior_strength,
-                                                self.options.kappa, self.options.width, self.options.kappa_global)
+                                                self.options.kappa, self.options.width, self.options.kappa_global,
+                                                self.options.style_switch)
 
     def with_options(self, **kw) -> "HLMModel":
         """A copy with other inference options (the learned parameters are shared, read-only)."""
@@ -92,9 +98,10 @@ class HLMModel(FeatureModel):
 
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
                   rows: np.ndarray | None = None) -> CoreOut:
-        online.update(self.tables, state, z, zobs)
+        keep: dict = {}
+        online.update(self.tables, state, z, zobs, prow=rows, keep=keep, want_ll=False)
         online.accumulate(self.tables, state, z, zobs, prow=rows)
-        zf, sd = online.fill(self.tables, state["post"], z, zobs, *online.cycle_stats(state), prow=rows)
+        zf, sd = online.fill(self.tables, state["post"], z, zobs, *online.cycle_stats(state), prow=rows, keep=keep)
         return CoreOut(zf, sd, online.extras(self.tables, state["post"]))
 
     # ---- offline ----------------------------------------------------------------------------------
@@ -271,7 +278,7 @@ class LagStream:
         if self.n <= self.lag:
             return None
         order = [(self.n + i) % (self.lag + 1) for i in range(self.lag + 1)]   # oldest first
-        P = online.smooth_lag(self.post[order], self.ll[order], self.core["d"])
+        P = online.smooth_lag(self.post[order], self.ll[order], self.core["d"], m.tables.style_switch)
         return self._emit(P, order[0])
 
     def flush(self) -> list[Fill]:
@@ -281,7 +288,7 @@ class LagStream:
         order = [(self.n - k + i) % (self.lag + 1) for i in range(k)]
         for i in range(k):
             sub = order[i:]
-            P = online.smooth_lag(self.post[sub], self.ll[sub], self.core["d"])
+            P = online.smooth_lag(self.post[sub], self.ll[sub], self.core["d"], self.model.tables.style_switch)
             out.append(self._emit(P, sub[0]))
         return out
 

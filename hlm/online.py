@@ -65,6 +65,7 @@ class FilterTables:
     kappa: float = 0.0     # stream-cycle adaptation pseudo-count (frames); 0 = off
     width: int = 5         # knots of that adaptation are 2 width + 1 states apart
     kappa_global: float = 0.0  # pseudo-count of the stream's constant offset (0 = knots only)
+    style_switch: float = 0.0  # probability per frame of a change of style (0 = the paper's one style)
     var: np.ndarray | None = None   # (C*M, F) Q(Z) variances, for the adapted second moment
     inv_lam: np.ndarray | None = None  # (C, F)
     style_of: np.ndarray | None = None  # (C*M,) style index of each flat state
@@ -75,7 +76,7 @@ class FilterTables:
     @classmethod
     def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray, tau: np.ndarray, d_pop: np.ndarray,
               adapt_rate: float = 0.0, prior_strength: float = 240.0, kappa: float = 0.0,
-              width: int = 5, kappa_global: float = 0.0) -> "FilterTables":
+              width: int = 5, kappa_global: float = 0.0, style_switch: float = 0.0) -> "FilterTables":
         C, M, F = mu.shape
         ang = 2.0 * np.pi * np.arange(M) / M
         with np.errstate(divide="ignore"):  # a style with tau = 0 is impossible: log 0 = -inf
@@ -83,7 +84,7 @@ class FilterTables:
         return cls(EmissionTables.build(mu, var, lam), np.ascontiguousarray(mu.reshape(C * M, F)),
                    np.ascontiguousarray((mu ** 2 + var + 1.0 / lam[:, None, :]).reshape(C * M, F)),
                    lp, np.asarray(d_pop, dtype=np.float64), np.cos(ang), np.sin(ang), float(adapt_rate),
-                   float(prior_strength), float(kappa), int(width), float(kappa_global),
+                   float(prior_strength), float(kappa), int(width), float(kappa_global), float(style_switch),
                    np.ascontiguousarray(var.reshape(C * M, F)),
                    1.0 / lam, np.repeat(np.arange(C), M))
 
@@ -105,6 +106,9 @@ class FilterTables:
         self.lam_rows = np.ascontiguousarray(np.repeat(self.em.lam, M, axis=0))
         self.var_q = np.ascontiguousarray(self.var + np.repeat(self.inv_lam, M, axis=0))
         self.pack = np.ascontiguousarray(np.hstack([self.em.lam_mu, self.lam_rows, self.mu, self.q2]))
+        # the emission's terms that do not involve x or the mean: 1/2 log(lam / 2 pi) - lam var / 2
+        self.emit_a = np.ascontiguousarray(np.repeat(self.em.log_norm, M, axis=0) - 0.5 * self.lam_rows * self.var)
+        self.emit_pack = np.ascontiguousarray(np.hstack([self.mu, 0.5 * self.lam_rows, self.emit_a]))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -132,6 +136,10 @@ def cycle_stats(state: dict[str, np.ndarray]) -> tuple[np.ndarray | None, np.nda
 
 
 LIVE = 1e-10      # fill: states below this fraction of the largest posterior are skipped
+SWITCH_LIVE = 1e-3  # change of style: only states above this fraction of the largest posterior switch
+PRUNE = 1e-8      # with style_switch > 0: posteriors below this fraction of the largest are set to 0
+                  # (a style can come back through the switch, so nothing is lost for good; without
+                  # the switch the filter stays exact, as the paper's)
 LIVE_STATS = 1e-4  # stream-cycle statistics: contributions below this fraction are skipped
 
 
@@ -225,6 +233,37 @@ def knot_offsets(tab: FilterTables, D: np.ndarray, W: np.ndarray) -> np.ndarray:
     return (g + (D3 - W3 * g) / (tab.kappa + W3)).reshape(D.shape)
 
 
+def pair_offsets(tab: FilterTables, R: np.ndarray, W: np.ndarray, ps: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The stream offset delta at K (stream, state) pairs (K, F), batched: ps (K,) the streams'
+    rows of R, W (n, C n_bins, F); rows (K,) flat states.  Only the knots next to the pairs'
+    states are read (a few per stream, of C n_bins).  Equals ``stream_offset`` pair by pair."""
+    n, cb, F = R.shape
+    nb = tab.n_bins
+    K = rows.size
+    u, inv = np.unique(np.concatenate([ps * cb + tab.bin0[rows], ps * cb + tab.bin1[rows]]), return_inverse=True)
+    Du, Wu = R.reshape(-1, F)[u], W.reshape(-1, F)[u]
+    a = tab.bin_a[rows, None]
+    if tab.kappa_global <= 0.0:
+        Eu = Du / (tab.kappa + Wu)
+        return (1.0 - a) * Eu[inv[:K]] + a * Eu[inv[K:]]
+    # the per-style constant g (stream_offset) of the (stream, style) pairs present
+    sc, sinv = np.unique(u // nb, return_inverse=True)        # flat (stream, style) ids
+    Dg = R.reshape(n * (cb // nb), nb, F)[sc].sum(1)
+    Wg = W.reshape(n * (cb // nb), nb, F)[sc].sum(1)
+    gu = (Dg / (tab.kappa_global + Wg))[sinv]
+    Eu = (Du - Wu * gu) / (tab.kappa + Wu)
+    return gu[inv[:K]] + ((1.0 - a) * Eu[inv[:K]] + a * Eu[inv[K:]])
+
+
+def adapted_loglik(tab: FilterTables, x: np.ndarray, o: np.ndarray, rows: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """ell of K states on the stream's own cycle mu + delta (the emission of ``hlm.emissions`` with
+    the adapted mean): x, o (K, F) each pair's frame (0 where missing) and mask; off (K, F)."""
+    F = x.shape[-1]
+    t = tab.emit_pack[rows]                     # [mu | lam / 2 | emit_a] in one gather
+    r = x - t[:, :F] - off
+    return ((t[:, 2 * F :] - t[:, F : 2 * F] * r * r) * o).sum(1)
+
+
 def predict_shared(post: np.ndarray, d: np.ndarray) -> np.ndarray:
     """``predict`` when every stream uses the same d (J,): one cyclic correlation in C."""
     J = d.shape[0]
@@ -244,11 +283,28 @@ def predict(post: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 def prior(tab: FilterTables, state: dict[str, np.ndarray]) -> np.ndarray:
     """p(c, m | x_<t) for every stream (n, C, M)."""
-    pr = predict(state["post"], state["d"])
+    pr = switch_styles(predict(state["post"], state["d"]), tab.style_switch)
     first = state["t"] == 0
     if first.any():
         pr[first] = np.exp(tab.log_prior)
     return pr
+
+
+def switch_styles(p: np.ndarray, h: float) -> np.ndarray:
+    """(n, C, M) -> the same after a change of style with probability h, to any other style at the
+    same phase: the styles' cycles are children of one parent cycle (eq. 5), so phase m means
+    the same point of the gait in each.  h = 0 (the paper's model, one style per recording)
+    returns p itself.  Without this a style whose posterior has underflowed to 0 can never
+    return, so a performer who walks and then runs is filled as a walker for the rest of the take."""
+    C = p.shape[-2]
+    if h <= 0.0 or C < 2:
+        return p
+    # only states holding more than SWITCH_LIVE of the stream's largest mass change style (the rest
+    # carry less than C M SWITCH_LIVE h of it): the states the switch creates stay few, so the
+    # emission is evaluated on a compact support (see PRUNE)
+    mx = p.reshape(p.shape[0], -1).max(1)[:, None, None] if p.ndim == 3 else p.max()
+    src = np.where(p > SWITCH_LIVE * mx, p, 0.0)
+    return p - h * src + (h / (C - 1)) * (src.sum(-2, keepdims=True) - src)
 
 
 def _runs(s: np.ndarray) -> np.ndarray:
@@ -257,26 +313,60 @@ def _runs(s: np.ndarray) -> np.ndarray:
 
 
 def _update_one(tab: FilterTables, state: dict[str, np.ndarray], pr: np.ndarray, z: np.ndarray,
-                zobs: np.ndarray) -> np.ndarray:
+                zobs: np.ndarray, r: int = 0, keep: dict | None = None, want_ll: bool = True) -> np.ndarray | None:
     """``update`` of a lone stream without transition adaptation, given its prediction pr (C M,):
-    the same arithmetic with fewer numpy calls."""
+    the same arithmetic with fewer numpy calls.  r: the stream's row of D, W.  keep: receives the
+    support and its offsets for ``fill`` (see there)."""
     rows = np.flatnonzero(pr)
     if zobs.any():
-        llp = tab.em.fused_t[rows] @ tab.em.terms(z, zobs)[0]
+        if tab.kappa > 0.0 and "D" in state:
+            E = knot_offsets(tab, state["D"][r], state["W"][r])
+            a = tab.bin_a[rows, None]
+            off = (1.0 - a) * E[tab.bin0[rows]] + a * E[tab.bin1[rows]]
+            llp = adapted_loglik(tab, np.where(zobs[0], z[0], 0.0), zobs[0], rows, off)
+            if keep is not None:
+                keep["rows"], keep["off"] = rows, off
+        else:
+            llp = tab.em.fused_t[rows] @ tab.em.terms(z, zobs)[0]
         wp = np.exp(llp - llp.max())
     else:
         llp, wp = np.zeros(rows.size), np.ones(rows.size)
     newp = pr[rows] * wp
+    if tab.style_switch > 0.0:
+        newp[newp < PRUNE * newp.max()] = 0.0
     post = state["post"].reshape(-1)
     post[:] = 0.0
     post[rows] = newp / newp.sum()
+    state["t"] += 1
+    if not want_ll:
+        return None
     ll = np.full(pr.shape[0], -np.inf)
     ll[rows] = llp
-    state["t"] += 1
     return ll.reshape(state["post"].shape)
 
 
-def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> np.ndarray:
+def _predict_one(tab: FilterTables, post: np.ndarray) -> np.ndarray:
+    """``predict_shared`` and ``switch_styles`` of one stream (C M,) from its few nonzero states,
+    with bincounts instead of passes over all C M states."""
+    C, M = tab.shape
+    rows = np.flatnonzero(post)
+    d = tab.d_pop
+    base = rows - rows % M                                           # c M of each state
+    tgt = base + (rows % M + np.arange(1, d.size + 1)[:, None]) % M  # (J, k): m + j, wrapped in the cycle
+    pr = np.bincount(tgt.ravel(), (d[:, None] * post[rows]).ravel(), minlength=C * M)
+    h = tab.style_switch
+    if h <= 0.0 or C < 2:
+        return pr
+    live = np.flatnonzero(pr > SWITCH_LIVE * pr.max())              # the states that change style
+    v = h * pr[live]
+    dest = (live % M) + M * np.arange(C)[:, None]                    # (C, ks): the same phase, each style
+    pr += np.bincount(dest.ravel(), np.tile(v / (C - 1), C), minlength=C * M)
+    pr[live] -= v + v / (C - 1)                                      # what left, and the own-style share
+    return pr
+
+
+def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
+           prow: np.ndarray | None = None, keep: dict | None = None, want_ll: bool = True) -> np.ndarray | None:
     """Consume one frame per stream (z: (n, F) NaN where missing; zobs: (n, F) bool) and return
     the emission log-likelihoods ell (n, C, M) it used.  Updates ``state`` in place.
 
@@ -288,6 +378,9 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
     post, d = state["post"], state["d"]
     first = state["t"] == 0
     n = z.shape[0]
+    if n == 1 and tab.adapt_rate == 0.0:
+        pr1 = np.exp(tab.log_prior).reshape(-1) if first[0] else _predict_one(tab, post.reshape(-1))
+        return _update_one(tab, state, pr1, z, zobs, 0 if prow is None else prow[0], keep, want_ll)
     anyobs = zobs.any(1)
     if tab.adapt_rate > 0.0:
         # P(jump = j | x_<=t) needs the per-jump split of the prediction
@@ -300,15 +393,20 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
         pr = predict_shared(post, tab.d_pop)      # d never leaves d_pop without adaptation
     else:
         pr = predict(post, d)
+    pr = switch_styles(pr, tab.style_switch)
     if first.any():
         pr[first] = np.exp(tab.log_prior)
     prf = pr.reshape(n, -1)
-    if n == 1 and tab.adapt_rate == 0.0:
-        return _update_one(tab, state, prf[0], z, zobs)
+    adapted = tab.kappa > 0.0 and "D" in state
     si, rows = np.nonzero(prf > 0.0)               # the support, grouped by stream
     p = prf[si, rows]
     if anyobs.any():
-        llp = tab.em.loglik_at(tab.em.terms(z, zobs), si, rows)
+        if adapted:
+            # the emission on the stream's own cycle (module doc, "Stream cycle adaptation")
+            off = pair_offsets(tab, state["D"], state["W"], si if prow is None else prow[si], rows)
+            llp = adapted_loglik(tab, np.where(zobs, z, 0.0)[si], zobs[si], rows, off)
+        else:
+            llp = tab.em.loglik_at(tab.em.terms(z, zobs), si, rows)
         llp[~anyobs[si]] = 0.0                       # nothing observed: a pure prediction step
     else:
         llp = np.zeros(si.size)
@@ -316,6 +414,8 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
     which = np.repeat(np.arange(starts.size), np.diff(np.append(starts, si.size)))
     wp = np.exp(llp - np.maximum.reduceat(llp, starts)[which])
     newp = p * wp
+    if tab.style_switch > 0.0:
+        newp[newp < PRUNE * np.maximum.reduceat(newp, starts)[which]] = 0.0
     tot = np.add.reduceat(newp, starts)
     post.reshape(n, -1)[...] = 0.0
     post.reshape(n, -1)[si, rows] = newp / tot[which]
@@ -337,7 +437,8 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
 
 
 def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: np.ndarray | None = None,
-         W: np.ndarray | None = None, prow: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+         W: np.ndarray | None = None, prow: np.ndarray | None = None,
+         keep: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fill the missing features from a joint posterior P (n, C, M).  Returns (z completed, std),
     both (n, F); std is 0 where observed.  R, W (n, C*n_bins, F): the stream-cycle statistics D, W, if adapting;
     with prow (n,) they are a state pool's arrays and stream i owns row prow[i] (see ``accumulate``).
@@ -365,8 +466,16 @@ def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: n
             s4 = p @ tab.pack[rows]
             val, mean, m2 = s4[:F] / s4[F : 2 * F], s4[2 * F : 3 * F], s4[3 * F :]
         else:
-            r = i if prow is None else prow[i]
-            mu = tab.mu[rows] + tab.knot_weights[rows] @ knot_offsets(tab, R[r], W[r])
+            if keep and "off" in keep:
+                # the offsets ``update`` computed on the prediction's support (which holds every
+                # live state) before this frame was added to R, W: this frame only adds to the
+                # observed features' columns, so for the missing ones, the only ones filled, they
+                # are the same numbers
+                off = keep["off"][np.searchsorted(keep["rows"], rows)]
+            else:
+                r = i if prow is None else prow[i]
+                off = tab.knot_weights[rows] @ knot_offsets(tab, R[r], W[r])
+            mu = tab.mu[rows] + off
             lam = tab.lam_rows[rows]
             val = (p @ (lam * mu)) / (p @ lam)
             mean, m2 = p @ mu, p @ (mu * mu + tab.var_q[rows])
@@ -389,27 +498,7 @@ def fill(tab: FilterTables, P: np.ndarray, z: np.ndarray, zobs: np.ndarray, R: n
         mean, m2 = s4[:, 2 * F : 3 * F], s4[:, 3 * F :]
     else:
         # the stream's own cycle: style cycle plus the stream's offset (module doc)
-        # only the knots next to live states are evaluated (a few per stream, of C n_bins)
-        n, cb = R.shape[0], R.shape[1]
-        nb = tab.n_bins
-        K = rows.size
-        ps = s if prow is None else prow[s]
-        u, inv = np.unique(np.concatenate([ps * cb + tab.bin0[rows], ps * cb + tab.bin1[rows]]),
-                           return_inverse=True)
-        Du, Wu = R.reshape(-1, F)[u], W.reshape(-1, F)[u]
-        a = tab.bin_a[rows, None]
-        if tab.kappa_global <= 0.0:
-            Eu = Du / (tab.kappa + Wu)
-            off = (1.0 - a) * Eu[inv[:K]] + a * Eu[inv[K:]]
-        else:
-            # the per-style constant g (stream_offset) of the (stream, style) pairs present
-            sc, sinv = np.unique(u // nb, return_inverse=True)        # flat (stream, style) ids
-            Dg = R.reshape(n * (cb // nb), nb, F)[sc].sum(1)
-            Wg = W.reshape(n * (cb // nb), nb, F)[sc].sum(1)
-            g = Dg / (tab.kappa_global + Wg)
-            gu = g[sinv]
-            Eu = (Du - Wu * gu) / (tab.kappa + Wu)
-            off = gu[inv[:K]] + ((1.0 - a) * Eu[inv[:K]] + a * Eu[inv[K:]])
+        off = pair_offsets(tab, R, W, s if prow is None else prow[s], rows)
         mu = tab.mu[rows] + off
         lam = tab.lam_rows[rows]
         val = S(lam * mu) / S(lam)
@@ -430,7 +519,7 @@ def extras(tab: FilterTables, P: np.ndarray) -> list[dict]:
     return [{"style": Pc[i].tolist(), "phase": float(ph[i])} for i in range(P.shape[0])]
 
 
-def smooth_lag(post_buf: np.ndarray, ll_buf: np.ndarray, d: np.ndarray) -> np.ndarray:
+def smooth_lag(post_buf: np.ndarray, ll_buf: np.ndarray, d: np.ndarray, style_switch: float = 0.0) -> np.ndarray:
     """Fixed-lag smoothing: the posterior of the oldest buffered frame given all buffered frames.
 
     post_buf : (L+1, n, C, M) filtered posteriors, oldest first.  ll_buf : (L+1, n, C, M) their
@@ -445,6 +534,8 @@ def smooth_lag(post_buf: np.ndarray, ll_buf: np.ndarray, d: np.ndarray) -> np.nd
             # beta_{u-1}(m) = sum_j d_j w_u(m + j) beta_u(m + j)
             nb[..., :-j] += w[..., j:] * d[:, j - 1, None, None]
             nb[..., -j:] += w[..., :j] * d[:, j - 1, None, None]
+        # the change of style acts on the style axis and the jump on the phase axis: they commute
+        nb = switch_styles(nb, style_switch)
         beta = nb / np.maximum(nb.max(axis=(1, 2), keepdims=True), 1e-300)
     sm = post_buf[0] * beta
     return sm / np.maximum(sm.sum(axis=(1, 2), keepdims=True), 1e-300)

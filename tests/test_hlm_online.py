@@ -32,9 +32,11 @@ def _mask(rng, T, p=0.3):
 
 
 def test_online_posterior_equals_offline_forward_pass(world, rng):
+    """The paper's filter (no stream-cycle adaptation, no change of style) is the offline forward
+    pass; the extensions are checked against a textbook recursion below."""
     model, test, _, _ = world
-    for kappa in (0.0, 0.5):     # the stream-cycle adaptation changes fills, never the posterior
-        m = model.with_options(kappa=kappa)
+    for _ in range(2):
+        m = model.with_options(kappa=0.0, style_switch=0.0)
         x = test[0]
         obs = _mask(rng, x.shape[0])
         st = m.stream()
@@ -110,7 +112,8 @@ def test_dropped_frame_is_a_prediction_step(world):
         st.step(test[0][t], np.ones(F, bool))
     before = st.core_state["post"].copy()
     f = st.step(None)
-    np.testing.assert_allclose(st.core_state["post"], online.predict(before, st.core_state["d"]), atol=1e-14)
+    want = online.switch_styles(online.predict(before, st.core_state["d"]), model.tables.style_switch)
+    np.testing.assert_allclose(st.core_state["post"], want, atol=1e-14)
     assert f.filled.all() and np.isfinite(f.frame).all() and (f.std > 0).all()
 
 
@@ -140,7 +143,7 @@ def test_style_posterior_phase_and_calibrated_std(world):
 
 def test_fixed_lag_stream_converges_to_offline_smoother(world, rng):
     model, test, _, _ = world
-    m = model.with_options(kappa=0.0, n_iter_d=0)
+    m = model.with_options(kappa=0.0, n_iter_d=0, style_switch=0.0)   # the offline smoother is the paper's
     x = test[1][:50]
     obs = _mask(rng, x.shape[0])
     want, want_sd = m.fill_smoothed(np.where(obs, x, np.nan), obs)
@@ -288,6 +291,7 @@ def test_lone_stream_paths_equal_the_per_stream_reference(world, rng, kappa_glob
         if t % 17 == 5:
             zobs[:] = False                       # a frame that never arrived
         z = np.where(zobs, z_all[t % z_all.shape[0]], np.nan)
+        ref["D"][:], ref["W"][:] = st["D"][0], st["W"][0]      # the same statistics behind the emission
         ll = online.update(tab, st, z, zobs)
         ll2 = online.update(tab, ref, np.repeat(z, 2, 0), np.repeat(zobs, 2, 0))
         np.testing.assert_allclose(st["post"][0], ref["post"][0], rtol=0, atol=1e-12)
@@ -301,3 +305,75 @@ def test_lone_stream_paths_equal_the_per_stream_reference(world, rng, kappa_glob
         np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-9)
         np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-9)
     assert np.abs(D).max() > 0.0
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_adapted_filter_equals_textbook_recursion_on_the_streams_own_cycle(world, rng, n):
+    """With stream-cycle adaptation (kappa > 0) the emission is weighed on the stream's own cycle
+    mu + delta (delta from the statistics of the frames before), and with style_switch > 0 the
+    prediction moves mass h / (C - 1) to each other style at the same phase.  Written out the
+    slow way, state by state, the recursion must equal the filter's (lone and batched paths)."""
+    model, test, _, _ = world
+    h = 0.01
+    m = model.with_options(kappa=0.5, kappa_global=1.0, width=2, style_switch=h)
+    tab = m.tables
+    Cs, Ms = tab.shape
+    z_all = m.representation.transform(np.concatenate(test))
+    st = m.core_init(n)
+    D, W = np.zeros_like(st["D"]), np.zeros_like(st["W"])
+    post = None
+    for t in range(60):
+        zobs = rng.random((n, F)) > 0.4
+        zobs[:, :3] = t < 25                     # half the features go missing for good
+        rows_t = (t + np.arange(n) * 13) % z_all.shape[0]
+        z = np.where(zobs, z_all[rows_t], np.nan)
+        # reference: predict, change of style, emission on mu + delta, normalise
+        if post is None:
+            pr = np.exp(np.broadcast_to(tab.log_prior, (n, Cs, Ms))).copy()
+        else:
+            pr = online.predict(post, np.tile(tab.d_pop, (n, 1)))
+            # only states above SWITCH_LIVE of their stream's largest mass change style
+            src = pr * (pr > online.SWITCH_LIVE * pr.max(axis=(1, 2), keepdims=True))
+            pr = pr - h * src + h / (Cs - 1) * (src.sum(1, keepdims=True) - src)
+        want = np.zeros_like(pr)
+        for i in range(n):
+            allrows = np.arange(Cs * Ms)
+            mu = tab.mu + online.stream_offset(tab, allrows, D[i], W[i])
+            lam = tab.lam_rows
+            o = zobs[i]
+            ll = (0.5 * np.log(lam / (2 * np.pi)) - 0.5 * lam * ((np.where(o, z[i], 0.0) - mu) ** 2 + tab.var))[:, o].sum(1)
+            with np.errstate(under="ignore"):
+                w = pr[i].reshape(-1) * np.exp(ll - ll[pr[i].reshape(-1) > 0].max())
+            w[w < online.PRUNE * w.max()] = 0.0          # with the switch, negligible states are dropped
+            want[i] = (w / w.sum()).reshape(Cs, Ms)
+        online.update(tab, st, z, zobs)
+        np.testing.assert_allclose(st["post"], want, rtol=1e-9, atol=1e-12)
+        online.accumulate(tab, st, z, zobs)
+        _accumulate_per_stream(tab, D, W, st["post"], z, zobs)
+        post = want
+    assert np.abs(D).max() > 0.0
+
+
+def test_a_change_of_style_mid_take_is_followed_only_with_style_switch(world, rng):
+    """A performer walks, then runs (style 0, then style 1 of the generating process).  The paper's
+    filter keeps one style per recording: once the other style's posterior has underflowed it can
+    never come back, and the rest of the take is filled with the wrong style.  With style_switch
+    the filter follows within a few frames, and the fills of the second part are better."""
+    model, test, ttruth, _ = world
+    x = np.concatenate([test[0], test[1]])
+    obs = np.ones(x.shape, bool)
+    obs[:, :3] = False                             # three channels missing throughout
+    T0 = test[0].shape[0]
+    out = {}
+    for h in (0.0, 1e-3):
+        st = model.with_options(style_switch=h).stream()
+        fills = [st.step(np.where(obs[t], x[t], np.nan), obs[t]) for t in range(x.shape[0])]
+        style = np.array([np.argmax(f.extras["style"]) for f in fills])
+        err = np.sqrt(np.mean((np.array([f.frame for f in fills])[T0 + 10 :, :3] - x[T0 + 10 :, :3]) ** 2))
+        out[h] = style, err
+    s0, s1 = out[0.0][0], out[1e-3][0]
+    first = s1[T0 - 10 : T0].tolist()
+    assert len(set(first)) == 1 and (s0[T0 - 10 : T0] == first[0]).all()     # both agree on the walk
+    assert (s0[T0:] == first[0]).all(), "the paper's filter should stay with the first style"
+    assert (s1[T0 + 10 :] != first[0]).all(), "with style_switch the filter must follow the change"
+    assert out[1e-3][1] < out[0.0][1]
