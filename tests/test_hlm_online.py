@@ -113,7 +113,9 @@ def test_dropped_frame_is_a_prediction_step(world):
     before = st.core_state["post"].copy()
     f = st.step(None)
     want = online.switch_styles(online.predict(before, st.core_state["d"]), model.tables.style_switch)
-    np.testing.assert_allclose(st.core_state["post"], want, atol=1e-14)
+    if model.tables.style_switch > 0:
+        want[want < online.PRUNE * want.max()] = 0.0   # negligible states are dropped with the switch
+    np.testing.assert_allclose(st.core_state["post"], want / want.sum(), atol=1e-14)
     assert f.filled.all() and np.isfinite(f.frame).all() and (f.std > 0).all()
 
 
