@@ -1,9 +1,11 @@
 """Fill docs/BENCHMARKS.md `## Daemon latency (lacuna bench)` with `lacuna bench` measurements.
 
-    .venv/bin/python bench/latency.py [--repeats 3] [--seconds 10] [--out bench/out] [--no-write]
+    .venv/bin/python bench/latency.py [--repeats 3] [--seconds 10] [--waits sleep,busy] [--out bench/out] [--no-write]
 
 For each model (hold, nn, and HLM / CRBM when this build registers them; all trained on the
-same handful of real CMU walks) and each load (1 stream at 120 Hz; 64 streams at 120 Hz) it runs
+same handful of real CMU walks), each load (1 stream at 120 Hz; 64 streams at 120 Hz) and each
+way of waiting (``sleep``: both sides sleep in poll, the default; ``busy``: ``--busy-poll 50``,
+daemon and client spin on their sockets) it runs
 ``lacuna bench --model FILE --floor`` ``--repeats`` times (a fresh daemon each time) and records
 the median over repeats of every percentile, the spread of p99, the counts and the daemon's
 CPU, beside the pass-through floor measured in the same run.  Per-run JSON and histogram PNGs
@@ -57,20 +59,26 @@ def train_models(out: Path, names: list[str]) -> dict[str, Path]:
     return files
 
 
-def run(files: dict[str, Path], out: Path, repeats: int, seconds: float) -> list[dict]:
+BUSY_POLL_MS = 50.0
+
+
+def run(files: dict[str, Path], out: Path, repeats: int, seconds: float, waits: list[str]) -> list[dict]:
     rows = []
     for name, f in files.items():
         for streams, rate in LOADS:
-            reps = []
-            for r in range(repeats):
-                j = out / f"{name}-{streams}x{rate:g}-r{r}.json"
-                cmd = ["bench", "--streams", str(streams), "--rate", str(rate), "--seconds", str(seconds),
-                       "--model", str(f), "--floor", "--json", str(j), "--plot", str(j.with_suffix(".png")), "-q"]
-                print(f"lacuna {' '.join(cmd)}", file=sys.stderr, flush=True)
-                if lacuna(cmd) != 0:
-                    raise SystemExit(f"bench run failed: {cmd}")
-                reps.append(json.loads(j.read_text()))
-            rows.append(summarise(name, streams, rate, seconds, reps))
+            for wait in waits:
+                reps = []
+                for r in range(repeats):
+                    j = out / f"{name}-{streams}x{rate:g}-{wait}-r{r}.json"
+                    cmd = ["bench", "--streams", str(streams), "--rate", str(rate), "--seconds", str(seconds),
+                           "--model", str(f), "--floor", "--json", str(j), "--plot", str(j.with_suffix(".png")), "-q"]
+                    if wait == "busy":
+                        cmd += ["--busy-poll", f"{BUSY_POLL_MS:g}"]
+                    print(f"lacuna {' '.join(cmd)}", file=sys.stderr, flush=True)
+                    if lacuna(cmd) != 0:
+                        raise SystemExit(f"bench run failed: {cmd}")
+                    reps.append(json.loads(j.read_text()))
+                rows.append({**summarise(name, streams, rate, seconds, reps), "wait": wait})
     return rows
 
 
@@ -97,8 +105,8 @@ def summarise(name: str, streams: int, rate: float, seconds: float, reps: list[d
 
 
 def table(rows: list[dict], repeats: int, seconds: float) -> str:
-    head = ("| model | load | p50 | p90 | p99 (range) | p99.9 | max | served / offered | degraded | dropped | daemon CPU |"
-            "\n|---|---|---|---|---|---|---|---|---|---|---|")
+    head = ("| model | load | wait | p50 | p90 | p99 (range) | p99.9 | max | served / offered | degraded | dropped | daemon CPU |"
+            "\n|---|---|---|---|---|---|---|---|---|---|---|---|")
     L = [head]
     for r in rows:
         for run in ("model", "floor"):
@@ -106,7 +114,7 @@ def table(rows: list[dict], repeats: int, seconds: float) -> str:
             label = r["name"] if run == "model" else "pass-through floor"
             f = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
             cpu = "-" if m["cpu_percent"] is None else f"{m['cpu_percent']:.0f}%"
-            L.append(f"| {label} | {r['streams']} x {r['rate']:g} Hz | {f(m['p50_ms'])} | {f(m['p90_ms'])} | "
+            L.append(f"| {label} | {r['streams']} x {r['rate']:g} Hz | {r.get('wait', 'sleep')} | {f(m['p50_ms'])} | {f(m['p90_ms'])} | "
                      f"{f(m['p99_ms'])} ({m['p99_range'][0]:.2f}-{m['p99_range'][1]:.2f}) | {f(m['p999_ms'])} | "
                      f"{f(m['max_ms'])} | {m['served']} / {m['offered']} | {m['degraded']} | {m['dropped']} | "
                      f"{cpu} |")
@@ -130,6 +138,8 @@ def main() -> int:
     ap.add_argument("--note", default="", help="a sentence added under the table (e.g. which branches were measured)")
     ap.add_argument("--models", default="hold,nn,hlm,crbm", help="comma-separated (default hold,nn,hlm,crbm)")
     ap.add_argument("--loads", default="1x120,64x120", help="comma-separated STREAMSxHZ (default 1x120,64x120)")
+    ap.add_argument("--waits", default="sleep,busy",
+                    help=f"comma-separated: sleep (both sides sleep in poll), busy (--busy-poll {BUSY_POLL_MS:g}: both spin)")
     ap.add_argument("--no-write", action="store_true", help="print the section instead of writing docs/BENCHMARKS.md")
     args = ap.parse_args()
     out = Path(args.out)
@@ -138,7 +148,10 @@ def main() -> int:
     LOADS = [(int(a), float(b)) for a, b in (x.split("x") for x in args.loads.split(","))]
     files = {k: v for k, v in train_models(out, args.models.split(",")).items()}
     t0 = time.time()
-    rows = run(files, out, args.repeats, args.seconds)
+    waits = args.waits.split(",")
+    if not set(waits) <= {"sleep", "busy"}:
+        raise SystemExit(f"--waits takes sleep and/or busy (got {args.waits})")
+    rows = run(files, out, args.repeats, args.seconds, waits)
     (out / "latency-summary.json").write_text(json.dumps(rows, indent=2))
     load = subprocess.run(["cat", "/proc/loadavg"], capture_output=True, text=True).stdout.split()[:3]
     text = "\n".join([
@@ -147,7 +160,9 @@ def main() -> int:
         f"(each row: `lacuna bench --streams N --rate 120 --seconds {args.seconds:g} --model FILE --floor`, "
         f"a fresh daemon per repeat; medians over {args.repeats} repeats, p99 range in brackets; "
         f"served/offered/degraded/dropped summed over repeats). Round trip = client send to client receive, "
-        f"ZeroMQ DEALER -> ROUTER on loopback, ms. Take: CMU 07_01 on a loop with gaps-protocol dropouts. "
+        f"ZeroMQ DEALER -> ROUTER on loopback, ms. Wait: `sleep` = daemon and client sleep in poll between "
+        f"messages; `busy` = `--busy-poll {BUSY_POLL_MS:g}` (the daemon's busy_poll_ms and the client both spin, "
+        f"one core each). Take: CMU 07_01 on a loop with gaps-protocol dropouts. "
         f"Daemon budget 4 ms (lacuna bench default). Models trained on {', '.join(TRAIN)}. "
         f"Python {platform.python_version()}; load average at the end {' '.join(load)} (other sessions were "
         f"using the same 2 cores).",

@@ -70,13 +70,13 @@ def _daemon_counts(status: dict[str, Any], prefix: str) -> dict[str, int]:
 
 def run_one(endpoint: str, channels: list[str], frames: np.ndarray, observed: np.ndarray, *, streams: int,
             rate: float, seconds: float, model: str | None, prefix: str, pid: int | None,
-            progress: bool = True) -> tuple[dict[str, Any], np.ndarray]:
+            progress: bool = True, busy: bool = False) -> tuple[dict[str, Any], np.ndarray]:
     """One load run; returns (JSON-ready row, round trips in ms)."""
     cpu0 = cpu_seconds(pid) if pid else None
     rss0 = rss_bytes(pid) if pid else None
     w0 = time.perf_counter()
     res = loadgen.run_load(endpoint, channels, frames, observed, n_streams=streams, rate=rate, seconds=seconds,
-                           model=model, prefix=prefix, progress=progress)
+                           model=model, prefix=prefix, progress=progress, busy=busy)
     wall = time.perf_counter() - w0
     cpu1 = cpu_seconds(pid) if pid else None
     rss1 = rss_bytes(pid) if pid else None
@@ -113,7 +113,8 @@ def run(args: Any) -> int:
             meta, _ = load_arrays(args.model)
             channels = list(meta["channels"])
             daemon = DaemonProcess({"bench": args.model, FLOOR_MODEL: {"builtin": "passthrough", "channels": channels}},
-                                   "bench", daemon={"budget_ms": float(args.budget_ms)})
+                                   "bench", daemon={"budget_ms": float(args.budget_ms),
+                                                    **({"busy_poll_ms": float(args.busy_poll)} if args.busy_poll else {})})
             if progress:
                 print(f"starting the daemon on {daemon.endpoint} with {args.model} ...", file=sys.stderr, flush=True)
             daemon.start()
@@ -145,13 +146,14 @@ def run(args: Any) -> int:
             prefix = f"bench{int(time.time() * 1000) % 10**8}-{label}"
             runs[label], rtts[label] = run_one(endpoint, channels, frames, observed, streams=args.streams,
                                                rate=args.rate, seconds=args.seconds, model=name, prefix=prefix,
-                                               pid=pid, progress=progress)
+                                               pid=pid, progress=progress, busy=args.busy_poll > 0)
     finally:
         if daemon is not None:
             daemon.stop()
     print(format_table(runs))
     out = {**runs["model"], "runs": runs, "take": src, "endpoint": endpoint,
-           "started_daemon": bool(args.model), "budget_ms": args.budget_ms if args.model else None}
+           "started_daemon": bool(args.model), "budget_ms": args.budget_ms if args.model else None,
+           "busy_poll_ms": args.busy_poll}
     if args.json_out:
         write_json(args.json_out, out)
         print(f"json: {args.json_out}")

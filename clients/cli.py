@@ -76,6 +76,10 @@ def add_commands(cli) -> None:
     p.add_argument("--floor", action="store_true", help="also run the same load against a pass-through filler")
     p.add_argument("--floor-model", default="floor", help="with --connect --floor: the daemon's pass-through model name")
     p.add_argument("--budget-ms", type=float, default=4.0, help="with --model: the daemon's per-frame budget (default 4)")
+    p.add_argument("--busy-poll", type=float, default=0.0, metavar="MS",
+                   help="spin instead of sleeping while waiting for answers (the client always; with --model the "
+                        "daemon too, busy_poll_ms = MS), so neither side's kernel wake-up is in the round trip; "
+                        "each spinning side uses a core (default 0: off)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", dest="json_out", metavar="OUT")
     p.add_argument("--plot", metavar="OUT.png")

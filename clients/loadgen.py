@@ -4,7 +4,10 @@ One thread, one DEALER per stream (as N capture plugins would have), one ``zmq.P
 k of every stream is due at ``t0 + k / R`` (absolute deadlines from ``perf_counter``, so the
 pace never drifts however late one tick was); between deadlines the loop polls for answers.
 The poll sleeps in whole milliseconds and spins the last fraction, so ticks go out within
-about 0.1 ms of their deadline without burning a core.
+about 0.1 ms of their deadline without burning a core.  With ``busy`` it never sleeps: a
+plugin that spins on its socket sees an answer as soon as it lands, without the kernel's
+wake-up delay (0.3-1 ms on a virtual machine) in its round trip; pair it with the daemon's
+``busy_poll_ms`` to measure the path without either side's wake-up.
 
 Messages are built and read with msgpack directly in the hot loop (the wire schema's own map
 layout, angle/mask bytes precomputed once per take frame), because ``wire.encode``/``decode``
@@ -17,6 +20,7 @@ is part of the figure (a real plugin in one process would see it too).
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -78,7 +82,7 @@ def percentiles(rtt_ms: np.ndarray) -> dict[str, float | None]:
 
 def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: np.ndarray, *, n_streams: int,
              rate: float, seconds: float, model: str | None = None, prefix: str = "bench",
-             progress: bool = True) -> LoadResult:
+             progress: bool = True, busy: bool = False) -> LoadResult:
     """Offer ``n_streams`` x ``rate`` frames/s for ``seconds``; every stream replays ``frames``
     (T, C) with mask ``observed`` (T, C) from its own starting offset, cycling."""
     if n_streams < 1 or rate <= 0 or seconds <= 0:
@@ -111,7 +115,7 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
         next_report = t0 + PROGRESS_EVERY_S
         for k in range(n_ticks):
             due = t0 + k / rate
-            _wait_until(due, poller, index, send_t, rtt, proc, res)
+            _wait_until(due, poller, index, send_t, rtt, proc, res, busy)
             now = time.perf_counter()
             lateness[k] = (now - due) * 1000.0
             for i, s in enumerate(socks):
@@ -132,7 +136,7 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
                       end="", file=sys.stderr, flush=True)
         end = time.perf_counter() + DRAIN_S
         while res.served + res.dropped + res.errors < res.sent and time.perf_counter() < end:
-            _wait_until(min(end, time.perf_counter() + 0.05), poller, index, send_t, rtt, proc, res)
+            _wait_until(min(end, time.perf_counter() + 0.05), poller, index, send_t, rtt, proc, res, busy)
         res.wall_s = time.perf_counter() - t0
         if progress:
             print(f"\r  bench: {n_ticks}/{n_ticks} ticks, {res.served} served, {res.dropped} dropped   ",
@@ -160,14 +164,17 @@ def _handshake(socks: list[zmq.Socket], ids: list[str], channels: list[str], mod
 
 
 def _wait_until(deadline: float, poller: zmq.Poller, index: dict[Any, int], send_t: np.ndarray, rtt: np.ndarray,
-                proc: np.ndarray, res: LoadResult) -> None:
+                proc: np.ndarray, res: LoadResult, busy: bool = False) -> None:
     while True:
         left = deadline - time.perf_counter()
         if left <= 0:
             return
         # sleep whole milliseconds in the poll, spin the remainder (ms-resolution poll timeout)
-        ms = int(left * 1000.0 - 0.3)
-        for sock, _ in poller.poll(ms if ms > 0 else 0):
+        ms = 0 if busy else int(left * 1000.0 - 0.3)
+        got = poller.poll(ms if ms > 0 else 0)
+        if busy and not got:
+            os.sched_yield()  # let ZeroMQ's I/O thread run on this core at once
+        for sock, _ in got:
             i = index[sock]
             while True:
                 try:

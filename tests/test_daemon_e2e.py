@@ -658,3 +658,50 @@ def test_hlm_model_through_daemon_equals_in_process_stream_with_style_and_phase(
         assert m.style is not None and m.style.shape == (2,) and abs(float(m.style.sum()) - 1.0) < 1e-4
         assert m.phase is not None and 0.0 <= m.phase < 1.0
         np.testing.assert_allclose(m.style, np.asarray(ref.extras["style"], np.float32), atol=1e-5)
+
+
+def test_busy_poll_serves_round_trips_stops_spinning_when_idle_and_still_stops_on_sigterm(tmp_path, daemons, ctx):
+    """busy_poll_ms: the daemon spins on its sockets while frames flow.  It must answer exactly as
+    without it, go back to sleeping in poll once the traffic pauses (little CPU while idle), and
+    still see SIGTERM while spinning."""
+    from clients.daemon_proc import cpu_seconds
+
+    cfg = write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}})
+    with open(cfg) as fh:
+        text = fh.read().replace("[daemon]\n", "[daemon]\nbusy_poll_ms = 50\n", 1)
+    with open(cfg, "w") as fh:
+        fh.write(text)
+    d = daemons(cfg)
+    s = dealer(ctx, d)
+    vals = np.arange(len(CH), dtype=np.float32)
+    for i in range(200):
+        obs = np.ones(len(CH), bool)
+        obs[i % len(CH)] = False
+        s.send(frame("spin", i, vals, obs))
+        m = recv(s)
+        assert isinstance(m, wire.FillMsg) and m.seq == i and m.status == "ok"
+        assert np.array_equal(m.angles[obs], vals[obs]) and m.filled[i % len(CH)]
+    time.sleep(0.3)                              # past the 50 ms busy window
+    c0 = cpu_seconds(d.proc.pid)
+    time.sleep(1.0)
+    idle_cpu = cpu_seconds(d.proc.pid) - c0
+    assert idle_cpu < 0.3, f"the daemon used {idle_cpu:.2f} s of CPU in 1 s without traffic: still spinning"
+    # SIGTERM in the middle of a burst (while it spins) drains and exits cleanly
+    for i in range(200, 230):
+        s.send(frame("spin", i, vals))
+    d.signal(signal.SIGTERM)
+    assert d.proc.wait(15) == 0
+    answers = []
+    while s.poll(500):
+        answers.append(wire.decode(s.recv()))
+    assert len(answers) == d.wait_for("stopped", 5)["frames_in"] - 200
+
+
+def test_busy_poll_config_is_validated(tmp_path):
+    from daemon import config as config_mod
+
+    for bad, needle in (("-1", "must be between"), ("nan", "must be between"), ("\"fast\"", "must be a")):
+        p = tmp_path / "bad.toml"
+        p.write_text(f"[daemon]\nbusy_poll_ms = {bad}\n[models.m]\nbuiltin = \"passthrough\"\n")
+        with pytest.raises(config_mod.ConfigError, match=f"daemon.busy_poll_ms {needle}"):
+            config_mod.load(str(p))
