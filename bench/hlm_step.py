@@ -3,7 +3,8 @@
 Times, over repeated frames of CMU 07_01 with the pan2009 erasure (half the frames with the
 upper body missing), the feature-space core step (predict + update + fill + extras) and the full
 Filler-seam step (representation encode/decode included), single stream and batched, for the
-faithful filler (kappa 0) and the stream-cycle adaptation (kappa 3, kappa_global 3, width 8).  Reports median, p90, p99.
+faithful filler (kappa 0), the stream-cycle adaptation (kappa 3, kappa_global 3, width 8: the
+``hlm`` default) and that plus a change of style (style_switch 1e-3).  Reports median, p90, p99.
 
     .venv/bin/python bench/hlm_step.py [--model M.npz] [--frames 2000]
 
@@ -52,9 +53,8 @@ def main(argv=None) -> int:
     idx = np.arange(args.frames) % T
     p = model.params
     print(f"model: C={p.n_styles} M={p.n_states} F={model.representation.n_features}; {args.frames} frames of {case.test}")
-    for label, kappa in (("faithful", 0.0), ("stream-cycle", 3.0)):
-        m = model.with_options(kappa=3.0 if kappa else 0.0, kappa_global=3.0 if kappa else 0.0, width=8,
-                               style_switch=1e-3 if kappa else 0.0)
+    for label, kappa, switch in (("faithful", 0.0, 0.0), ("stream-cycle", 3.0, 0.0), ("style-switch", 3.0, 1e-3)):
+        m = model.with_options(kappa=kappa, kappa_global=kappa, width=8, style_switch=switch)
         # core step in feature space
         z_all, o_all = m.encode_recording(case.truth, case.observed)
         z_all = np.where(o_all, z_all, np.nan)

@@ -35,6 +35,10 @@ def add_commands(cli) -> None:
                    help="pseudo-count of the stream's constant offset (0 = knots only; default 3)")
     p.add_argument("--width", type=int, default=8,
                    help="stream-cycle knots are 2 width + 1 latent states apart (default 8)")
+    p.add_argument("--style-switch", type=float, default=0.0, metavar="P",
+                   help="probability per frame that the performer changes style, e.g. 1e-3 for takes that go "
+                        "from walking to running (default 0: the paper's one style per take, better on single-style "
+                        "takes; see docs/BENCHMARKS.md)")
     p.add_argument("--lag", type=int, default=15, help="frames of look-ahead of the fixed-lag filler (default 15)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=_run_train)
@@ -84,7 +88,7 @@ def _run_train(args: argparse.Namespace) -> int:
                         styles=args.styles, cycle_frames=args.cycle_frames, n_states=args.states, jumps=args.jumps,
                         n_iter=args.iterations, n_var=args.sweeps, restarts=args.restarts, seed=args.seed,
                         root_mode=args.root_mode, normalize=args.normalize, kappa=args.kappa, width=args.width,
-                        kappa_global=args.kappa_global,
+                        kappa_global=args.kappa_global, style_switch=args.style_switch,
                         lag=args.lag)
     model.meta["training"]["fps"] = fps
     model.save(args.output)

@@ -45,7 +45,10 @@ DEFAULTS: dict[str, Any] = {
     "kappa": 3.0,          # stream-cycle adaptation (hlm.online); chosen on pan2009 and gaps
     "width": 8,
     "kappa_global": 3.0,
-    "style_switch": 1e-3,  # a change of style (walk -> run) about once in 1000 frames; 0 = the paper
+    # a change of style mid-take (walk -> run); 0 = the paper's one style per recording.  Off by
+    # default: on the single-style test takes it costs up to 40% (docs/BENCHMARKS.md); a studio
+    # whose takes change gait turns it on (lacuna train hlm --style-switch 1e-3)
+    "style_switch": 0.0,
 }
 FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0}
 

@@ -70,7 +70,7 @@ class HLMModel(FeatureModel):
 
     method = METHOD
     causal = True
-    core_sparse_keys = ("D", "W")   # the stream-cycle statistics: touched only at live knots
+    core_sparse_keys = ("D", "W", "G", "GW")   # the stream-cycle statistics: touched only at live knots
 
     def __init__(self, representation: Representation, params: HLMParams, options: HLMOptions | None = None,
                  meta: dict[str, Any] | None = None):
@@ -101,7 +101,8 @@ class HLMModel(FeatureModel):
         keep: dict = {}
         online.update(self.tables, state, z, zobs, prow=rows, keep=keep, want_ll=False)
         online.accumulate(self.tables, state, z, zobs, prow=rows)
-        zf, sd = online.fill(self.tables, state["post"], z, zobs, *online.cycle_stats(state), prow=rows, keep=keep)
+        zf, sd = online.fill(self.tables, state["post"], z, zobs, *online.cycle_stats(state), prow=rows, keep=keep,
+                             **online.group_stats(state))
         return CoreOut(zf, sd, online.extras(self.tables, state["post"]))
 
     # ---- offline ----------------------------------------------------------------------------------
@@ -252,7 +253,8 @@ class LagStream:
 
     def _emit(self, P: np.ndarray, slot: int) -> Fill:
         m = self.model
-        zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot], *online.cycle_stats(self.core))
+        zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot], *online.cycle_stats(self.core),
+                             **online.group_stats(self.core))
         f = np.where(self.rawobs[slot], self.raw[slot], np.nan)[None]
         done = self.dec.decode(zf, f, self.rawobs[slot][None])
         self.dec.commit(done)
@@ -269,7 +271,8 @@ class LagStream:
         z, zo = self.enc.encode(f[None], obs[None])
         ll = online.update(m.tables, self.core, z, zo)
         online.accumulate(m.tables, self.core, z, zo)
-        zf, _ = online.fill(m.tables, self.core["post"], z, zo, *online.cycle_stats(self.core))
+        zf, _ = online.fill(m.tables, self.core["post"], z, zo, *online.cycle_stats(self.core),
+                            **online.group_stats(self.core))
         self.enc.commit(self.enc.decode(zf, np.where(obs, f, np.nan)[None], obs[None]))
         slot = self.n % (self.lag + 1)
         self.post[slot], self.ll[slot], self.z[slot], self.zobs[slot] = self.core["post"], ll, z, zo

@@ -268,7 +268,7 @@ def test_vectorised_batch_step_equals_per_stream_loop(world, rng, kappa, kappa_g
             _accumulate_per_stream(tab, D, W, st["post"], z, zobs)
             np.testing.assert_allclose(st["D"], D, rtol=0, atol=1e-9)
             np.testing.assert_allclose(st["W"], W, rtol=0, atol=1e-9)
-        got = online.fill(tab, st["post"], z, zobs, *online.cycle_stats(st))
+        got = online.fill(tab, st["post"], z, zobs, *online.cycle_stats(st), **online.group_stats(st))
         want = _fill_per_stream(tab, st["post"], z, zobs, D, W)
         np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-9)
         np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-9)
@@ -293,7 +293,8 @@ def test_lone_stream_paths_equal_the_per_stream_reference(world, rng, kappa_glob
         if t % 17 == 5:
             zobs[:] = False                       # a frame that never arrived
         z = np.where(zobs, z_all[t % z_all.shape[0]], np.nan)
-        ref["D"][:], ref["W"][:] = st["D"][0], st["W"][0]      # the same statistics behind the emission
+        for k in ("D", "W", "G", "GW"):                      # the same statistics behind the emission
+            ref[k][:] = st[k][0]
         ll = online.update(tab, st, z, zobs)
         ll2 = online.update(tab, ref, np.repeat(z, 2, 0), np.repeat(zobs, 2, 0))
         np.testing.assert_allclose(st["post"][0], ref["post"][0], rtol=0, atol=1e-12)
@@ -302,7 +303,7 @@ def test_lone_stream_paths_equal_the_per_stream_reference(world, rng, kappa_glob
         _accumulate_per_stream(tab, D, W, st["post"], z, zobs)
         np.testing.assert_allclose(st["D"], D, rtol=0, atol=1e-9)
         np.testing.assert_allclose(st["W"], W, rtol=0, atol=1e-9)
-        got = online.fill(tab, st["post"], z, zobs, st["D"], st["W"])
+        got = online.fill(tab, st["post"], z, zobs, st["D"], st["W"], **online.group_stats(st))
         want = _fill_per_stream(tab, st["post"], z, zobs, D, W)
         np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-9)
         np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-9)
