@@ -85,13 +85,15 @@ def test_inference_options_are_checked(model):
         m.with_options(kappa=-1.0)
     with pytest.raises(ValueError, match="adapt_rate"):
         m.with_options(adapt_rate=1.5)
+    with pytest.raises(ValueError, match="style_switch"):
+        m.with_options(style_switch=1.0)
 
 
 def test_cli_trains_on_real_takes(data, tmp_path):
     out = tmp_path / "hlm.npz"
     files = [str(data / "cmu" / "35" / "35_01.amc"), str(data / "cmu" / "35" / "35_17.amc")]
     r = subprocess.run([sys.executable, "-m", "lacuna.cli", "train", "hlm", "--styles", "2", "--cycle-frames", "50",
-                        "--iterations", "3", "--restarts", "2", *files, "-o", str(out)],
+                        "--iterations", "3", "--restarts", "2", "--style-switch", "0.001", *files, "-o", str(out)],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     lines = [ln for ln in r.stderr.splitlines() if "iteration" in ln and "bound" in ln]
@@ -99,6 +101,7 @@ def test_cli_trains_on_real_takes(data, tmp_path):
     m = load_model(str(out))
     assert m.params.n_styles == 2 and m.params.n_states == 100
     assert m.meta["training"]["data"] == ["35_01.amc", "35_17.amc"]
+    assert m.options.style_switch == 0.001 and m.tables.style_switch == 0.001   # stored, and used
     # and clear one-line errors
     r = subprocess.run([sys.executable, "-m", "lacuna.cli", "train", "hlm", str(tmp_path / "none.amc"), "-o", str(out)],
                        capture_output=True, text=True, timeout=60)
