@@ -283,18 +283,21 @@ def fill_message(s: Session, fill: Fill, status: str, now: float) -> wire.FillMs
     assert p is not None
     mp = s.mapping
     f = p.frame
-    angles = f.angles.astype(np.float32, copy=True)
-    filled = np.zeros(mp.n_in, bool)
-    std = np.zeros(mp.n_in, np.float32)
-    angles[mp.s_idx] = np.asarray(fill.frame)[mp.m_idx]
-    filled[mp.s_idx] = np.asarray(fill.filled)[mp.m_idx]
-    std[mp.s_idx] = np.asarray(fill.std)[mp.m_idx]
-    if f.observed is not None:  # observed values exactly as sent, whatever the model returned
-        angles[f.observed] = f.angles[f.observed]
+    sent = f.observed if f.observed is not None else np.isfinite(f.angles)
+    if mp.identity:
+        # observed values exactly as sent, whatever the model returned
+        angles = np.where(sent, f.angles, np.asarray(fill.frame, np.float32))
+        filled = np.asarray(fill.filled) & ~sent
+        std = np.asarray(fill.std, np.float32)
     else:
-        ok = np.isfinite(f.angles)
-        angles[ok] = f.angles[ok]
-    filled &= ~(f.observed if f.observed is not None else np.isfinite(f.angles))
+        angles = f.angles.astype(np.float32, copy=True)
+        filled = np.zeros(mp.n_in, bool)
+        std = np.zeros(mp.n_in, np.float32)
+        angles[mp.s_idx] = np.asarray(fill.frame)[mp.m_idx]
+        filled[mp.s_idx] = np.asarray(fill.filled)[mp.m_idx]
+        std[mp.s_idx] = np.asarray(fill.std)[mp.m_idx]
+        angles[sent] = f.angles[sent]   # observed values exactly as sent, whatever the model returned
+        filled &= ~sent
     ex: dict[str, Any] = fill.extras or {}
     style = ex.get("style")
     phase = ex.get("phase")

@@ -57,6 +57,18 @@ class Mapping:
     def n_in(self) -> int:
         return len(self.channels)
 
+    @property
+    def identity(self) -> bool:
+        """The studio sends exactly the model's channels in the model's order (the usual case):
+        frames need no reordering either way."""
+        ident = self.__dict__.get("_identity")
+        if ident is None:
+            n = self.n_model
+            ident = self.__dict__["_identity"] = bool(
+                self.n_in == n and self.s_idx.size == n and (self.s_idx == np.arange(n)).all()
+                and (self.m_idx == np.arange(n)).all())
+        return ident
+
 
 @dataclass
 class Session:
@@ -84,6 +96,8 @@ class Session:
         mp = self.mapping
         a = f.angles.astype(np.float64)
         obs_in = np.isfinite(a) if f.observed is None else f.observed
+        if mp.identity:
+            return np.where(obs_in, a, np.nan), obs_in.copy()
         frame = np.full(mp.n_model, np.nan)
         obs = np.zeros(mp.n_model, bool)
         frame[mp.m_idx] = a[mp.s_idx]
