@@ -19,19 +19,8 @@ states with nonzero predicted probability, a few dozen of C M once the phase is 
 is exact: the posterior is zero elsewhere whatever the emission.
 
 Stream cycle adaptation (``kappa > 0``; an extension beyond the paper, off in the faithful
-configuration): the stream gets its own latent cycle, its style's cycle plus a slowly varying
-offset, z^{s,c}_m = mu^c_m + delta^c(m), with delta piecewise linear over ``n_bins`` knots around
-the cycle (knots 2 ``width`` + 1 states apart) and a Gaussian prior N(0, 1/(kappa lambda^c_f)) on
-each knot.  Every observed frame adds its residual x - mu^c_m, weighted by the filtered posterior
-and split between the two neighbouring knots, to D and its weight to W; the knot's posterior mean
-is D / (kappa + W).  A performer whose arms swing wider than the training population's, or whose
-neck is held higher, is filled with their own motion once a cycle of it has been seen.  Only the
-live states of the posterior are touched (sparse), so a frame costs O(k F); the per-stream state
-is 2 C n_bins F numbers (about 60 kB at C = 4, M = 280, width 8).  With ``kappa_global > 0`` the
-offset has a second level, a constant per style under the knots (see ``stream_offset``), so the
-phases not yet seen move with the rest.  The emission keeps the style cycle (alignment stays
-that of the trained model), except with a change of style (below).  The reported std does not yet include the uncertainty of the
-offset estimate itself (about 1 / sqrt(lambda (kappa + W)) per knot), only the terms above.
+configuration): the stream's own cycle is its style's cycle plus a learned offset; see
+``hlm.streamcycle``.
 
 Change of style (``style_switch = h > 0``; an extension, off by default and in the faithful
 configuration, where each recording has one style): after the prediction, mass h of every state
@@ -50,80 +39,13 @@ than the training population moves probability to longer jumps within a second o
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from scipy.ndimage import correlate1d
 
-from hlm.emissions import EmissionTables
-
-
-@dataclass
-class FilterTables:
-    """Everything the per-frame step reads, precomputed once per model.  Shapes: C styles,
-    M phases, F features, J jumps."""
-
-    em: EmissionTables
-    mu: np.ndarray        # (C*M, F)
-    q2: np.ndarray        # (C*M, F) mu^2 + var + 1/lam: second moment of x given (c, m)
-    log_prior: np.ndarray  # (C, M) log tau_c - log M
-    d_pop: np.ndarray     # (J,)
-    cos: np.ndarray       # (M,) cos(2 pi m / M)
-    sin: np.ndarray
-    adapt_rate: float = 0.0
-    prior_strength: float = 240.0
-    kappa: float = 0.0     # stream-cycle adaptation pseudo-count (frames); 0 = off
-    width: int = 5         # knots of that adaptation are 2 width + 1 states apart
-    kappa_global: float = 0.0  # pseudo-count of the stream's constant offset (0 = knots only)
-    style_switch: float = 0.0  # probability per frame of a change of style (0 = the paper's one style)
-    var: np.ndarray | None = None   # (C*M, F) Q(Z) variances, for the adapted second moment
-    inv_lam: np.ndarray | None = None  # (C, F)
-    style_of: np.ndarray | None = None  # (C*M,) style index of each flat state
-    pack: np.ndarray | None = None      # (C*M, 4F) [lam mu | lam | mu | q2] per state, for fill
-    lam_rows: np.ndarray | None = None  # (C*M, F) lam of each state's style
-    var_q: np.ndarray | None = None     # (C*M, F) var + 1/lam
-
-    @classmethod
-    def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray, tau: np.ndarray, d_pop: np.ndarray,
-              adapt_rate: float = 0.0, prior_strength: float = 240.0, kappa: float = 0.0,
-              width: int = 5, kappa_global: float = 0.0, style_switch: float = 0.0) -> "FilterTables":
-        C, M, F = mu.shape
-        ang = 2.0 * np.pi * np.arange(M) / M
-        with np.errstate(divide="ignore"):  # a style with tau = 0 is impossible: log 0 = -inf
-            lp = np.log(tau)[:, None] - np.log(M) + np.zeros((C, M))
-        return cls(EmissionTables.build(mu, var, lam), np.ascontiguousarray(mu.reshape(C * M, F)),
-                   np.ascontiguousarray((mu ** 2 + var + 1.0 / lam[:, None, :]).reshape(C * M, F)),
-                   lp, np.asarray(d_pop, dtype=np.float64), np.cos(ang), np.sin(ang), float(adapt_rate),
-                   float(prior_strength), float(kappa), int(width), float(kappa_global), float(style_switch),
-                   np.ascontiguousarray(var.reshape(C * M, F)),
-                   1.0 / lam, np.repeat(np.arange(C), M))
-
-    def __post_init__(self) -> None:
-        C, M = self.em.C, self.em.M
-        # stream-cycle knots: state m sits at u = m nb / M between knots floor(u) and floor(u) + 1
-        nb = max(3, int(round(M / (2 * self.width + 1)))) if self.width > 0 else M
-        u = np.arange(M) * nb / M
-        b0 = np.floor(u).astype(int)
-        self.n_bins = nb
-        self.bin0 = (np.arange(C)[:, None] * nb + b0[None]).ravel()
-        self.bin1 = (np.arange(C)[:, None] * nb + (b0[None] + 1) % nb).ravel()
-        self.bin_a = np.tile(u - b0, C)
-        # (C M, C n_bins): state m's weights 1 - a and a on its two knots (dense, for a lone stream)
-        kw = np.zeros((C * M, C * nb))
-        np.add.at(kw, (np.arange(C * M), self.bin0), 1.0 - self.bin_a)
-        np.add.at(kw, (np.arange(C * M), self.bin1), self.bin_a)
-        self.knot_weights = kw
-        self.lam_rows = np.ascontiguousarray(np.repeat(self.em.lam, M, axis=0))
-        self.var_q = np.ascontiguousarray(self.var + np.repeat(self.inv_lam, M, axis=0))
-        self.pack = np.ascontiguousarray(np.hstack([self.em.lam_mu, self.lam_rows, self.mu, self.q2]))
-        # the emission's terms that do not involve x or the mean: 1/2 log(lam / 2 pi) - lam var / 2
-        self.emit_a = np.ascontiguousarray(np.repeat(self.em.log_norm, M, axis=0) - 0.5 * self.lam_rows * self.var)
-        self.emit_pack = np.ascontiguousarray(np.hstack([self.mu, 0.5 * self.lam_rows, self.emit_a]))
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.em.C, self.em.M
+from hlm.streamcycle import (LIVE_STATS, _live, _runs, accumulate, adapted_loglik, cycle_stats,  # noqa: F401
+                             group_stats, knot_offsets, pair_offsets, stream_offset)
+from hlm.tables import FilterTables
 
 
 def init_state(tab: FilterTables, n: int) -> dict[str, np.ndarray]:
@@ -144,162 +66,11 @@ def init_state(tab: FilterTables, n: int) -> dict[str, np.ndarray]:
     return st
 
 
-def group_stats(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The per-style sums G, GW of a state, as keywords of ``fill`` (empty without adaptation)."""
-    return {"G": state["G"], "GW": state["GW"]} if "G" in state else {}
-
-
-def cycle_stats(state: dict[str, np.ndarray]) -> tuple[np.ndarray | None, np.ndarray | None]:
-    return state.get("D"), state.get("W")
-
-
 LIVE = 1e-10      # fill: states below this fraction of the largest posterior are skipped
 SWITCH_LIVE = 1e-3  # change of style: only states above this fraction of the largest posterior switch
 PRUNE = 1e-8      # with style_switch > 0: posteriors below this fraction of the largest are set to 0
                   # (a style can come back through the switch, so nothing is lost for good; without
                   # the switch the filter stays exact, as the paper's)
-LIVE_STATS = 1e-4  # stream-cycle statistics: contributions below this fraction are skipped
-
-
-def _live(P: np.ndarray, sel: np.ndarray, frac: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The live (stream, state) pairs of the streams ``sel``: states above ``frac`` of their stream's
-    largest posterior.  Returns (stream index into the batch, flat state, posterior), each (K,),
-    grouped by stream with states ascending (row-major), so per-stream sums are contiguous runs."""
-    Pf = P.reshape(P.shape[0], -1)[sel]
-    si, rows = np.nonzero(Pf > frac * Pf.max(1, keepdims=True))
-    return sel[si], rows, Pf[si, rows]
-
-
-def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
-               P: np.ndarray | None = None, prow: np.ndarray | None = None) -> None:
-    """Add this frame's residuals to the stream-cycle statistics D, W (only when ``kappa > 0``).
-
-    prow (n,): when given, D and W are a state pool's (capacity, C n_bins, F) arrays and stream i
-    of the batch owns their row prow[i] (``lacuna.feature_model``); else they are the batch's own.
-
-    Vectorised over the batch: the live (stream, state) pairs of every stream that observed
-    something are scattered at once into the (n, C n_bins, F) statistics.  Each knot belongs to
-    one stream, so this equals a stream-by-stream loop up to the order of the additions (tested
-    to 1e-9 against that loop)."""
-    if tab.kappa <= 0.0:
-        return
-    P = state["post"] if P is None else P
-    sel = np.flatnonzero(zobs.any(1))
-    if sel.size == 0:
-        return
-    D, W = state["D"], state["W"]
-    if sel.size == 1:
-        # a lone stream: the direct path costs fewer numpy calls than the batched gather
-        i = sel[0]
-        Pf = P[i].reshape(-1)
-        rows = np.flatnonzero(Pf > LIVE_STATS * Pf.max())
-        p = Pf[rows]
-        o = zobs[i].astype(np.float64)
-        dev = o * (np.where(zobs[i], z[i], 0.0) - tab.mu[rows])                  # (k, F)
-        r = i if prow is None else prow[i]
-        B = tab.knot_weights[rows] * p[:, None]        # (k, C n_bins): each state's share of its two knots
-        dD, dW = B.T @ dev, B.sum(0)
-        D[r] += dD
-        W[r] += dW[:, None] * o
-        if "G" in state:
-            C = tab.em.C
-            state["G"][r] += dD.reshape(C, -1, dD.shape[1]).sum(1)
-            state["GW"][r] += dW.reshape(C, -1).sum(1)[:, None] * o
-        return
-    s, rows, p = _live(P, sel, LIVE_STATS)
-    a = tab.bin_a[rows]
-    ob = zobs[s]
-    o = ob.astype(np.float64)                                                    # (K, F)
-    dev = o * (np.where(ob, z[s], 0.0) - tab.mu[rows])
-    cb = tab.em.C * tab.n_bins
-    # the pairs come grouped by stream with states ascending, so the pairs sending a term to one
-    # knot form one contiguous run (for bin1 too: only a style's last states wrap to its knot 0)
-    # and a reduceat over the runs sums each knot's terms; each touched knot is then added once
-    for bins, w in ((tab.bin0[rows], p * (1.0 - a)), (tab.bin1[rows], p * a)):
-        dest = s * cb + bins
-        first = _runs(dest)
-        ks, kb = s[first], bins[first]          # distinct runs are distinct knots: += never collides
-        if prow is not None:
-            ks = prow[ks]
-        D[ks, kb] += np.add.reduceat(w[:, None] * dev, first)
-        W[ks, kb] += np.add.reduceat(w, first)[:, None] * o[first]
-    if "G" in state:
-        # per (stream, style): a state's two knot weights sum to its posterior p
-        c = tab.style_of[rows]
-        first = _runs(s * tab.em.C + c)
-        ks = s[first] if prow is None else prow[s[first]]
-        state["G"][ks, c[first]] += np.add.reduceat(p[:, None] * dev, first)
-        state["GW"][ks, c[first]] += np.add.reduceat(p, first)[:, None] * o[first]
-
-
-def stream_offset(tab: FilterTables, rows: np.ndarray, D: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """delta(m) at the given flat states (k, F) from one stream's knot statistics D, W (C nb, F).
-
-    With ``kappa_global > 0`` the offset is two-level: a constant per style g_c (all the stream's
-    residuals, prior pseudo-count kappa_global) plus knot deviations from it, so phases the stream
-    has not shown yet still move by the offset seen elsewhere in the cycle."""
-    k = tab.kappa
-    b0, b1, a = tab.bin0[rows], tab.bin1[rows], tab.bin_a[rows, None]
-    if tab.kappa_global <= 0.0:
-        return (1.0 - a) * D[b0] / (k + W[b0]) + a * D[b1] / (k + W[b1])
-    nb = tab.n_bins
-    c = tab.style_of[rows]
-    Dg = D.reshape(-1, nb, D.shape[1]).sum(1)                   # (C, F): knot weights sum to 1 per frame
-    Wg = W.reshape(-1, nb, W.shape[1]).sum(1)
-    g = (Dg / (tab.kappa_global + Wg))[c]                        # (k, F)
-    return g + (1.0 - a) * (D[b0] - W[b0] * g) / (k + W[b0]) + a * (D[b1] - W[b1] * g) / (k + W[b1])
-
-
-def knot_offsets(tab: FilterTables, D: np.ndarray, W: np.ndarray, G: np.ndarray | None = None,
-                 GW: np.ndarray | None = None) -> np.ndarray:
-    """The offset at every knot of one stream (C nb, F), so that ``stream_offset`` at states rows
-    is ``tab.knot_weights[rows] @ knot_offsets(...)`` (the knot weights of a state sum to 1, so the
-    per-style constant g moves inside the knots).  Cheaper for a lone stream: whole (C nb, F)
-    arrays in a few calls instead of gathers per state."""
-    if tab.kappa_global <= 0.0:
-        return D / (tab.kappa + W)
-    nb, F = tab.n_bins, D.shape[1]
-    D3, W3 = D.reshape(-1, nb, F), W.reshape(-1, nb, F)
-    if G is None:
-        G, GW = D3.sum(1), W3.sum(1)
-    g = (G / (tab.kappa_global + GW))[:, None, :]                     # (C, 1, F)
-    return (g + (D3 - W3 * g) / (tab.kappa + W3)).reshape(D.shape)
-
-
-def pair_offsets(tab: FilterTables, R: np.ndarray, W: np.ndarray, ps: np.ndarray, rows: np.ndarray,
-                 G: np.ndarray | None = None, GW: np.ndarray | None = None) -> np.ndarray:
-    """The stream offset delta at K (stream, state) pairs (K, F), batched: ps (K,) the streams'
-    rows of R, W (n, C n_bins, F); rows (K,) flat states.  Only the knots next to the pairs'
-    states are read (a few per stream, of C n_bins).  Equals ``stream_offset`` pair by pair."""
-    n, cb, F = R.shape
-    nb = tab.n_bins
-    K = rows.size
-    u, inv = np.unique(np.concatenate([ps * cb + tab.bin0[rows], ps * cb + tab.bin1[rows]]), return_inverse=True)
-    Du, Wu = R.reshape(-1, F)[u], W.reshape(-1, F)[u]
-    a = tab.bin_a[rows, None]
-    if tab.kappa_global <= 0.0:
-        Eu = Du / (tab.kappa + Wu)
-        return (1.0 - a) * Eu[inv[:K]] + a * Eu[inv[K:]]
-    # the per-style constant g (stream_offset) at each knot's (stream, style)
-    if G is not None:
-        sc = u // nb                                          # flat (stream, style) ids
-        gu = G.reshape(-1, F)[sc] / (tab.kappa_global + GW.reshape(-1, F)[sc])
-    else:
-        sc, sinv = np.unique(u // nb, return_inverse=True)
-        Dg = R.reshape(n * (cb // nb), nb, F)[sc].sum(1)
-        Wg = W.reshape(n * (cb // nb), nb, F)[sc].sum(1)
-        gu = (Dg / (tab.kappa_global + Wg))[sinv]
-    Eu = (Du - Wu * gu) / (tab.kappa + Wu)
-    return gu[inv[:K]] + ((1.0 - a) * Eu[inv[:K]] + a * Eu[inv[K:]])
-
-
-def adapted_loglik(tab: FilterTables, x: np.ndarray, o: np.ndarray, rows: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """ell of K states on the stream's own cycle mu + delta (the emission of ``hlm.emissions`` with
-    the adapted mean): x, o (K, F) each pair's frame (0 where missing) and mask; off (K, F)."""
-    F = x.shape[-1]
-    t = tab.emit_pack[rows]                     # [mu | lam / 2 | emit_a] in one gather
-    r = x - t[:, :F] - off
-    return ((t[:, 2 * F :] - t[:, F : 2 * F] * r * r) * o).sum(1)
 
 
 def predict_shared(post: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -353,11 +124,6 @@ def _adapted(tab: FilterTables, state: dict[str, np.ndarray]) -> bool:
     Without the switch the style cannot change and the population emission is as good
     (pan2009 0.295 against 0.301 x NN) and cheaper (no offsets on the whole support)."""
     return tab.kappa > 0.0 and tab.style_switch > 0.0 and "D" in state
-
-
-def _runs(s: np.ndarray) -> np.ndarray:
-    """Start of each run of equal values in s (K,), which is grouped (as np.nonzero returns)."""
-    return np.flatnonzero(np.concatenate(([True], s[1:] != s[:-1])))
 
 
 def _update_one(tab: FilterTables, state: dict[str, np.ndarray], pr: np.ndarray, z: np.ndarray,
