@@ -113,15 +113,19 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
         # header bytes are constant per stream; the frame body is built per send (seq, t, angles)
         t0 = time.perf_counter() + 0.05
         next_report = t0 + PROGRESS_EVERY_S
+        wall0 = time.time() - time.perf_counter()       # perf_counter -> wall clock, for the capture stamps
         for k in range(n_ticks):
             due = t0 + k / rate
+            # the tick's messages are built before its deadline, as a capture system has its frames
+            # ready when it sends them: the burst of sends is then only sends
+            bodies = [pack({"v": wire.SCHEMA_VERSION, "type": "frame", "stream": ids[i], "seq": k, "t": wall0 + due,
+                            "angles": angle_bytes[(offsets[i] + k) % T], "observed": mask_bytes[(offsets[i] + k) % T]})
+                      for i in range(n_streams)]
             _wait_until(due, poller, index, send_t, rtt, proc, res, busy)
             now = time.perf_counter()
             lateness[k] = (now - due) * 1000.0
             for i, s in enumerate(socks):
-                j = (offsets[i] + k) % T
-                body = pack({"v": wire.SCHEMA_VERSION, "type": "frame", "stream": ids[i], "seq": k, "t": time.time(),
-                             "angles": angle_bytes[j], "observed": mask_bytes[j]})
+                body = bodies[i]
                 t = time.perf_counter()
                 try:
                     s.send(body, zmq.NOBLOCK, copy=False)
