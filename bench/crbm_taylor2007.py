@@ -10,6 +10,8 @@ Variants (name: training options | fill options):
   imcrbm      history noise 1 (Taylor's imCRBM code) | S=1, S=8, mean-field
   prob        hidden probabilities in the data term (the released code) | S=1, S=8, mean-field
   imp         prob + parameters averaged over the last 20% of epochs | S=1, S=8 (= ``crbm-imp``), mean-field
+  ens         three ``imp`` CRBMs (seeds s, s+1000, s+2000; 1300 epochs each) filling together from
+              one shared history (= ``crbm-ens``) | S=4 per member (the default), S=8, mean-field
   2level      faithful first level + second level on its hidden activities | S=1, S=8, mean-field
 """
 from __future__ import annotations
@@ -42,15 +44,16 @@ def main() -> int:
     results: dict = {"machine": f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cores, "
                                 f"python {platform.python_version()}", "repeats": a.repeats, "variants": {}}
     train_kw = {"faithful": {}, "imcrbm": {"history_noise": 1.0}, "2level": {"levels": 2},
-                "prob": {"positive_hidden": "prob"}, "imp": {"positive_hidden": "prob", "average_last": 0.2}}
+                "prob": {"positive_hidden": "prob"}, "imp": {"positive_hidden": "prob", "average_last": 0.2},
+                "ens": {"positive_hidden": "prob", "average_last": 0.2, "members": 3}}
     for v in a.variants:
         for seed in a.seeds:
             t0 = time.perf_counter()
             model = train_model(ts.sequences, ts.channels, epochs=a.epochs, seed=seed, progress=True,
                                 progress_every=500, **train_kw[v])
             secs = time.perf_counter() - t0
-            fills = [("", {"n_chains": 1, "mode": "gibbs"}), ("-S8", {"n_chains": 8, "mode": "gibbs"}),
-                     ("-mf", {"n_chains": 1, "mode": "mean-field"})]
+            fills = [("", {"n_chains": 4 if v == "ens" else 1, "mode": "gibbs"}),
+                     ("-S8", {"n_chains": 8, "mode": "gibbs"}), ("-mf", {"n_chains": 1, "mode": "mean-field"})]
             for suffix, fk in fills:
                 model.set_chains(fk["n_chains"])
                 model.set_mode(fk["mode"])

@@ -29,6 +29,9 @@ def add_commands(cli) -> None:
     p.add_argument("--average-last", type=float, default=0.0,
                    help="return the parameters averaged over this final fraction of epochs (0 = the paper)")
     p.add_argument("--levels", type=int, choices=[1, 2], default=1, help="2 adds the section-6 second level")
+    p.add_argument("--members", type=int, default=1,
+                   help="train this many CRBMs from seeds seed, seed+1000, ... and fill with all of them "
+                   "pooled (crbm-ens uses 3; default 1)")
     p.add_argument("--gibbs", type=int, default=30, help="fill: Gibbs iterations per frame (default 30)")
     p.add_argument("--chains", type=int, default=1, help="fill: parallel chains averaged (default 1)")
     p.add_argument("--mode", choices=["gibbs", "mean-field"], default="gibbs")
@@ -80,7 +83,7 @@ def _run_train(args: argparse.Namespace) -> int:
               file=sys.stderr)
     model = train_model(seqs, channels, hidden=args.hidden, order=args.order, epochs=args.epochs, seed=args.seed,
                         history_noise=args.history_noise, positive_hidden=args.positive_hidden,
-                        average_last=args.average_last, levels=args.levels,
+                        average_last=args.average_last, levels=args.levels, members=args.members,
                         n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, names=names, fps=fps,
                         progress=not args.quiet)
     model.save(args.output)

@@ -8,6 +8,9 @@
 * ``crbm-imp``     improvements: hidden probabilities in the data term of CD-1 (as the released
                    code does), parameters averaged over the last 20% of epochs, and S = 8
                    chains averaged in the fill.
+* ``crbm-ens``     three ``crbm-imp`` CRBMs from different seeds filling together: every frame
+                   each member runs its chains from the shared history and the fill is the mean
+                   of all chains (``crbm.ensemble``); removes most of the training-seed spread.
 """
 from __future__ import annotations
 
@@ -19,7 +22,7 @@ from lacuna.modelfile import register_loader
 from lacuna.registry import MethodSpec, register_method
 
 # option name -> keyword of train_model; anything else a protocol passes is ignored
-_OPTIONS = ("hidden", "order", "epochs", "seed", "history_noise", "positive_hidden", "average_last", "levels",
+_OPTIONS = ("hidden", "members", "order", "epochs", "seed", "history_noise", "positive_hidden", "average_last", "levels",
             "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "fps", "progress",
             "progress_every")
 
@@ -28,6 +31,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "crbm-mf": {"mode": "mean-field"},
     "crbm-2level": {"levels": 2},
     "crbm-imp": {"positive_hidden": "prob", "average_last": 0.2, "n_chains": 8},
+    "crbm-ens": {"positive_hidden": "prob", "average_last": 0.2, "members": 3, "n_chains": 4},
 }
 
 

@@ -1,7 +1,7 @@
 """CRBM model files: ``lacuna.modelfile`` npz arrays + JSON meta, never pickle.
 
 Arrays: ``W, A, B, c, b`` (first level) and ``l2_W, l2_A, l2_B, l2_c, l2_b`` (second level,
-optional).  Meta: channels, representation, hyperparameters of each level, fill settings,
+optional); an ensemble (``crbm-ens``) stores member i as ``m{i}_W, m{i}_A, ...``.  Meta: channels, representation, hyperparameters of each level, fill settings,
 training data names / seconds / date / epochs / last reconstruction error.
 """
 from __future__ import annotations
@@ -11,12 +11,13 @@ from typing import Any
 
 import numpy as np
 
+from crbm.ensemble import CRBMEnsemble
 from crbm.filler import CRBMModel
 from crbm.model import CRBM
 from lacuna.modelfile import ModelFileError, load_arrays, save_arrays
 from mocap.representation import Representation
 
-METHODS = ("crbm", "crbm-mf", "crbm-2level", "crbm-imp")
+METHODS = ("crbm", "crbm-mf", "crbm-2level", "crbm-imp", "crbm-ens")
 
 
 def save_model(model: CRBMModel, path: str | os.PathLike) -> None:
@@ -29,6 +30,14 @@ def save_model(model: CRBMModel, path: str | os.PathLike) -> None:
                  "init_noise": model.init_noise},
         "training": model.meta.get("training", {}),
     }
+    if isinstance(model, CRBMEnsemble):
+        meta["hyperparameters"] = {"members": [{**m.hyperparameters(), "n_epochs_done": m.n_epochs_done_}
+                                               for m in model.members]}
+        arrays = {}
+        for i, m in enumerate(model.members):
+            arrays.update(m.get_arrays(f"m{i}_"))
+        save_arrays(path, meta, arrays)
+        return
     arrays = model.crbm.get_arrays()
     if model.level2 is not None:
         meta["hyperparameters"]["level2"] = {**model.level2.hyperparameters(), "n_epochs_done": model.level2.n_epochs_done_}
@@ -41,12 +50,17 @@ def load_model_arrays(path: str, meta: dict[str, Any], arrays: dict[str, np.ndar
     try:
         rep = Representation.from_dict(meta["representation"])
         hyper = meta["hyperparameters"]
-        l1 = CRBM.from_arrays(hyper["level1"], arrays)
-        l2 = CRBM.from_arrays(hyper["level2"], arrays, "l2_") if "level2" in hyper else None
         fill = meta.get("fill", {})
-        model = CRBMModel(rep, l1, l2, n_gibbs=fill.get("n_gibbs", 30), n_chains=fill.get("n_chains", 1),
-                          mode=fill.get("mode", "gibbs"), init_noise=fill.get("init_noise", 0.01),
-                          meta={"training": meta.get("training", {})})
+        knobs = dict(n_gibbs=fill.get("n_gibbs", 30), n_chains=fill.get("n_chains", 1),
+                     mode=fill.get("mode", "gibbs"), init_noise=fill.get("init_noise", 0.01),
+                     meta={"training": meta.get("training", {})})
+        if "members" in hyper:
+            members = [CRBM.from_arrays(h, arrays, f"m{i}_") for i, h in enumerate(hyper["members"])]
+            model: CRBMModel = CRBMEnsemble(rep, members, **knobs)
+        else:
+            l1 = CRBM.from_arrays(hyper["level1"], arrays)
+            l2 = CRBM.from_arrays(hyper["level2"], arrays, "l2_") if "level2" in hyper else None
+            model = CRBMModel(rep, l1, l2, **knobs)
     except KeyError as e:
         raise ModelFileError(f"{path}: crbm model lacks {e.args[0]!r}") from None
     except ValueError as e:

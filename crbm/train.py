@@ -10,6 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
+from crbm.ensemble import CRBMEnsemble
 from crbm.filler import CRBMModel
 from crbm.model import CRBM
 from mocap.representation import Representation
@@ -18,6 +19,10 @@ from mocap.representation import Representation
 # Bigger training sets get fewer epochs so the number of updates (and the time) stays there.
 DEMO_EPOCHS = 2000
 DEMO_UPDATES = 52_000
+MEMBER_SEED_STRIDE = 1000
+# an ensemble's members train for this fraction of auto_epochs (1300 on taylor2007), so three fit
+# the 120 s budget; measured on taylor2007, 1300 epochs beat 700 (docs/BENCHMARKS.md ## CRBM)
+ENSEMBLE_EPOCH_FRACTION = 0.65
 
 
 def auto_epochs(n_cases: int, batch_size: int = 100) -> int:
@@ -39,13 +44,21 @@ def _progress_printer(what: str, every: int):
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hidden: int = 150, order: int = 3,
                 epochs: int | None = None, seed: int = 0, history_noise: float = 0.0,
                 positive_hidden: str = "sample", average_last: float = 0.0, levels: int = 1, level2_hidden: int | None = None,
-                level2_epochs: int | None = None, n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs",
+                level2_epochs: int | None = None, members: int = 1, n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs",
                 method: str | None = None, names: Sequence[str] = (), fps: float | None = None,
                 root_mode: str = "relative", progress: bool = False, progress_every: int = 100) -> CRBMModel:
     """sequences: raw (n_i, C) frames in ``channels``.  Returns a trained CRBMModel.
 
     ``epochs=None`` picks ``auto_epochs`` (2000 on the taylor2007 split, fewer on bigger sets).
+    ``members > 1`` trains that many first-level CRBMs, member i from seed ``seed + MEMBER_SEED_STRIDE * i``
+    (so member 0 is the single model of the same seed), each for ``epochs`` epochs (default
+    ``ENSEMBLE_EPOCH_FRACTION`` of ``auto_epochs``), and returns a
+    pooled-chain ``CRBMEnsemble`` (``crbm.ensemble``).
     """
+    if isinstance(members, bool) or int(members) != members or members < 1:
+        raise ValueError(f"members must be an integer >= 1 (got {members!r})")
+    if members > 1 and levels != 1:
+        raise ValueError("an ensemble (members > 1) has one level only")
     if levels not in (1, 2):
         raise ValueError(f"levels must be 1 or 2 (got {levels!r})")
     t0 = time.perf_counter()
@@ -53,10 +66,18 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
     Z = [rep.transform(s) for s in sequences]
     n_cases = sum(max(0, z.shape[0] - order) for z in Z)
     ep = auto_epochs(n_cases) if epochs is None else int(epochs)
-    l1 = CRBM(n_hidden=hidden, order=order, n_epochs=ep, history_noise=history_noise,
-              positive_hidden=positive_hidden, average_last=average_last, random_state=seed,
-              progress=_progress_printer("crbm", progress_every) if progress else None)
-    l1.fit(Z)
+    if epochs is None and members > 1:
+        ep = max(50, int(round(ENSEMBLE_EPOCH_FRACTION * ep)))
+    fitted = []
+    for i in range(int(members)):
+        # members one after another: stacking them into batched (M, ...) matrix products was
+        # tried and was slower with numpy here (6.5 s against 3 x 1.2 s for 30 epochs)
+        what = "crbm" if members == 1 else f"crbm member {i + 1}/{members}"
+        m = CRBM(n_hidden=hidden, order=order, n_epochs=ep, history_noise=history_noise,
+                 positive_hidden=positive_hidden, average_last=average_last, random_state=seed + MEMBER_SEED_STRIDE * i,
+                 progress=_progress_printer(what, progress_every) if progress else None)
+        fitted.append(m.fit(Z))
+    l1 = fitted[0]
     l2 = None
     if levels == 2:
         Hs = l1.hidden_probabilities(Z)
@@ -70,6 +91,11 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
                          "seconds": round(seconds, 2), "epochs": ep,
                          "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                          "reconstruction_error": l1.recon_errors_[-1] if l1.recon_errors_ else None}}
+    if members > 1:
+        meta["training"]["members"] = int(members)
+        model = CRBMEnsemble(rep, fitted, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta)
+        model.method = method or "crbm-ens"
+        return model
     model = CRBMModel(rep, l1, l2, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta)
     model.method = method or ("crbm-2level" if levels == 2 else "crbm")
     return model

@@ -1,15 +1,16 @@
 """The section-5 fill-in experiment on the real taylor2007 split, and section 4.1's walking and
 running from one model (issue 4, targets).
 
-Trains the improved CRBM (``crbm-imp``) at the full default schedule (2000 epochs, about 40 s
-on an idle 2-core machine) and the faithful one (the paper's CD-1, K = 30 Gibbs, one chain) at
-1000 epochs, scores both with the protocol's cumulative scaled error against the nearest
-neighbours computed here.
+Trains the improved CRBM ensemble (``crbm-ens``: three ``crbm-imp`` CRBMs of 1300 epochs from
+training seeds 0, 1000, 2000, filling together from one shared history, about 80-115 s) and the
+faithful one (the paper's CD-1, K = 30 Gibbs, one chain) at 1000 epochs, and scores both with
+the protocol's cumulative scaled error against the nearest neighbours computed here.
 
 What is asserted, honestly: the upper-body target (<= 0.43 x the better nearest neighbour on
-35_29) is met by ``crbm-imp`` at training seed 0 (measured 0.39).  The right-leg target
-(<= 0.53 x) is NOT met at seed 0 (measured 0.59-0.60); across training seeds 0, 1, 2 the leg
-ratio was 0.60, 0.70, 0.46 (docs/BENCHMARKS.md, ## CRBM), so the test asserts the leg at <= 0.65,
+35_29) is met by ``crbm-ens`` at training seed 0 (measured 0.39; 0.39 / 0.46 / 0.38 at seeds
+0 / 1 / 2, mean 0.41).  The right-leg target (<= 0.53 x) is NOT met: 0.556 / 0.573 / 0.557 at
+seeds 0 / 1 / 2 (docs/BENCHMARKS.md, ## CRBM); the ensemble removed the seed spread (single
+``crbm-imp``: 0.60 / 0.70 / 0.46) but not the bias.  So the test asserts the leg at <= 0.60,
 what seed 0 reliably reaches, and names the gap in its message.
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.realdata]
 
 WALK = ("35_29", "right-leg"), ("35_29", "upper-body")
 TARGET = {"right-leg": 0.53, "upper-body": 0.43}      # the paper's 11.7/22.2 and 8.8/20.5
-ASSERTED = {"right-leg": 0.65, "upper-body": 0.43}    # see the module docstring
+ASSERTED = {"right-leg": 0.60, "upper-body": 0.43}    # see the module docstring
 REPEATS = 5                                            # stochastic fills averaged, as the paper did
 
 
@@ -51,7 +52,7 @@ def _train(proto, method, **kw):
 
 @pytest.fixture(scope="module")
 def improved(proto):
-    return _train(proto, "crbm-imp")
+    return _train(proto, "crbm-ens")
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +66,7 @@ def test_issue4_taylor2007_improved_crbm_meets_the_paper_ratios(improved, base):
     model, secs = improved
     sc = score_model(model, repeats=REPEATS, seed=0)
     r = ratios(sc, base)
-    print(f"\ncrbm-imp trained in {secs:.1f} s\n" + table({**base, "crbm-imp": sc}))
+    print(f"\ncrbm-ens trained in {secs:.1f} s\n" + table({**base, "crbm-ens": sc}))
     print({f"{t} {e}": round(x, 3) for (t, e), x in r.items()})
     for key in WALK:
         assert r[key] <= ASSERTED[key[1]], (f"{key}: {sc[key][METRIC]:.2f} is x{r[key]:.2f} of the better nn "
@@ -94,10 +95,13 @@ def _period(x: np.ndarray) -> int:
 
 
 def test_issue4_walks_and_runs_from_one_model(improved, data):
-    """Section 4.1: seeded with walking frames it walks, with running frames it runs."""
+    """Section 4.1: seeded with walking frames it walks, with running frames it runs.  One CRBM
+    (the ensemble's first member, a ``crbm-imp`` model): generation follows one sample path."""
+    from crbm.filler import CRBMModel
     from mocap.asf import read_amc
 
-    model, _ = improved
+    ens, _ = improved
+    model = CRBMModel(ens.representation, ens.members[0], n_chains=1)
     col = model.channels.index("lfemur.rx")
     periods = {}
     for kind, trial in (("walk", "35_01"), ("run", "35_17")):
