@@ -36,6 +36,8 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=10, help="stochastic fills averaged per case")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds")
     ap.add_argument("--variants", nargs="+", default=["faithful", "imcrbm", "2level"])
+    ap.add_argument("--bias-rates", type=float, nargs="+", default=[0.0],
+                    help="fill: per-stream bias adaptation rates to score each model with (crbm.filler; default 0)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     ts = get_protocol("taylor2007").training_set()
@@ -54,11 +56,12 @@ def main() -> int:
             secs = time.perf_counter() - t0
             fills = [("", {"n_chains": 4 if v == "ens" else 1, "mode": "gibbs"}),
                      ("-S8", {"n_chains": 8, "mode": "gibbs"}), ("-mf", {"n_chains": 1, "mode": "mean-field"})]
-            for suffix, fk in fills:
+            for (suffix, fk), br in ((f, b) for f in fills for b in a.bias_rates):
                 model.set_chains(fk["n_chains"])
                 model.set_mode(fk["mode"])
+                model.bias_rate = br
                 sc = score_model(model, repeats=1 if fk["mode"] == "mean-field" else a.repeats, seed=seed)
-                name = f"{v}{suffix} (seed {seed})"
+                name = f"{v}{suffix}{f' r={br:g}' if br else ''} (seed {seed})"
                 named[name] = sc
                 r = ratios(sc, base)
                 results["variants"][name] = {"train_seconds": secs, "epochs": model.meta["training"]["epochs"],

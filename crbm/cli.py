@@ -35,6 +35,8 @@ def add_commands(cli) -> None:
     p.add_argument("--gibbs", type=int, default=30, help="fill: Gibbs iterations per frame (default 30)")
     p.add_argument("--chains", type=int, default=1, help="fill: parallel chains averaged (default 1)")
     p.add_argument("--mode", choices=["gibbs", "mean-field"], default="gibbs")
+    p.add_argument("--bias-rate", type=float, default=0.0,
+                   help="fill: per-stream bias adaptation rate per frame (0 = the paper; crbm-imp uses 0.02)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_run_train)
 
@@ -84,7 +86,8 @@ def _run_train(args: argparse.Namespace) -> int:
     model = train_model(seqs, channels, hidden=args.hidden, order=args.order, epochs=args.epochs, seed=args.seed,
                         history_noise=args.history_noise, positive_hidden=args.positive_hidden,
                         average_last=args.average_last, levels=args.levels, members=args.members,
-                        n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, names=names, fps=fps,
+                        n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, bias_rate=args.bias_rate,
+                        names=names, fps=fps,
                         progress=not args.quiet)
     model.save(args.output)
     tr = model.meta["training"]

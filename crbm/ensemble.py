@@ -39,7 +39,7 @@ class CRBMEnsemble(CRBMModel):
 
     def __init__(self, representation: Representation, members: Sequence[CRBM], n_gibbs: int = 30,
                  n_chains: int = 1, mode: str = "gibbs", init_noise: float = 0.01, seed: int = 0,
-                 meta: dict[str, Any] | None = None):
+                 meta: dict[str, Any] | None = None, bias_rate: float = 0.0):
         members = list(members)
         if not members:
             raise ValueError("an ensemble needs at least one CRBM")
@@ -48,8 +48,9 @@ class CRBMEnsemble(CRBMModel):
             raise ValueError(f"ensemble members must share one order (got {sorted(orders)})")
         self._members = [CRBMModel(representation, m, None, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode,
                                    init_noise=init_noise, seed=seed) for m in members]
+        # bias_rate (``CRBMModel``) acts on the pooled fill, against the members' mean prediction
         super().__init__(representation, members[0], None, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode,
-                         init_noise=init_noise, seed=seed, meta=meta)
+                         init_noise=init_noise, seed=seed, meta=meta, bias_rate=bias_rate)
 
     @property
     def members(self) -> list[CRBM]:
@@ -59,6 +60,10 @@ class CRBMEnsemble(CRBMModel):
         d = super().info()
         d.update(members=len(self._members))
         return d
+
+    def _one_step_prediction(self, hist: np.ndarray) -> np.ndarray:
+        """The members' mean one-step prediction: the ensemble's own, for the bias adaptation."""
+        return np.mean([mm._one_step_prediction(hist) for mm in self._members], 0)
 
     def _fill_rows(self, state: dict[str, np.ndarray], rows: np.ndarray, zc: np.ndarray,
                    obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

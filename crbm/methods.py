@@ -6,8 +6,9 @@
 * ``crbm-2level``  a second CRBM on the first level's hidden activities (section 6), filled by
                    Gibbs over both levels.
 * ``crbm-imp``     improvements: hidden probabilities in the data term of CD-1 (as the released
-                   code does), parameters averaged over the last 20% of epochs, and S = 8
-                   chains averaged in the fill.
+                   code does), parameters averaged over the last 20% of epochs, S = 8
+                   chains averaged in the fill, and per-stream bias adaptation (bias_rate 0.02,
+                   ``crbm.filler``).
 * ``crbm-ens``     three ``crbm-imp`` CRBMs from different seeds filling together: every frame
                    each member runs its chains from the shared history and the fill is the mean
                    of all chains (``crbm.ensemble``); removes most of the training-seed spread.
@@ -23,15 +24,15 @@ from lacuna.registry import MethodSpec, register_method
 
 # option name -> keyword of train_model; anything else a protocol passes is ignored
 _OPTIONS = ("hidden", "members", "order", "epochs", "seed", "history_noise", "positive_hidden", "average_last", "levels",
-            "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "fps", "progress",
+            "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "bias_rate", "fps", "progress",
             "progress_every")
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "crbm": {},
     "crbm-mf": {"mode": "mean-field"},
     "crbm-2level": {"levels": 2},
-    "crbm-imp": {"positive_hidden": "prob", "average_last": 0.2, "n_chains": 8},
-    "crbm-ens": {"positive_hidden": "prob", "average_last": 0.2, "members": 3, "n_chains": 4},
+    "crbm-imp": {"positive_hidden": "prob", "average_last": 0.2, "n_chains": 8, "bias_rate": 0.02},
+    "crbm-ens": {"positive_hidden": "prob", "average_last": 0.2, "members": 3, "n_chains": 4, "bias_rate": 0.02},
 }
 
 

@@ -45,6 +45,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
                 epochs: int | None = None, seed: int = 0, history_noise: float = 0.0,
                 positive_hidden: str = "sample", average_last: float = 0.0, levels: int = 1, level2_hidden: int | None = None,
                 level2_epochs: int | None = None, members: int = 1, n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs",
+                bias_rate: float = 0.0,
                 method: str | None = None, names: Sequence[str] = (), fps: float | None = None,
                 root_mode: str = "relative", progress: bool = False, progress_every: int = 100) -> CRBMModel:
     """sequences: raw (n_i, C) frames in ``channels``.  Returns a trained CRBMModel.
@@ -93,9 +94,11 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
                          "reconstruction_error": l1.recon_errors_[-1] if l1.recon_errors_ else None}}
     if members > 1:
         meta["training"]["members"] = int(members)
-        model = CRBMEnsemble(rep, fitted, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta)
+        model = CRBMEnsemble(rep, fitted, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta,
+                             bias_rate=bias_rate)
         model.method = method or "crbm-ens"
         return model
-    model = CRBMModel(rep, l1, l2, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta)
+    model = CRBMModel(rep, l1, l2, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta,
+                      bias_rate=bias_rate)
     model.method = method or ("crbm-2level" if levels == 2 else "crbm")
     return model

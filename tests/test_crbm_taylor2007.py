@@ -6,12 +6,13 @@ training seeds 0, 1000, 2000, filling together from one shared history, about 80
 faithful one (the paper's CD-1, K = 30 Gibbs, one chain) at 1000 epochs, and scores both with
 the protocol's cumulative scaled error against the nearest neighbours computed here.
 
-What is asserted, honestly: the upper-body target (<= 0.43 x the better nearest neighbour on
-35_29) is met by ``crbm-ens`` at training seed 0 (measured 0.39; 0.39 / 0.46 / 0.38 at seeds
-0 / 1 / 2, mean 0.41).  The right-leg target (<= 0.53 x) is NOT met: 0.556 / 0.573 / 0.557 at
-seeds 0 / 1 / 2 (docs/BENCHMARKS.md, ## CRBM); the ensemble removed the seed spread (single
-``crbm-imp``: 0.60 / 0.70 / 0.46) but not the bias.  So the test asserts the leg at <= 0.60,
-what seed 0 reliably reaches, and names the gap in its message.
+With per-stream bias adaptation (``bias_rate`` 0.02, ``crbm.filler``), measured on this
+machine: seed 0 (this test, 5 repeats) 0.514 leg / 0.428 body, both inside the issue's targets
+(<= 0.53 / <= 0.43 x the better nearest neighbour on 35_29); seeds 0 / 1 / 2 (3 repeats) 0.516 /
+0.531 / 0.526 leg and 0.427 / 0.419 / 0.376 body, mean 0.524 / 0.407 (docs/BENCHMARKS.md,
+## CRBM).  The margins are a few thousandths, and another BLAS or numpy build changes the
+1300-epoch training trajectories as a change of seed does (seeds move the leg by +-0.01), so the
+test asserts the ratios with 0.02 of headroom (ASSERTED) and prints the measured values.
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.realdata]
 
 WALK = ("35_29", "right-leg"), ("35_29", "upper-body")
 TARGET = {"right-leg": 0.53, "upper-body": 0.43}      # the paper's 11.7/22.2 and 8.8/20.5
-ASSERTED = {"right-leg": 0.60, "upper-body": 0.43}    # see the module docstring
+ASSERTED = {"right-leg": 0.55, "upper-body": 0.45}    # the targets + 0.02: see the module docstring
 REPEATS = 5                                            # stochastic fills averaged, as the paper did
 
 
