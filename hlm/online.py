@@ -234,9 +234,11 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
     tot = np.add.reduceat(newp, starts)
     post.reshape(n, -1)[...] = 0.0
     post.reshape(n, -1)[si, rows] = newp / tot[which]
-    ll = np.full((n, prf.shape[1]), -np.inf)
-    ll[si, rows] = llp
-    ll = ll.reshape(pr.shape)
+    ll = None
+    if want_ll:   # only the fixed-lag smoother reads it; the daemon's step does not
+        ll = np.full((n, prf.shape[1]), -np.inf)
+        ll[si, rows] = llp
+        ll = ll.reshape(pr.shape)
     if tab.adapt_rate > 0.0:
         w = np.zeros_like(prf)
         w[si, rows] = wp
