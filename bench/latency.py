@@ -3,7 +3,8 @@
     .venv/bin/python bench/latency.py [--repeats 3] [--seconds 10] [--waits sleep,busy] [--out bench/out] [--no-write]
 
 For each model (hold, nn, and HLM / CRBM when this build registers them; all trained on the
-same handful of real CMU walks), each load (1 stream at 120 Hz; 64 streams at 120 Hz) and each
+same handful of real CMU walks), each load (1 stream at 120 Hz; 64 streams at 120 Hz, one DEALER
+per stream; 64 streams at 120 Hz down one DEALER, ``64x120/1``) and each
 way of waiting (``sleep``: both sides sleep in poll, the default; ``busy``: ``--busy-poll 50``,
 daemon and client spin on their sockets) it runs
 ``lacuna bench --model FILE --floor`` ``--repeats`` times (a fresh daemon each time) and records
@@ -33,7 +34,7 @@ from mocap.protocols import TrainingSet  # noqa: E402
 
 SECTION = "## Daemon latency (lacuna bench)"
 TRAIN = ["35_01", "35_06", "35_07", "35_08", "35_09", "35_10", "35_11", "35_12"]
-LOADS = [(1, 120.0), (64, 120.0)]
+LOADS = [(1, 120.0, None), (64, 120.0, None), (64, 120.0, 1)]  # (streams, Hz, connections; None = one each)
 OPTIONS = {"fps": 120.0, "cycle_frames": 140}
 SMALL = {"hlm": {"n_iter": 10, "styles": 2, "restarts": 1, "progress": False},
          "crbm": {"hidden": 100, "epochs": 40, "order": 3, "progress": False}}
@@ -65,20 +66,24 @@ BUSY_POLL_MS = 50.0
 def run(files: dict[str, Path], out: Path, repeats: int, seconds: float, waits: list[str]) -> list[dict]:
     rows = []
     for name, f in files.items():
-        for streams, rate in LOADS:
+        for streams, rate, conns in LOADS:
             for wait in waits:
                 reps = []
                 for r in range(repeats):
-                    j = out / f"{name}-{streams}x{rate:g}-{wait}-r{r}.json"
+                    tag = f"{streams}x{rate:g}" + (f"c{conns}" if conns else "")
+                    j = out / f"{name}-{tag}-{wait}-r{r}.json"
                     cmd = ["bench", "--streams", str(streams), "--rate", str(rate), "--seconds", str(seconds),
                            "--model", str(f), "--floor", "--json", str(j), "--plot", str(j.with_suffix(".png")), "-q"]
+                    if conns:
+                        cmd += ["--connections", str(conns)]
                     if wait == "busy":
                         cmd += ["--busy-poll", f"{BUSY_POLL_MS:g}"]
                     print(f"lacuna {' '.join(cmd)}", file=sys.stderr, flush=True)
                     if lacuna(cmd) != 0:
                         raise SystemExit(f"bench run failed: {cmd}")
                     reps.append(json.loads(j.read_text()))
-                rows.append({**summarise(name, streams, rate, seconds, reps), "wait": wait})
+                rows.append({**summarise(name, streams, rate, seconds, reps), "wait": wait,
+                             "connections": conns or streams})
     return rows
 
 
@@ -114,7 +119,9 @@ def table(rows: list[dict], repeats: int, seconds: float) -> str:
             label = r["name"] if run == "model" else "pass-through floor"
             f = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
             cpu = "-" if m["cpu_percent"] is None else f"{m['cpu_percent']:.0f}%"
-            L.append(f"| {label} | {r['streams']} x {r['rate']:g} Hz | {r.get('wait', 'sleep')} | {f(m['p50_ms'])} | {f(m['p90_ms'])} | "
+            conns = r.get("connections", r["streams"])
+            load = f"{r['streams']} x {r['rate']:g} Hz" + (f", {conns} conn." if conns != r["streams"] else "")
+            L.append(f"| {label} | {load} | {r.get('wait', 'sleep')} | {f(m['p50_ms'])} | {f(m['p90_ms'])} | "
                      f"{f(m['p99_ms'])} ({m['p99_range'][0]:.2f}-{m['p99_range'][1]:.2f}) | {f(m['p999_ms'])} | "
                      f"{f(m['max_ms'])} | {m['served']} / {m['offered']} | {m['degraded']} | {m['dropped']} | "
                      f"{cpu} |")
@@ -137,7 +144,9 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "bench" / "out"))
     ap.add_argument("--note", default="", help="a sentence added under the table (e.g. which branches were measured)")
     ap.add_argument("--models", default="hold,nn,hlm,crbm", help="comma-separated (default hold,nn,hlm,crbm)")
-    ap.add_argument("--loads", default="1x120,64x120", help="comma-separated STREAMSxHZ (default 1x120,64x120)")
+    ap.add_argument("--loads", default="1x120,64x120,64x120/1",
+                    help="comma-separated STREAMSxHZ[/CONNECTIONS] (default 1x120,64x120,64x120/1: one DEALER per "
+                         "stream, and 64 streams down one connection)")
     ap.add_argument("--waits", default="sleep,busy",
                     help=f"comma-separated: sleep (both sides sleep in poll), busy (--busy-poll {BUSY_POLL_MS:g}: both spin)")
     ap.add_argument("--no-write", action="store_true", help="print the section instead of writing docs/BENCHMARKS.md")
@@ -145,7 +154,11 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     global LOADS
-    LOADS = [(int(a), float(b)) for a, b in (x.split("x") for x in args.loads.split(","))]
+    LOADS = []
+    for x in args.loads.split(","):
+        load, _, conns = x.partition("/")
+        a, b = load.split("x")
+        LOADS.append((int(a), float(b), int(conns) if conns else None))
     files = {k: v for k, v in train_models(out, args.models.split(",")).items()}
     t0 = time.time()
     waits = args.waits.split(",")
@@ -158,6 +171,8 @@ def main() -> int:
         f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime(t0))} with "
         f"`.venv/bin/python bench/latency.py --repeats {args.repeats} --seconds {args.seconds:g}` "
         f"(each row: `lacuna bench --streams N --rate 120 --seconds {args.seconds:g} --model FILE --floor`, "
+        f"with `--connections 1` where the load says 1 conn. (every stream down one DEALER, as one capture "
+        f"system would send them; otherwise one DEALER per stream), "
         f"a fresh daemon per repeat; medians over {args.repeats} repeats, p99 range in brackets; "
         f"served/offered/degraded/dropped summed over repeats). Round trip = client send to client receive, "
         f"ZeroMQ DEALER -> ROUTER on loopback, ms. Wait: `sleep` = daemon and client sleep in poll between "

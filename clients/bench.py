@@ -70,13 +70,13 @@ def _daemon_counts(status: dict[str, Any], prefix: str) -> dict[str, int]:
 
 def run_one(endpoint: str, channels: list[str], frames: np.ndarray, observed: np.ndarray, *, streams: int,
             rate: float, seconds: float, model: str | None, prefix: str, pid: int | None,
-            progress: bool = True, busy: bool = False) -> tuple[dict[str, Any], np.ndarray]:
+            progress: bool = True, busy: bool = False, connections: int | None = None) -> tuple[dict[str, Any], np.ndarray]:
     """One load run; returns (JSON-ready row, round trips in ms)."""
     cpu0 = cpu_seconds(pid) if pid else None
     rss0 = rss_bytes(pid) if pid else None
     w0 = time.perf_counter()
     res = loadgen.run_load(endpoint, channels, frames, observed, n_streams=streams, rate=rate, seconds=seconds,
-                           model=model, prefix=prefix, progress=progress, busy=busy)
+                           model=model, prefix=prefix, progress=progress, busy=busy, connections=connections)
     wall = time.perf_counter() - w0
     cpu1 = cpu_seconds(pid) if pid else None
     rss1 = rss_bytes(pid) if pid else None
@@ -84,6 +84,7 @@ def run_one(endpoint: str, channels: list[str], frames: np.ndarray, observed: np
     dc = _daemon_counts(st, prefix)
     row: dict[str, Any] = {
         "model": model or st.get("default_model"), "streams": streams, "rate_hz": rate, "seconds": seconds,
+        "connections": streams if connections is None else connections,
         **loadgen.percentiles(res.rtt_ms),
         "served": res.served, "degraded": res.degraded, "dropped": res.dropped, "passthrough": res.passthrough,
         "errors": res.errors, "lost": res.lost, "sent": res.sent, "unsent": res.unsent,
@@ -146,7 +147,8 @@ def run(args: Any) -> int:
             prefix = f"bench{int(time.time() * 1000) % 10**8}-{label}"
             runs[label], rtts[label] = run_one(endpoint, channels, frames, observed, streams=args.streams,
                                                rate=args.rate, seconds=args.seconds, model=name, prefix=prefix,
-                                               pid=pid, progress=progress, busy=args.busy_poll > 0)
+                                               pid=pid, progress=progress, busy=args.busy_poll > 0,
+                                               connections=args.connections)
     finally:
         if daemon is not None:
             daemon.stop()
@@ -182,13 +184,13 @@ def _model_channels(info: dict[str, Any], endpoint: str, name: str) -> list[str]
 
 
 def format_table(runs: dict[str, dict[str, Any]]) -> str:
-    head = (f"{'run':<6} {'model':<10} {'streams':>7} {'Hz':>5} {'p50':>7} {'p90':>7} {'p99':>7} {'p99.9':>7} {'max':>7}"
+    head = (f"{'run':<6} {'model':<10} {'streams':>7} {'conns':>5} {'Hz':>5} {'p50':>7} {'p90':>7} {'p99':>7} {'p99.9':>7} {'max':>7}"
             f" {'served':>8} {'degraded':>8} {'dropped':>8} {'cpu%':>6}")
     lines = [head, "-" * len(head)]
     for k, r in runs.items():
         f = lambda v: "   -   " if v is None else f"{v:7.3f}"  # noqa: E731
         cpu = "  -" if r["cpu_percent"] is None else f"{r['cpu_percent']:6.1f}"
-        lines.append(f"{k:<6} {str(r['model'])[:10]:<10} {r['streams']:>7} {r['rate_hz']:>5g} {f(r['p50_ms'])} {f(r['p90_ms'])}"
+        lines.append(f"{k:<6} {str(r['model'])[:10]:<10} {r['streams']:>7} {r.get('connections', r['streams']):>5} {r['rate_hz']:>5g} {f(r['p50_ms'])} {f(r['p90_ms'])}"
                      f" {f(r['p99_ms'])} {f(r['p999_ms'])} {f(r['max_ms'])} {r['served']:>8} {r['degraded']:>8}"
                      f" {r['dropped']:>8} {cpu}")
     lines.append("(round trips in ms over ZeroMQ DEALER->ROUTER on loopback; cpu% = daemon process, % of one core)")

@@ -80,6 +80,9 @@ def add_commands(cli) -> None:
                    help="spin instead of sleeping while waiting for answers (the client always; with --model the "
                         "daemon too, busy_poll_ms = MS), so neither side's kernel wake-up is in the round trip; "
                         "each spinning side uses a core (default 0: off)")
+    p.add_argument("--connections", type=int, default=None, metavar="K",
+                   help="DEALER sockets carrying the streams, stream i on socket i %% K (default: one per stream, "
+                        "N separate plugins; 1 = one capture system multiplexing every performer)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", dest="json_out", metavar="OUT")
     p.add_argument("--plot", metavar="OUT.png")
@@ -200,6 +203,8 @@ def _bench(args: argparse.Namespace) -> int:
     if args.streams < 1 or args.rate <= 0 or args.seconds <= 0:
         raise LacunaError(f"--streams >= 1, --rate > 0 and --seconds > 0 please "
                           f"(got {args.streams}, {args.rate}, {args.seconds})")
+    if args.connections is not None and not 1 <= args.connections <= args.streams:
+        raise LacunaError(f"--connections must be between 1 and --streams ({args.streams}), got {args.connections}")
     return bench.run(args)
 
 

@@ -82,11 +82,17 @@ def percentiles(rtt_ms: np.ndarray) -> dict[str, float | None]:
 
 def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: np.ndarray, *, n_streams: int,
              rate: float, seconds: float, model: str | None = None, prefix: str = "bench",
-             progress: bool = True, busy: bool = False) -> LoadResult:
+             progress: bool = True, busy: bool = False, connections: int | None = None) -> LoadResult:
     """Offer ``n_streams`` x ``rate`` frames/s for ``seconds``; every stream replays ``frames``
-    (T, C) with mask ``observed`` (T, C) from its own starting offset, cycling."""
-    if n_streams < 1 or rate <= 0 or seconds <= 0:
-        raise ValueError(f"need streams >= 1, rate > 0, seconds > 0 (got {n_streams}, {rate}, {seconds})")
+    (T, C) with mask ``observed`` (T, C) from its own starting offset, cycling.
+
+    ``connections``: how many DEALER sockets carry the streams (stream i on socket
+    ``i % connections``).  The default, one per stream, is N separate capture plugins; one
+    connection is one capture system sending every performer's stream down one socket."""
+    connections = n_streams if connections is None else connections
+    if n_streams < 1 or rate <= 0 or seconds <= 0 or not 1 <= connections <= n_streams:
+        raise ValueError(f"need streams >= 1, rate > 0, seconds > 0, 1 <= connections <= streams "
+                         f"(got {n_streams}, {rate}, {seconds}, {connections})")
     T, C = frames.shape
     if C != len(channels) or observed.shape != frames.shape:
         raise ValueError(f"frames {frames.shape} / observed {observed.shape} do not match {len(channels)} channels")
@@ -98,10 +104,11 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
     ids = [f"{prefix}-{i:03d}" for i in range(n_streams)]
     res = LoadResult(ids, rate, seconds)
     ctx = zmq.Context()
-    socks = [dealer_socket(ctx, endpoint, DEFAULT_TIMEOUT_S) for _ in ids]
-    index = {s: i for i, s in enumerate(socks)}
+    conns = [dealer_socket(ctx, endpoint, DEFAULT_TIMEOUT_S) for _ in range(connections)]
+    socks = [conns[i % connections] for i in range(n_streams)]
+    index = {sid: i for i, sid in enumerate(ids)}   # answers name their stream: that finds the row
     poller = zmq.Poller()
-    for s in socks:
+    for s in conns:
         poller.register(s, zmq.POLLIN)
     send_t = np.full((n_streams, n_ticks), np.nan)
     rtt = np.full((n_streams, n_ticks), np.nan)
@@ -146,7 +153,7 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
             print(f"\r  bench: {n_ticks}/{n_ticks} ticks, {res.served} served, {res.dropped} dropped   ",
                   file=sys.stderr, flush=True)
     finally:
-        for s in socks:
+        for s in conns:
             s.close(linger=0)
         ctx.term()
     ok = np.isfinite(rtt)
@@ -159,12 +166,16 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
 def _handshake(socks: list[zmq.Socket], ids: list[str], channels: list[str], model: str | None) -> None:
     for s, sid in zip(socks, ids):
         s.send(wire.encode(wire.Hello(sid, channels, model)))
-    for s, sid in zip(socks, ids):
-        if not s.poll(int(HANDSHAKE_TIMEOUT_S * 1000), zmq.POLLIN):
-            raise TimeoutError(f"no hello-ack for stream {sid} within {HANDSHAKE_TIMEOUT_S:g} s")
-        msg = decode_reply(s.recv())
-        if isinstance(msg, wire.ErrorMsg):
-            raise ValueError(f"daemon refused the handshake of {sid}: {msg.reason}: {msg.detail}")
+    waiting = {}  # socket -> how many acks it still owes
+    for s in socks:
+        waiting[s] = waiting.get(s, 0) + 1
+    for s, n in waiting.items():
+        for _ in range(n):
+            if not s.poll(int(HANDSHAKE_TIMEOUT_S * 1000), zmq.POLLIN):
+                raise TimeoutError(f"a hello-ack is missing after {HANDSHAKE_TIMEOUT_S:g} s")
+            msg = decode_reply(s.recv())
+            if isinstance(msg, wire.ErrorMsg):
+                raise ValueError(f"daemon refused the handshake of {msg.stream}: {msg.reason}: {msg.detail}")
 
 
 def _wait_until(deadline: float, poller: zmq.Poller, index: dict[Any, int], send_t: np.ndarray, rtt: np.ndarray,
@@ -179,17 +190,19 @@ def _wait_until(deadline: float, poller: zmq.Poller, index: dict[Any, int], send
         if busy and not got:
             os.sched_yield()  # let ZeroMQ's I/O thread run on this core at once
         for sock, _ in got:
-            i = index[sock]
+            # stamp every waiting answer as it is read, and only then decode them: reading one
+            # answer must not wait for the decoding of the answers before it
+            arrived = []
             while True:
                 try:
-                    data = sock.recv(zmq.NOBLOCK)
+                    arrived.append((sock.recv(zmq.NOBLOCK), time.perf_counter()))
                 except zmq.Again:
                     break
-                t = time.perf_counter()
-                _account(data, i, t, send_t, rtt, proc, res)
+            for data, t in arrived:
+                _account(data, index, t, send_t, rtt, proc, res)
 
 
-def _account(data: bytes, i: int, t: float, send_t: np.ndarray, rtt: np.ndarray, proc: np.ndarray,
+def _account(data: bytes, index: dict[str, int], t: float, send_t: np.ndarray, rtt: np.ndarray, proc: np.ndarray,
              res: LoadResult) -> None:
     """Count one answer.  Reads only the fields it needs; anything unreadable counts as an error."""
     try:
@@ -201,7 +214,8 @@ def _account(data: bytes, i: int, t: float, send_t: np.ndarray, rtt: np.ndarray,
         return
     if typ == "fill":
         k = m.get("seq", -1)
-        if 0 <= k < send_t.shape[1] and send_t[i, k] == send_t[i, k]:  # sent (not NaN)
+        i = index.get(m.get("stream"), -1)
+        if i >= 0 and 0 <= k < send_t.shape[1] and send_t[i, k] == send_t[i, k]:  # sent (not NaN)
             rtt[i, k] = (t - send_t[i, k]) * 1000.0
             proc[i, k] = m.get("proc_us", np.nan)
         res.served += 1

@@ -62,7 +62,7 @@ class Config:
     zmq_pull: str | None = None
     zmq_sub: list[str] = field(default_factory=list)
     zmq_pub: str | None = None
-    zmq_hwm: int = 100
+    zmq_hwm: int = 1000
     osc_listen: tuple[str, int] | None = None
     osc_send: tuple[str, int] | None = None
     metrics_http: tuple[str, int] | None = None

@@ -39,7 +39,9 @@ class CostModel:
     """Step time ~ a + b * n, by discounted least squares (falls back to b = t / n)."""
 
     def __init__(self) -> None:
-        self.s = np.zeros(5)  # sum w, sum w n, sum w n^2, sum w t, sum w n t
+        # sum w, sum w n, sum w n^2, sum w t, sum w n t (plain floats: this runs every tick, and
+        # numpy scalars cost more than the arithmetic)
+        self.s = [0.0, 0.0, 0.0, 0.0, 0.0]
         self.seen = False
 
     def observe(self, n: int, t: float) -> None:
@@ -49,8 +51,9 @@ class CostModel:
             # a model that really got slower still moves the fit by that factor per step
             a, b = self.coef()
             t = min(t, OUTLIER * max(a + b * n, 1e-6))
-        self.s *= DISCOUNT
-        self.s += (1.0, n, n * n, t, n * t)
+        w, sn, snn, st, snt = self.s
+        d = DISCOUNT
+        self.s = [d * w + 1.0, d * sn + n, d * snn + n * n, d * st + t, d * snt + n * t]
         self.seen = True
 
     def coef(self) -> tuple[float, float]:
@@ -216,10 +219,7 @@ class Scheduler:
                     model.step_batch([s.state for s in who], np.full((len(who), C), np.nan), np.zeros((len(who), C), bool))
                     for s in who:
                         s.counts["predicted"] += 1
-                mf = np.empty((len(group), C))
-                mo = np.empty((len(group), C), bool)
-                for i, s in enumerate(group):
-                    mf[i], mo[i] = s.to_model(s.pending.frame)  # type: ignore[union-attr]
+                mf, mo = model_inputs(group, C)
                 fills = model.step_batch([s.state for s in group], mf, mo)
             finally:
                 if knob:
@@ -306,3 +306,77 @@ def fill_message(s: Session, fill: Fill, status: str, now: float) -> wire.FillMs
                         int((now - p.arrived) * 1e6),
                         None if style is None else np.asarray(style, np.float32).ravel(),
                         None if phase is None or not np.isfinite(phase) else float(phase), gap)
+
+
+def model_inputs(group: list[Session], C: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pending studio frames of a step group -> model space: (n, C) float64 frames (NaN
+    where missing) and (n, C) observed masks.  Streams that send the model's own channels in
+    its order (the usual case) are stacked in one go; the others are mapped one by one."""
+    frames = [s.pending.frame for s in group]  # type: ignore[union-attr]
+    if all(s.mapping.identity for s in group):
+        a = np.array([f.angles for f in frames], dtype=np.float64)
+        if all(f.observed is None for f in frames):
+            mo = np.isfinite(a)
+        else:
+            mo = np.array([np.isfinite(f.angles) if f.observed is None else f.observed for f in frames], dtype=bool)
+        return np.where(mo, a, np.nan), mo
+    mf = np.empty((len(group), C))
+    mo = np.empty((len(group), C), bool)
+    for i, (s, f) in enumerate(zip(group, frames)):
+        mf[i], mo[i] = s.to_model(f)
+    return mf, mo
+
+
+def fill_messages(results: list[tuple[Session, Fill, str]], now: float) -> list[wire.FillMsg | Exception]:
+    """:func:`fill_message` for a whole tick, with the streams that need no channel mapping done
+    as (n, C) arrays at once.  Each entry is the message, or the exception that made it
+    impossible (the daemon answers that stream with an error and keeps serving the rest)."""
+    out: list[wire.FillMsg | Exception | None] = [None] * len(results)
+    by_width: dict[int, list[int]] = {}
+    for i, (s, fill, status) in enumerate(results):
+        if s.mapping.identity:
+            by_width.setdefault(s.mapping.n_in, []).append(i)
+        else:
+            out[i] = _fill_message_or_error(s, fill, status, now)
+    for C, rows in by_width.items():
+        try:
+            msgs = _identity_fills([results[i] for i in rows], C, now)
+        except Exception:  # noqa: BLE001 - some fill does not fit the array: find which, one by one
+            msgs = [_fill_message_or_error(*results[i], now) for i in rows]
+        for i, m in zip(rows, msgs):
+            out[i] = m
+    return out  # type: ignore[return-value]
+
+
+def _fill_message_or_error(s: Session, fill: Fill, status: str, now: float) -> wire.FillMsg | Exception:
+    try:
+        return fill_message(s, fill, status, now)
+    except Exception as e:  # noqa: BLE001 - reported per stream by the caller
+        return e
+
+
+def _identity_fills(items: list[tuple[Session, Fill, str]], C: int, now: float) -> list[wire.FillMsg]:
+    """fill_message's identity branch over n streams of width C, as array operations."""
+    n = len(items)
+    fr = [s.pending.frame for s, _, _ in items]  # type: ignore[union-attr]
+    given = np.array([f.angles for f in fr], dtype=np.float32)
+    sent = np.array([np.isfinite(f.angles) if f.observed is None else f.observed for f in fr], dtype=bool)
+    model_out = np.array([fl.frame for _, fl, _ in items], dtype=np.float32)
+    std = np.array([fl.std for _, fl, _ in items], dtype=np.float32)
+    filled = np.array([fl.filled for _, fl, _ in items], dtype=bool)
+    if not (given.shape == sent.shape == model_out.shape == std.shape == filled.shape == (n, C)):
+        raise ValueError(f"fills do not stack to ({n}, {C})")
+    angles = np.where(sent, given, model_out)  # observed values exactly as sent, whatever the model returned
+    filled &= ~sent
+    msgs = []
+    for j, (s, fill, status) in enumerate(items):
+        f = fr[j]
+        ex = fill.extras or {}
+        style = ex.get("style")
+        phase = ex.get("phase")
+        msgs.append(wire.FillMsg(f.stream, f.seq, f.t, angles[j], filled[j], std[j], status, s.model_name,
+                                 int((now - s.pending.arrived) * 1e6),  # type: ignore[union-attr]
+                                 None if style is None else np.asarray(style, np.float32).ravel(),
+                                 None if phase is None or not np.isfinite(phase) else float(phase),
+                                 0 if s.last_seq is None else max(0, f.seq - s.last_seq - 1)))
+    return msgs

@@ -25,7 +25,7 @@ from daemon import osc, security, wire
 from daemon.metrics import Metrics, MetricsHTTP
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
-from daemon.scheduler import Scheduler, fill_message
+from daemon.scheduler import Scheduler, fill_messages
 from daemon.session import Origin, SessionError, SessionTable
 from daemon.transport import Transports
 
@@ -144,15 +144,19 @@ class Daemon:
                 if wd is not None:
                     timeout = min(timeout, max(0, int(wd * 1000)))
                 ready = self._spin(timeout) if timeout and self._busy_s else self.net.poll(timeout)  # type: ignore[union-attr]
+                net = self.net
+                net.hold()  # type: ignore[union-attr]  # this turn's answers go out together, after its work
                 try:
                     if ready:
                         self._last_rx = time.perf_counter()
-                        self.net.receive(ready)  # type: ignore[union-attr]
+                        net.receive(ready)  # type: ignore[union-attr]
                     self._serve()
                 except Exception as e:  # never let a bug end the service: log, count, go on
                     self.metrics.inc("internal_errors")
                     self.log("error", "internal_error", where="loop", error=f"{type(e).__name__}: {e}"[:300])
                     self._abandon_pending(f"{type(e).__name__} while serving")
+                finally:
+                    net.flush()  # type: ignore[union-attr]
                 if self.flag_stop:
                     break
                 now = time.monotonic()
@@ -245,22 +249,21 @@ class Daemon:
             return
         t0 = time.perf_counter()
         results = self.sched.run(groups, t0)
+        self.metrics.inc("ticks")  # frames_out / ticks = the mean batch the scheduler stepped
         self.metrics.step_time(time.perf_counter() - t0)
         t1 = time.perf_counter()
-        for s, fill, status in results:
+        msgs = fill_messages(results, t1)  # reads s.pending and s.last_seq (for gap)
+        for (s, fill, status), msg in zip(results, msgs):
             p = s.pending
-            now = time.perf_counter()
-            try:
-                msg = fill_message(s, fill, status, now)  # reads s.pending and s.last_seq (for gap)
-            except Exception as e:  # a fill the wire cannot carry: answer with an error, keep serving
+            s.last_seq = p.frame.seq
+            s.pending = None
+            if isinstance(msg, Exception):  # a fill the wire cannot carry: answer with an error, keep serving
+                e = msg
                 self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
                 self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
-                msg = None
-            finally:
-                s.last_seq = p.frame.seq
-                s.pending = None
-            if msg is None:
                 continue
+            now = time.perf_counter()
+            msg.proc_us = int((now - p.arrived) * 1e6)  # receipt to this reply's encoding (sent right after the tick)
             s.counts["frames_out"] += 1
             if status == "degraded":
                 s.counts["degraded"] += 1

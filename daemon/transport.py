@@ -2,7 +2,8 @@
 
 ``receive(ready)`` drains what arrived (bounded per socket and tick) and hands each message to
 ``on_message(bytes, origin, arrival time)``; ``send(origin, message, publish)`` answers on the
-transport the message came from and, for filled frames, also publishes on PUB.  Sends never
+transport the message came from and, for filled frames, also publishes on PUB.  Between
+``hold()`` and ``flush()`` ZeroMQ answers are queued and then sent together.  Sends never
 block: a peer over its high-water mark loses that answer and the loss is counted.
 """
 from __future__ import annotations
@@ -21,6 +22,9 @@ from daemon.session import Origin
 
 DRAIN_MAX = 2048  # messages read per socket per tick: keeps one busy socket from starving the rest
 UDP_MAX = 65535  # bytes
+_NOBLOCK = int(zmq.NOBLOCK)
+_MORE_NOBLOCK = int(zmq.SNDMORE | zmq.NOBLOCK)
+FLUSH_MAX = 64  # held answers sent at once, at most (fewer when the hwm is small)
 ZMQ_MAXMSG_FLOOR = 1 << 20  # bytes
 
 
@@ -40,6 +44,8 @@ class Transports:
         self.udp: socket.socket | None = None
         self.guard: security.Guard | None = None
         self.poller = zmq.Poller()
+        self._held: list[tuple[zmq.Socket, list[bytes], str]] | None = None
+        self._flush_every = max(1, min(FLUSH_MAX, cfg.zmq_hwm // 4))
 
     def _sock(self, kind: int) -> zmq.Socket:
         assert self.ctx is not None
@@ -117,12 +123,16 @@ class Transports:
         for sock_, name in ((self.router, "router"), (self.pull, "pull"), (self.sub, "sub")):
             if sock_ is None or sock_ not in ready:
                 continue
+            # read everything waiting first, then handle it: the socket calls run back to back
+            # (ZeroMQ's I/O thread is not woken between them) and the scheduler sees the whole burst
+            got = []
+            recv = sock_.recv_multipart
             for _ in range(DRAIN_MAX):
                 try:
-                    parts = sock_.recv_multipart(zmq.NOBLOCK)
+                    got.append((recv(zmq.NOBLOCK), time.perf_counter()))
                 except zmq.Again:
                     break
-                arrived = time.perf_counter()
+            for parts, arrived in got:
                 if name == "router":
                     if len(parts) < 2:
                         self.on_reject(None, "bad_envelope", f"ROUTER message of {len(parts)} frame(s)", None, None)
@@ -146,28 +156,65 @@ class Transports:
                     continue
                 self.on_message(data, ("osc", addr), time.perf_counter())
 
-    def send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
-        """Answer on the origin's transport; ``publish`` also puts it on PUB (topic = stream).
-        Answers to PULL/SUB input (acks, drops, errors) go to PUB, since there is no way back."""
-        kind = origin[0]
+    def hold(self) -> None:
+        """Queue ZeroMQ answers until :meth:`flush` (the daemon holds them for one loop turn):
+        the sends then run back to back after the tick's work, instead of waking ZeroMQ's I/O
+        thread between every two fills while the rest of the tick is still being computed."""
+        if self._held is None:
+            self._held = []
+
+    def flush(self) -> None:
+        held, self._held = self._held, None
+        if held:
+            for sock_, parts, kind in held:
+                self._zsend(sock_, parts, kind)
+
+    def _zsend(self, sock_: zmq.Socket, parts: list[bytes], kind: str) -> None:
         try:
-            body: bytes | None = None
-            if kind == "osc":
-                assert self.udp is not None
-                self.udp.sendto(osc.encode(msg), self.cfg.osc_send or origin[1])
-            elif kind == "router" and self.router is not None:
-                body = wire.encode(msg)
-                self.router.send_multipart([*origin[1], body], zmq.NOBLOCK)
-            elif kind == "pull" and self.pub is not None and not publish:
-                topic = getattr(msg, "stream", None) or ""
-                self.pub.send_multipart([topic.encode(), wire.encode(msg)], zmq.NOBLOCK)
-            if publish and self.pub is not None:
-                self.pub.send_multipart([msg.stream.encode(), body or wire.encode(msg)], zmq.NOBLOCK)  # type: ignore[union-attr]
+            # send_multipart, without its per-part checks and enum flag arithmetic (hot path)
+            send = sock_.send
+            for part in parts[:-1]:
+                send(part, _MORE_NOBLOCK)
+            send(parts[-1], _NOBLOCK)
         except zmq.Again:
             self.metrics.inc("send_dropped")  # peer over its high-water mark: drop, never block
         except (OSError, zmq.ZMQError) as e:
             self.metrics.inc("send_errors")  # e.g. EHOSTUNREACH: the peer disconnected
             self.log("debug", "send_error", transport=kind, error=str(e))
+
+    def _zmq(self, sock_: zmq.Socket, parts: list[bytes], kind: str) -> None:
+        held = self._held
+        if held is None:
+            self._zsend(sock_, parts, kind)
+            return
+        held.append((sock_, parts, kind))
+        if len(held) >= self._flush_every:
+            # a burst to one peer beyond about half its high-water mark can find the pipe full
+            # (libzmq's writer sees free space in steps of hwm/2) and would lose answers
+            self._held = []
+            for h in held:
+                self._zsend(*h)
+
+    def send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
+        """Answer on the origin's transport; ``publish`` also puts it on PUB (topic = stream).
+        Answers to PULL/SUB input (acks, drops, errors) go to PUB, since there is no way back."""
+        kind = origin[0]
+        if kind == "osc":
+            assert self.udp is not None
+            try:
+                self.udp.sendto(osc.encode(msg), self.cfg.osc_send or origin[1])
+            except OSError as e:
+                self.metrics.inc("send_errors")
+                self.log("debug", "send_error", transport=kind, error=str(e))
+        body: bytes | None = None
+        if kind == "router" and self.router is not None:
+            body = wire.encode(msg)
+            self._zmq(self.router, [*origin[1], body], kind)
+        elif kind == "pull" and self.pub is not None and not publish:
+            topic = getattr(msg, "stream", None) or ""
+            self._zmq(self.pub, [topic.encode(), wire.encode(msg)], "pub")
+        if publish and self.pub is not None:
+            self._zmq(self.pub, [msg.stream.encode(), body or wire.encode(msg)], "pub")  # type: ignore[union-attr]
 
     def close(self, linger_ms: int = 0) -> None:
         for s in (self.router, self.pull, self.sub, self.pub):

@@ -234,13 +234,19 @@ def _number(m: dict, key: str, what: str) -> float:
 def _decode_frame(m: dict) -> Frame:
     # fast path for the common, well-formed frame (the daemon's hot path); anything unusual
     # goes through the checked path below, which names what is wrong
-    sid, seq, t, b = m.get("stream"), m.get("seq"), m.get("t"), m.get("angles")
+    sid, seq, t, b, ob = m.get("stream"), m.get("seq"), m.get("t"), m.get("angles"), m.get("observed")
     if (type(sid) is str and 0 < len(sid) <= MAX_STREAM_ID and type(seq) is int and 0 <= seq <= MAX_SEQ
             and type(t) is float and math.isfinite(t) and type(b) is bytes and 0 < len(b) <= 4 * MAX_CHANNELS
-            and not len(b) % 4 and m.get("observed") is None and sid.isprintable()):
+            and not len(b) % 4 and sid.isprintable()):
         angles = np.frombuffer(b, dtype=F32)
-        if not np.isinf(angles).any():
-            return Frame(sid, seq, t, angles, None)
+        if ob is None:
+            if not np.isinf(angles).any():
+                return Frame(sid, seq, t, angles, None)
+        # a mask of one 0/1 byte per channel (translate deletes those bytes: nothing may be left)
+        elif type(ob) is bytes and 4 * len(ob) == len(b) and not ob.translate(None, b"\x00\x01"):
+            observed = np.frombuffer(ob, dtype=np.bool_)
+            if np.isfinite(angles[observed]).all():
+                return Frame(sid, seq, t, angles, observed)
     return _decode_frame_checked(m)
 
 

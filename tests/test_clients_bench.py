@@ -92,3 +92,26 @@ def test_bench_connect_drives_a_running_daemon_and_its_floor_model(tmp_path, cap
         assert 'builtin = "passthrough"' in capsys.readouterr().err
     finally:
         d.stop()
+
+
+def test_bench_streams_multiplexed_on_one_connection_are_all_answered(tmp_path, capsys):
+    """A capture system sending every performer down one DEALER: 12 streams on 2 sockets at
+    120 Hz.  Every frame is answered, on its own stream (the round trips land in their rows, so
+    served equals the round trips recorded), and the counts agree with the daemon's status."""
+    from clients import synth
+
+    g = synth.gait(2.0, seed=5)
+    HoldModel.fit([g.frames], g.channels).save(str(tmp_path / "hold.npz"))
+    rc = main(["bench", "--streams", "12", "--connections", "2", "--rate", "120", "--seconds", "1",
+               "--model", str(tmp_path / "hold.npz"), "--json", str(tmp_path / "m.json"), "-q"])
+    assert rc == 0
+    out = json.loads((tmp_path / "m.json").read_text())
+    r = out["runs"]["model"]
+    assert r["connections"] == 2 and r["streams"] == 12
+    assert r["counts_agree"] and r["sent"] == 12 * 120
+    assert r["served"] + r["dropped"] == r["sent"] and r["lost"] == 0 and r["errors"] == 0
+    assert r["served"] > 0.9 * r["sent"]
+    assert "conns" in capsys.readouterr().out
+    # more connections than streams is refused with a clear message
+    assert main(["bench", "--streams", "2", "--connections", "3", "--model", str(tmp_path / "hold.npz"), "-q"]) == 2
+    assert "--connections" in capsys.readouterr().err
