@@ -32,6 +32,7 @@ DISCOUNT = 0.97  # per observation, for the cost fit
 PROBE_S = 1.0  # seconds: a model held on every stream gets one real step this often
 OUTLIER = 4.0  # clip a cost observation at this multiple of the current fit
 REPLY_COST_S = 30e-6
+STACK_MIN = 4  # streams from which a tick's inputs and replies are built as (n, C) arrays (fewer: row by row is cheaper)
 HOLD_COST_S = 20e-6  # per stream, what hold-last-value costs in the session (numpy overhead)  # first guess of encode+send per reply, refined online
 
 
@@ -313,7 +314,7 @@ def model_inputs(group: list[Session], C: int) -> tuple[np.ndarray, np.ndarray]:
     where missing) and (n, C) observed masks.  Streams that send the model's own channels in
     its order (the usual case) are stacked in one go; the others are mapped one by one."""
     frames = [s.pending.frame for s in group]  # type: ignore[union-attr]
-    if all(s.mapping.identity for s in group):
+    if len(group) >= STACK_MIN and all(s.mapping.identity for s in group):
         a = np.array([f.angles for f in frames], dtype=np.float64)
         if all(f.observed is None for f in frames):
             mo = np.isfinite(a)
@@ -333,8 +334,9 @@ def fill_messages(results: list[tuple[Session, Fill, str]], now: float) -> list[
     impossible (the daemon answers that stream with an error and keeps serving the rest)."""
     out: list[wire.FillMsg | Exception | None] = [None] * len(results)
     by_width: dict[int, list[int]] = {}
+    small = len(results) < STACK_MIN
     for i, (s, fill, status) in enumerate(results):
-        if s.mapping.identity:
+        if s.mapping.identity and not small:
             by_width.setdefault(s.mapping.n_in, []).append(i)
         else:
             out[i] = _fill_message_or_error(s, fill, status, now)

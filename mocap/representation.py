@@ -206,7 +206,10 @@ class Representation:
                 "pos": np.array([pos[c] for c in ROOT_POS], int) if self.root_mode == "relative" else None,
                 "rootf": np.array([self.features.index(c) for c in ROOT_FEATURES], int)
                 if self.root_mode == "relative" else None,
-                "center": np.asarray(self.center),
+                "center": np.asarray(self.center, dtype=np.float64),
+                "center_row": np.asarray(self.center, dtype=np.float64)[None, :],
+                "const_row": np.asarray(self.const_value, dtype=np.float64)[None, :],
+                "any_angle": bool(angle[np.array(direct_raw, int)].any()) if direct_raw else False,
                 "mean": np.asarray(self.mean),
                 "std": np.asarray(self.std),
             }
@@ -328,7 +331,7 @@ class ReprState:
 
     def _unwrap(self, x: np.ndarray) -> np.ndarray:
         """Raw angles (n, C) -> continuous with the previous frame (or the centre at the start)."""
-        ref = np.where(self.started[:, None], self.prev_u, np.asarray(self.rep.center)[None, :])
+        ref = np.where(self.started[:, None], self.prev_u, self.rep._plan()["center_row"])
         return ref + wrap180(x - ref)
 
     def encode(self, frames: np.ndarray, observed: np.ndarray, normalized: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -340,10 +343,11 @@ class ReprState:
         F = np.full((self.n, rep.n_features), np.nan)
         dr, df = p["direct_raw"], p["direct_feat"]
         vals = x[:, dr]
-        ang = p["direct_angle"]
-        if ang.any():
-            u = self._unwrap(np.where(np.isnan(x), 0.0, x))
-            vals = np.where(ang[None, :], np.where(np.isnan(vals), np.nan, u[:, dr]), vals)
+        if p["any_angle"]:
+            nan_x = np.isnan(x)
+            u = self._unwrap(np.where(nan_x, 0.0, x))
+            # angle features take the unwrapped value where the channel was sent (NaN stays NaN)
+            vals = np.where(p["direct_angle"] & ~nan_x[:, dr], u[:, dr], vals)
         F[:, df] = vals
         if rep.root_mode == "relative":
             F[:, p["rootf"]] = self._encode_root(x, p)
@@ -377,7 +381,7 @@ class ReprState:
         rep, p = self.rep, self.rep._plan()
         norm = rep.normalize if normalized is None else normalized
         Fv = rep.denormalize_features(feats) if norm else np.asarray(feats, dtype=np.float64)
-        out = np.tile(np.asarray(rep.const_value), (self.n, 1))
+        out = np.repeat(p["const_row"], self.n, axis=0)
         dr, df = p["direct_raw"], p["direct_feat"]
         vals = Fv[:, df]
         ang = p["direct_angle"]

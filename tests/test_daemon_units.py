@@ -14,6 +14,7 @@ from daemon import config, osc, wire
 from daemon.fillers import PassThroughModel
 from daemon.scheduler import CostModel, Scheduler, fill_message, levels_of
 from daemon.session import SessionError, SessionTable
+from lacuna.filler import Fill
 from mocap.baselines import HoldModel
 
 REPO = Path(__file__).resolve().parent.parent
@@ -291,3 +292,42 @@ def test_partial_step_without_knob_is_full_quality_not_degraded():
         sched.cost(m, None).observe(10, 1e-2 / 30)
     plan = sched.plan(m, list(t.sessions.values()), now=0.0)
     assert len(plan.step) == 5 and len(plan.hold) == 5 and not plan.degraded
+
+
+def test_tick_inputs_and_replies_built_as_arrays_equal_the_row_by_row_ones():
+    """model_inputs / fill_messages stack a tick of identity-mapped streams into (n, C) arrays
+    (from STACK_MIN streams on); the result must be the per-stream to_model / fill_message's,
+    whatever mix of masks, NaN and remapped streams the tick holds."""
+    from daemon.scheduler import STACK_MIN, fill_messages, model_inputs
+
+    model = HoldModel(CH, np.array([5.0, 6.0, 7.0]), np.ones(3))
+    t, _ = _table(model, max_streams=64)
+    rng = np.random.default_rng(0)
+    n = STACK_MIN + 3
+    for i in range(n):
+        vals = rng.normal(size=3)
+        if i % 3 == 0:
+            vals[1] = np.nan                                   # missing by NaN
+        mask = np.array([1, 0, 1], bool) if i % 3 == 1 else None  # missing by mask (value sent anyway)
+        t.frame(_frame(f"s{i}", 0, vals, mask), ("pull", None), 0.0)
+    t.hello(wire.Hello("remap", ["c.rx", "zz", "a.rx"]))       # a remapped stream rides along
+    t.frame(_frame("remap", 0, [1.0, 42.0, np.nan]), ("pull", None), 0.0)
+    group = [s for sid, s in t.sessions.items() if sid != "remap"]
+    mf, mo = model_inputs(group, 3)
+    for i, s in enumerate(group):
+        f1, o1 = s.to_model(s.pending.frame)
+        assert np.array_equal(mf[i], f1, equal_nan=True) and np.array_equal(mo[i], o1)
+    sched = Scheduler(100.0, 5, 64)
+    results = sched.run({id(model): (model, list(t.sessions.values()))}, 0.0)
+    assert len(results) == n + 1
+    batch = fill_messages(results, 0.001)
+    for (s, fill, status), got in zip(results, batch):
+        want = fill_message(s, fill, status, 0.001)
+        assert isinstance(got, wire.FillMsg)
+        assert wire.encode(got) == wire.encode(want), s.sid
+    # a fill the wire cannot carry fails its own stream only
+    bad = [(s, Fill(np.zeros(5), np.zeros(5), np.zeros(5, bool)) if i == 2 else f, st)
+           for i, (s, f, st) in enumerate(results)]
+    out = fill_messages(bad, 0.001)
+    assert isinstance(out[2], Exception)
+    assert all(isinstance(m, wire.FillMsg) for i, m in enumerate(out) if i != 2)

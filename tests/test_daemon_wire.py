@@ -173,3 +173,24 @@ def test_random_bytes_never_raise_anything_but_wire_error(rng):
                 w.decode(bytes(b))
             except w.WireError:
                 pass
+
+
+def test_masked_frame_fast_path_equals_the_checked_path_and_rejects_the_same():
+    """The hot path reads a frame with an explicit observed mask without the field-by-field
+    checks; it must decode exactly what the checked path decodes and leave every bad mask to it."""
+    from daemon.wire import _decode_frame_checked
+
+    angles = np.array([1.0, np.nan, 3.0, 4.0], np.float32)
+    good = {"v": 1, "type": "frame", "stream": "s", "seq": 3, "t": 0.5, "angles": angles.tobytes(),
+            "observed": bytes([1, 0, 1, 0])}
+    fast = w.decode(msgpack.packb(good, use_bin_type=True))
+    slow = _decode_frame_checked(good)
+    assert fast.observed.dtype == bool and fast.observed.tolist() == slow.observed.tolist() == [True, False, True, False]
+    assert np.array_equal(fast.angles, slow.angles, equal_nan=True) and (fast.stream, fast.seq, fast.t) == ("s", 3, 0.5)
+    for bad, reason in (({"observed": bytes([1, 2, 1, 0])}, "bad_mask"),
+                        ({"observed": bytes([1, 1, 1])}, "bad_length"),
+                        ({"observed": bytes([1, 1, 1, 0])}, "non_finite"),   # channel 1 is NaN but marked observed
+                        ({"angles": np.array([1, np.inf, 3, 4], np.float32).tobytes()}, "non_finite")):
+        with pytest.raises(w.WireError) as ei:
+            w.decode(msgpack.packb({**good, **bad}, use_bin_type=True))
+        assert ei.value.reason == reason, bad
