@@ -14,7 +14,8 @@ import numpy as np
 from lacuna import modelfile
 from lacuna.feature_model import CoreOut, FeatureModel
 from lacuna.filler import Fill, FillerError, check_frame
-from hlm import offline, online
+from hlm import fast, offline, online
+from hlm.streamcycle import LIVE_STATS
 from hlm.params import HLMParams
 from mocap.representation import Representation
 
@@ -98,6 +99,11 @@ class HLMModel(FeatureModel):
 
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
                   rows: np.ndarray | None = None) -> CoreOut:
+        if z.shape[0] == 1 and fast.usable(self.tables):
+            # one stream: the compiled step (hlm.fast), the same arithmetic as below
+            zf, sd, ex = fast.step_one(self.tables, state, z, zobs, None if rows is None else rows[0],
+                                       online.LIVE, LIVE_STATS)
+            return CoreOut(zf, sd, [ex])
         keep: dict = {}
         online.update(self.tables, state, z, zobs, prow=rows, keep=keep, want_ll=False)
         online.accumulate(self.tables, state, z, zobs, prow=rows)
@@ -181,7 +187,10 @@ class HLMModel(FeatureModel):
     def info(self) -> dict[str, Any]:
         p = self.params
         return {**super().info(), "styles": p.n_styles, "states": p.n_states, "features": self.representation.n_features,
-                "root_mode": self.representation.root_mode, "normalize": self.representation.normalize}
+                "root_mode": self.representation.root_mode, "normalize": self.representation.normalize,
+                # a lone stream's step compiled (hlm.fast) or numpy: numba missing, LACUNA_NO_JIT=1,
+                # or a sandbox forbidding JIT code (systemd MemoryDenyWriteExecute) give numpy
+                "single_stream_step": "compiled" if fast.usable(self.tables) else "numpy"}
 
     def save(self, path: str) -> None:
         p = self.params

@@ -69,6 +69,7 @@ class FilterTables:
         # the emission's terms that do not involve x or the mean: 1/2 log(lam / 2 pi) - lam var / 2
         self.emit_a = np.ascontiguousarray(np.repeat(self.em.log_norm, M, axis=0) - 0.5 * self.lam_rows * self.var)
         self.emit_pack = np.ascontiguousarray(np.hstack([self.mu, 0.5 * self.lam_rows, self.emit_a]))
+        self.prior_flat = np.exp(self.log_prior).reshape(-1)   # (C M,) the first frame's prediction
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -1,0 +1,70 @@
+"""Optional compilation with numba, shared by the compiled single-stream steps
+(``hlm.fast``, ``mocap.fastrepr``).
+
+``enabled()`` says whether compiled code may run in this process: numba importable, not turned
+off with ``LACUNA_NO_JIT=1``, and the process allowed to execute memory it wrote (systemd's
+``MemoryDenyWriteExecute=yes`` forbids that; LLVM would abort the process on the first compiled
+call, so it is probed first).  Without it every caller takes its numpy path, which is the
+reference the compiled code is tested against.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any, Callable
+
+try:  # without numba the numpy path serves every stream
+    import numba
+except (ImportError, OSError):  # not installed, or (PermissionError) this process may not run JIT code
+    numba = None
+
+
+def enabled() -> bool:
+    """numba is installed, not turned off (LACUNA_NO_JIT=1), and the process may run code it wrote."""
+    return numba is not None and os.environ.get("LACUNA_NO_JIT", "") not in ("1", "true", "yes") and _wx_allowed()
+
+
+_WX: list[bool] = []
+
+
+def _wx_allowed() -> bool:
+    """May this process make memory it wrote executable?  A JIT must; systemd's
+    MemoryDenyWriteExecute=yes forbids it (mprotect fails with EPERM), and LLVM would then abort
+    the whole process on the first compiled call.  Probed once with a scratch page."""
+    if not _WX:
+        _WX.append(_probe_wx())
+    return _WX[0]
+
+
+def _probe_wx() -> bool:
+    try:
+        import ctypes
+        import mmap
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.mmap.restype = ctypes.c_void_p
+        libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_long]
+        libc.mprotect.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+        libc.munmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+        n = mmap.PAGESIZE
+        page = libc.mmap(None, n, mmap.PROT_READ | mmap.PROT_WRITE, mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS, -1, 0)
+        if page is None or page == ctypes.c_void_p(-1).value:
+            return False
+        try:
+            return libc.mprotect(page, n, mmap.PROT_READ | mmap.PROT_EXEC) == 0
+        finally:
+            libc.munmap(page, n)
+    except (OSError, AttributeError):  # not a POSIX libc (Windows): nothing forbids the JIT there
+        return True
+
+
+def jit(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """numba.njit with an on-disk cache where the package directory is writable (else per process);
+    the plain Python function without numba (never called then: callers check ``enabled()``)."""
+    if numba is None:
+        return fn
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:  # no writable cache location (a read-only install): compile per process
+        return numba.njit(nogil=True)(fn)
+
+

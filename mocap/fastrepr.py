@@ -1,0 +1,237 @@
+"""The representation's causal encoder/decoder for one stream, compiled with numba: the same
+arithmetic as ``mocap.representation.ReprState.encode`` / ``decode`` / ``commit`` (and the
+feature-to-raw std of ``Representation.raw_std``) for n = 1, in three calls instead of about a
+hundred and fifty numpy calls.  ``lacuna.feature_model`` uses it for a step of one stream when
+``lacuna.jit.enabled()`` (numba importable, LACUNA_NO_JIT unset, JIT code allowed); the numpy
+code stays the reference and serves every batch (``tests/test_hlm_fast.py`` checks the two
+agree frame by frame on real motion, for both root modes).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from lacuna.jit import jit as _jit
+
+
+@_jit
+def _wrap(x):  # pragma: no cover - compiled
+    return (x + 180.0) % 360.0 - 180.0
+
+
+@_jit
+def _rxyz(a, b, c, R):  # pragma: no cover - compiled
+    ca, sa, cb, sb, cc, sc = math.cos(a), math.sin(a), math.cos(b), math.sin(b), math.cos(c), math.sin(c)
+    R[0, 0] = cc * cb
+    R[0, 1] = cc * sb * sa - sc * ca
+    R[0, 2] = cc * sb * ca + sc * sa
+    R[1, 0] = sc * cb
+    R[1, 1] = sc * sb * sa + cc * ca
+    R[1, 2] = sc * sb * ca - cc * sa
+    R[2, 0] = -sb
+    R[2, 1] = cb * sa
+    R[2, 2] = cb * ca
+
+
+@_jit
+def _asin_clip(v):  # pragma: no cover - compiled
+    if v != v:
+        return v
+    return math.asin(min(max(v, -1.0), 1.0))
+
+
+@_jit
+def _deg(x):  # pragma: no cover - compiled
+    return x * (180.0 / math.pi)
+
+
+@_jit
+def _rad(x):  # pragma: no cover - compiled
+    return x * (math.pi / 180.0)
+
+
+@_jit
+def encode1(frame, observed, prev_u, prev_raw, prev_yaw, started, center, dr, df, dang, any_angle,
+            relative, rot, pos, rootf, fsrc, normalize, mean, std, F, fobs):  # pragma: no cover - compiled
+    """ReprState.encode for one stream: fills F (n_features,) and fobs (n_features,) in place."""
+    C = frame.shape[0]
+    x = np.empty(C)
+    for c in range(C):
+        x[c] = frame[c] if observed[c] else np.nan
+    for j in range(F.shape[0]):
+        F[j] = np.nan
+    for k in range(dr.shape[0]):
+        c = dr[k]
+        v = x[c]
+        if any_angle and dang[k] and v == v:
+            ref = prev_u[c] if started else center[c]
+            v = ref + _wrap(v - ref)
+        F[df[k]] = v
+    if relative:
+        r0, r1, r2 = _rad(x[rot[0]]), _rad(x[rot[1]]), _rad(x[rot[2]])
+        R = np.empty((3, 3))
+        _rxyz(r0, r1, r2, R)
+        pitch = _asin_clip(-R[1, 2])
+        roll = math.atan2(R[1, 0], R[1, 1])
+        yaw = math.atan2(R[0, 2], R[2, 2])
+        yaw_u = prev_yaw + _rad(_wrap(_deg(yaw - prev_yaw)))
+        dyaw = _deg(yaw_u - prev_yaw) if started else 0.0
+        d0 = x[pos[0]] - prev_raw[pos[0]] if started else 0.0
+        d2 = x[pos[2]] - prev_raw[pos[2]] if started else 0.0
+        cy, sy = math.cos(prev_yaw), math.sin(prev_yaw)
+        F[rootf[0]] = cy * d0 - sy * d2
+        F[rootf[1]] = x[pos[1]]
+        F[rootf[2]] = sy * d0 + cy * d2
+        F[rootf[3]] = dyaw
+        F[rootf[4]] = _deg(pitch)
+        F[rootf[5]] = _deg(roll)
+    for j in range(F.shape[0]):
+        ok = observed[fsrc[j, 0]] and observed[fsrc[j, 1]] and observed[fsrc[j, 2]] and F[j] == F[j]
+        fobs[j] = ok
+        if not ok:
+            F[j] = np.nan
+        elif normalize:
+            F[j] = (F[j] - mean[j]) / std[j]
+
+
+@_jit
+def _to_rxyz(R, p0, p1, p2, out, i0, i1, i2):  # pragma: no cover - compiled
+    b1 = _asin_clip(-R[2, 0])
+    a1 = math.atan2(R[2, 1], R[2, 2])
+    c1 = math.atan2(R[1, 0], R[0, 0])
+    s10, s11, s12 = _deg(a1), _deg(b1), _deg(c1)
+    s20, s21, s22 = s10 + 180.0, 180.0 - s11, s12 + 180.0
+    d1 = abs(_wrap(s10 - p0)) + abs(_wrap(s11 - p1)) + abs(_wrap(s12 - p2))
+    d2 = abs(_wrap(s20 - p0)) + abs(_wrap(s21 - p1)) + abs(_wrap(s22 - p2))
+    if d2 < d1:
+        out[i0], out[i1], out[i2] = _wrap(s20), _wrap(s21), _wrap(s22)
+    else:
+        out[i0], out[i1], out[i2] = _wrap(s10), _wrap(s11), _wrap(s12)
+
+
+@_jit
+def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, center, const, dr, df, dang,
+            relative, rot, pos, rootf, rsrc, normalize, mean, std, out, sd):  # pragma: no cover - compiled
+    """ReprState.decode + commit + the raw std, for one stream.  Writes the completed raw frame to
+    out, its std (0 where observed) to sd, and the new previous-frame state (prev_u, prev_raw in
+    place); returns (prev_yaw, started) as the new scalars."""
+    C = frame.shape[0]
+    nF = z.shape[0]
+    Fv = np.empty(nF)
+    for j in range(nF):
+        Fv[j] = z[j] * std[j] + mean[j] if normalize else z[j]
+    for c in range(C):
+        out[c] = const[c]
+    for k in range(dr.shape[0]):
+        v = Fv[df[k]]
+        out[dr[k]] = _wrap(v) if dang[k] else v
+    if relative:
+        side, height, fwd = Fv[rootf[0]], Fv[rootf[1]], Fv[rootf[2]]
+        dyaw, pitch, roll = Fv[rootf[3]], Fv[rootf[4]], Fv[rootf[5]]
+        yaw = prev_yaw + _rad(dyaw) if started else prev_yaw
+        cy, sy = math.cos(prev_yaw), math.sin(prev_yaw)
+        dx = cy * side + sy * fwd
+        dz = -sy * side + cy * fwd
+        out[pos[0]] = prev_raw[pos[0]] + dx if started else prev_raw[pos[0]]
+        out[pos[1]] = height
+        out[pos[2]] = prev_raw[pos[2]] + dz if started else prev_raw[pos[2]]
+        p, r = _rad(pitch), _rad(roll)
+        cyy, syy, cp, sp, cr, sr = math.cos(yaw), math.sin(yaw), math.cos(p), math.sin(p), math.cos(r), math.sin(r)
+        R = np.empty((3, 3))
+        R[0, 0] = cyy * cr + syy * sp * sr
+        R[0, 1] = -cyy * sr + syy * sp * cr
+        R[0, 2] = syy * cp
+        R[1, 0] = cp * sr
+        R[1, 1] = cp * cr
+        R[1, 2] = -sp
+        R[2, 0] = -syy * cr + cyy * sp * sr
+        R[2, 1] = syy * sr + cyy * sp * cr
+        R[2, 2] = cyy * cp
+        _to_rxyz(R, prev_raw[rot[0]], prev_raw[rot[1]], prev_raw[rot[2]], out, rot[0], rot[1], rot[2])
+    for c in range(C):
+        if observed[c]:
+            out[c] = frame[c]
+    # raw std: each raw channel takes the largest std of the features computed from it
+    for c in range(C):
+        if observed[c]:
+            sd[c] = 0.0
+            continue
+        m = -np.inf
+        for i in range(3):
+            j = rsrc[c, i]
+            v = 0.0 if j >= nF else (zstd[j] * std[j] if normalize else zstd[j])
+            if v > m or v != v:
+                m = v
+                if v != v:
+                    break
+        sd[c] = m
+    # commit: the completed frame becomes the previous one
+    for c in range(C):
+        ref = prev_u[c] if started else center[c]
+        prev_u[c] = ref + _wrap(out[c] - ref)
+        prev_raw[c] = out[c]
+    new_yaw = prev_yaw
+    if relative:
+        R2 = np.empty((3, 3))
+        _rxyz(_rad(out[rot[0]]), _rad(out[rot[1]]), _rad(out[rot[2]]), R2)
+        yaw2 = math.atan2(R2[0, 2], R2[2, 2])
+        new_yaw = prev_yaw + _rad(_wrap(_deg(yaw2 - prev_yaw)))
+    return new_yaw
+
+
+def tables(rep: Any) -> dict[str, Any]:
+    """The representation's index plan as the compiled functions take it (cached on rep)."""
+    t = rep.__dict__.get("_fast_tables")
+    if t is None:
+        p = rep._plan()
+        fsrc, rsrc = rep._source_index()
+        rel = rep.root_mode == "relative"
+        z3 = np.zeros(3, np.int64)
+        t = rep.__dict__["_fast_tables"] = {
+            "center": np.ascontiguousarray(p["center"], np.float64),
+            "const": np.ascontiguousarray(p["const_row"][0], np.float64),
+            "dr": np.ascontiguousarray(p["direct_raw"], np.int64),
+            "df": np.ascontiguousarray(p["direct_feat"], np.int64),
+            "dang": np.ascontiguousarray(p["direct_angle"], np.bool_),
+            "any_angle": bool(p["any_angle"]),
+            "relative": rel,
+            "rot": np.ascontiguousarray(p["rot"], np.int64) if rel else z3,
+            "pos": np.ascontiguousarray(p["pos"], np.int64) if rel else z3,
+            "rootf": np.ascontiguousarray(p["rootf"], np.int64) if rel else np.zeros(6, np.int64),
+            "fsrc": np.ascontiguousarray(fsrc, np.int64),
+            "rsrc": np.ascontiguousarray(rsrc, np.int64),
+            "normalize": bool(rep.normalize),
+            "mean": np.ascontiguousarray(p["mean"], np.float64),
+            "std": np.ascontiguousarray(p["std"], np.float64),
+        }
+    return t
+
+
+def encode(rs: Any, frame: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ReprState.encode of a one-stream state rs for frame (1, C), observed (1, C): (1, F) each."""
+    t = tables(rs.rep)
+    nF = rs.rep.n_features
+    F = np.empty((1, nF))
+    fobs = np.empty((1, nF), np.bool_)
+    encode1(frame[0], observed[0], rs.prev_u[0], rs.prev_raw[0], float(rs.prev_yaw[0]), bool(rs.started[0]),
+            t["center"], t["dr"], t["df"], t["dang"], t["any_angle"], t["relative"], t["rot"], t["pos"],
+            t["rootf"], t["fsrc"], t["normalize"], t["mean"], t["std"], F[0], fobs[0])
+    return F, fobs
+
+
+def finish(rs: Any, z: np.ndarray, zstd: np.ndarray, frame: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """decode + commit + the raw std (0 where observed) for one stream; returns (completed, std), (1, C) each."""
+    t = tables(rs.rep)
+    C = frame.shape[1]
+    out = np.empty((1, C))
+    sd = np.empty((1, C))
+    pu, pr = rs.prev_u[0], rs.prev_raw[0]
+    yaw = finish1(np.ascontiguousarray(z[0], np.float64), np.ascontiguousarray(zstd[0], np.float64), frame[0],
+                  observed[0], pu, pr, float(rs.prev_yaw[0]), bool(rs.started[0]), t["center"], t["const"], t["dr"],
+                  t["df"], t["dang"], t["relative"], t["rot"], t["pos"], t["rootf"], t["rsrc"], t["normalize"],
+                  t["mean"], t["std"], out[0], sd[0])
+    rs.prev_yaw[0] = yaw
+    rs.started[0] = True
+    return out, sd

@@ -1,0 +1,154 @@
+"""The compiled single-stream steps (hlm.fast, mocap.fastrepr) compute what the numpy code computes.
+
+Real motion: an HLM trained on three subject-35 walks follows a held-out walk with the left arm
+and the head missing in bursts, once through the compiled step and once with LACUNA_NO_JIT=1;
+every fill, std, style posterior and phase must agree to 1e-9, for the default (stream-cycle
+adaptation, two-level offset), knots-only and faithful (kappa 0) filters, through a model's
+state pool and through the daemon's batched seam (a batch of one); and the representation's
+encoder/decoder alone, for both root modes, with and without normalisation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hlm import fast
+from mocap import fastrepr
+from mocap.representation import Representation
+
+pytestmark = pytest.mark.skipif(not fast.enabled(), reason="numba is not installed (or LACUNA_NO_JIT=1)")
+
+
+@pytest.fixture(scope="module")
+def walk(data):
+    from hlm.methods import train_model
+    from mocap.datasets import load_trial
+
+    train = [load_trial(t) for t in ("35_01", "35_06", "35_07")]
+    channels = train[0].channels
+    model = train_model([m.frames for m in train], channels, n_iter=3, restarts=1, styles=2)
+    test = load_trial("35_08").frames[:360]
+    obs = np.ones(test.shape, bool)
+    arm = [i for i, c in enumerate(channels) if c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand", "head")]
+    for start in (20, 140, 250):            # three bursts of the arm and head missing
+        obs[start : start + 60, arm] = False
+    obs[200:203] = False                    # and three frames missing whole
+    return model, test, obs
+
+
+def _run(model, frames, obs, monkeypatch, jit: bool, batch: bool = False):
+    monkeypatch.setenv("LACUNA_NO_JIT", "0" if jit else "1")
+    s = model.stream()
+    out = []
+    for t in range(frames.shape[0]):
+        f = np.where(obs[t], frames[t], np.nan)
+        fill = model.step_batch([s], f[None], obs[t][None])[0] if batch else s.step(f, obs[t])
+        out.append((fill.frame.copy(), fill.std.copy(), np.array(fill.extras["style"]), fill.extras["phase"]))
+    return out
+
+
+@pytest.mark.parametrize("options", [dict(), dict(kappa_global=0.0), dict(kappa=0.0, kappa_global=0.0)],
+                         ids=["default", "knots-only", "faithful"])
+def test_compiled_step_equals_numpy_step(walk, monkeypatch, options):
+    model, frames, obs = walk
+    m = model.with_options(**options)
+    assert fast.usable(m.tables)
+    a = _run(m, frames, obs, monkeypatch, jit=True)
+    b = _run(m, frames, obs, monkeypatch, jit=False)
+    c = _run(m, frames, obs, monkeypatch, jit=True, batch=True)   # the daemon's path: step_batch of one
+    for (fa, sa, ya, pa), (fb, sb, yb, pb), (fc, sc, yc, pc) in zip(a, b, c):
+        np.testing.assert_allclose(fa, fb, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(sa, sb, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ya, yb, rtol=0, atol=1e-9)
+        assert abs(pa - pb) < 1e-9 or abs(abs(pa - pb) - 1.0) < 1e-9   # phase is circular
+        np.testing.assert_array_equal(fa, fc)
+        np.testing.assert_array_equal(sa, sc)
+    # the fills are real fills: finite everywhere, and the missing arm (not a constant channel,
+    # which is restored exactly) carries a positive std; observed values have none
+    filled = np.array([f for f, _, _, _ in a])
+    stds = np.array([s for _, s, _, _ in a])
+    arm = [i for i, c in enumerate(model.channels) if c.split(".")[0] in ("lhumerus", "lradius")]
+    assert np.isfinite(filled).all() and (stds[~obs] >= 0).all() and (stds[obs] == 0).all()
+    assert (stds[20:80][:, arm] > 0).all()
+
+
+def test_filters_the_compiled_step_cannot_serve_take_the_numpy_path(walk):
+    model, _, _ = walk
+    assert not fast.usable(model.with_options(style_switch=1e-3).tables)
+    assert not fast.usable(model.with_options(adapt_rate=0.01).tables)
+
+
+def test_no_jit_switch(monkeypatch, walk):
+    model, _, _ = walk
+    monkeypatch.setenv("LACUNA_NO_JIT", "1")
+    assert not fast.enabled() and not fast.usable(model.tables)
+
+
+def test_where_written_memory_may_not_execute_the_numpy_path_serves(tmp_path, walk):
+    """systemd's MemoryDenyWriteExecute (here the kernel's own W^X switch, prctl PR_SET_MDWE,
+    inherited by nothing else) forbids a JIT: the process must step HLM on the numpy path
+    instead of aborting."""
+    import subprocess
+    import sys
+
+    model, frames, obs = walk
+    model.save(str(tmp_path / "hlm.npz"))
+    np.save(tmp_path / "f.npy", np.where(obs[:30], frames[:30], np.nan))
+    code = f"""
+import ctypes, sys
+libc = ctypes.CDLL(None, use_errno=True)
+if libc.prctl(65, 1, 0, 0, 0) != 0:   # PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN (Linux >= 6.3)
+    print("no-mdwe"); sys.exit(0)
+import numpy as np
+from hlm import fast
+from lacuna.modelfile import load_model
+m = load_model({str(tmp_path / 'hlm.npz')!r})
+s = m.stream()
+for f in np.load({str(tmp_path / 'f.npy')!r}):
+    fill = s.step(f)
+print("enabled", fast.enabled(), "finite", bool(np.isfinite(fill.frame).all()))
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    if r.stdout.strip() == "no-mdwe":
+        pytest.skip("this kernel has no PR_SET_MDWE (Linux < 6.3)")
+    assert r.stdout.split() == ["enabled", "False", "finite", "True"]
+
+
+@pytest.mark.parametrize("root_mode,normalize", [("relative", True), ("relative", False), ("raw", True), ("raw", False)])
+def test_compiled_representation_equals_numpy(data, root_mode, normalize):
+    """encode -> (a model's fill) -> decode -> commit, frame by frame over a real walk whose root and
+    arm drop out: the compiled single-stream code and ReprState agree to 1e-9 in the features, the
+    feature mask, the completed frame, the raw std and the carried state (unwrapped angles, yaw)."""
+    from mocap.datasets import load_trial
+
+    walks = [load_trial(t) for t in ("35_01", "35_06")]
+    rep = Representation.fit([m.frames for m in walks], walks[0].channels, root_mode=root_mode, normalize=normalize)
+    frames = load_trial("35_08").frames[:300]
+    C, F = frames.shape[1], rep.n_features
+    obs = np.ones(frames.shape, bool)
+    root = [i for i, c in enumerate(walks[0].channels) if c.startswith("root.")]
+    arm = [i for i, c in enumerate(walks[0].channels) if c.startswith(("lhumerus", "lradius"))]
+    obs[40:90, arm] = False
+    obs[120:150, root] = False            # the root itself lost: relative features go missing
+    obs[200:202] = False
+    rng = np.random.default_rng(1)
+    a, b = rep.new_state(1), rep.new_state(1)
+    for t in range(frames.shape[0]):
+        f, o = np.where(obs[t], frames[t], np.nan)[None], obs[t][None]
+        za, oa = a.encode(f, o)
+        zb, ob = fastrepr.encode(b, f, o)
+        np.testing.assert_array_equal(oa, ob)
+        np.testing.assert_allclose(za, zb, rtol=0, atol=1e-9)
+        # what a model would hand back: every feature filled, a std where it was missing
+        zfill = np.where(oa, za, rng.normal(size=(1, F)))
+        zstd = np.where(oa, 0.0, rng.uniform(0.1, 1.0, size=(1, F)))
+        done_a = a.decode(zfill, f, o)
+        a.commit(done_a)
+        std_a = np.where(o, 0.0, rep.raw_std(zstd * rep._plan()["std"] if normalize else zstd))
+        done_b, std_b = fastrepr.finish(b, zfill, zstd, f, o)
+        np.testing.assert_allclose(done_a, done_b, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(std_a, std_b, rtol=0, atol=1e-12)
+        for attr in ("prev_u", "prev_raw", "prev_yaw"):
+            np.testing.assert_allclose(getattr(a, attr), getattr(b, attr), rtol=0, atol=1e-9)
+        assert a.started[0] and b.started[0]
+    assert C == len(walks[0].channels)
