@@ -99,11 +99,10 @@ class HLMModel(FeatureModel):
 
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
                   rows: np.ndarray | None = None) -> CoreOut:
-        if z.shape[0] == 1 and fast.usable(self.tables):
-            # one stream: the compiled step (hlm.fast), the same arithmetic as below
-            zf, sd, ex = fast.step_one(self.tables, state, z, zobs, None if rows is None else rows[0],
-                                       online.LIVE, LIVE_STATS)
-            return CoreOut(zf, sd, [ex])
+        if fast.usable(self.tables):
+            # the compiled step (hlm.fast), stream by stream: the same arithmetic as below
+            zf, sd, ex = fast.step(self.tables, state, z, zobs, rows, online.LIVE, LIVE_STATS)
+            return CoreOut(zf, sd, ex)
         keep: dict = {}
         online.update(self.tables, state, z, zobs, prow=rows, keep=keep, want_ll=False)
         online.accumulate(self.tables, state, z, zobs, prow=rows)
@@ -188,9 +187,9 @@ class HLMModel(FeatureModel):
         p = self.params
         return {**super().info(), "styles": p.n_styles, "states": p.n_states, "features": self.representation.n_features,
                 "root_mode": self.representation.root_mode, "normalize": self.representation.normalize,
-                # a lone stream's step compiled (hlm.fast) or numpy: numba missing, LACUNA_NO_JIT=1,
-                # or a sandbox forbidding JIT code (systemd MemoryDenyWriteExecute) give numpy
-                "single_stream_step": "compiled" if fast.usable(self.tables) else "numpy"}
+                # the step compiled (hlm.fast) or numpy: numba missing, LACUNA_NO_JIT=1, a sandbox
+                # forbidding JIT code (systemd MemoryDenyWriteExecute) or a style switch give numpy
+                "step": "compiled" if fast.usable(self.tables) else "numpy"}
 
     def save(self, path: str) -> None:
         p = self.params

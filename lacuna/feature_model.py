@@ -130,9 +130,9 @@ class FeatureModel(Model):
                     frames: np.ndarray, observed: np.ndarray,
                     rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
         """One vectorised step over n streams.  frames, observed: (n, C).  Returns (completed, std, extras)."""
-        if frames.shape[0] == 1 and jit.enabled():
-            # one stream: the representation's compiled single-stream code (mocap.fastrepr), the
-            # same arithmetic as the numpy below in three calls instead of about a hundred and fifty
+        if jit.enabled():
+            # the representation's compiled code (mocap.fastrepr), stream by stream: the same
+            # arithmetic as the numpy below in two calls instead of about a hundred and fifty
             z, zobs = fastrepr.encode(repr_state, frames, observed)
             out = self.core_step(core_state, z, zobs) if rows is None else self.core_step(core_state, z, zobs, rows=rows)
             completed, std = fastrepr.finish(repr_state, out.z, out.z_std, frames, observed)

@@ -1,10 +1,10 @@
-"""The representation's causal encoder/decoder for one stream, compiled with numba: the same
+"""The representation's causal encoder/decoder compiled with numba, stream by stream: the same
 arithmetic as ``mocap.representation.ReprState.encode`` / ``decode`` / ``commit`` (and the
-feature-to-raw std of ``Representation.raw_std``) for n = 1, in three calls instead of about a
-hundred and fifty numpy calls.  ``lacuna.feature_model`` uses it for a step of one stream when
-``lacuna.jit.enabled()`` (numba importable, LACUNA_NO_JIT unset, JIT code allowed); the numpy
-code stays the reference and serves every batch (``tests/test_hlm_fast.py`` checks the two
-agree frame by frame on real motion, for both root modes).
+feature-to-raw std of ``Representation.raw_std``), in two calls per step instead of about a
+hundred and fifty numpy calls.  ``lacuna.feature_model`` uses it when ``lacuna.jit.enabled()``
+(numba importable, LACUNA_NO_JIT unset, JIT code allowed); the numpy code stays the reference
+(``tests/test_hlm_fast.py`` checks the two agree frame by frame on real motion, for both root
+modes, normalised or not).
 """
 from __future__ import annotations
 
@@ -181,6 +181,24 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, cente
     return new_yaw
 
 
+@_jit
+def encode_many(frames, observed, prev_u, prev_raw, prev_yaw, started, center, dr, df, dang, any_angle,
+                relative, rot, pos, rootf, fsrc, normalize, mean, std, F, fobs):  # pragma: no cover - compiled
+    for i in range(frames.shape[0]):
+        encode1(frames[i], observed[i], prev_u[i], prev_raw[i], prev_yaw[i], started[i], center, dr, df, dang,
+                any_angle, relative, rot, pos, rootf, fsrc, normalize, mean, std, F[i], fobs[i])
+
+
+@_jit
+def finish_many(z, zstd, frames, observed, prev_u, prev_raw, prev_yaw, started, center, const, dr, df, dang,
+                relative, rot, pos, rootf, rsrc, normalize, mean, std, out, sd):  # pragma: no cover - compiled
+    for i in range(frames.shape[0]):
+        prev_yaw[i] = finish1(z[i], zstd[i], frames[i], observed[i], prev_u[i], prev_raw[i], prev_yaw[i], started[i],
+                              center, const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std,
+                              out[i], sd[i])
+        started[i] = True
+
+
 def tables(rep: Any) -> dict[str, Any]:
     """The representation's index plan as the compiled functions take it (cached on rep)."""
     t = rep.__dict__.get("_fast_tables")
@@ -209,29 +227,28 @@ def tables(rep: Any) -> dict[str, Any]:
     return t
 
 
-def encode(rs: Any, frame: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ReprState.encode of a one-stream state rs for frame (1, C), observed (1, C): (1, F) each."""
+def encode(rs: Any, frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ReprState.encode of state rs (n streams) for frames, observed (n, C): features, mask (n, F)."""
     t = tables(rs.rep)
+    n = frames.shape[0]
     nF = rs.rep.n_features
-    F = np.empty((1, nF))
-    fobs = np.empty((1, nF), np.bool_)
-    encode1(frame[0], observed[0], rs.prev_u[0], rs.prev_raw[0], float(rs.prev_yaw[0]), bool(rs.started[0]),
-            t["center"], t["dr"], t["df"], t["dang"], t["any_angle"], t["relative"], t["rot"], t["pos"],
-            t["rootf"], t["fsrc"], t["normalize"], t["mean"], t["std"], F[0], fobs[0])
+    F = np.empty((n, nF))
+    fobs = np.empty((n, nF), np.bool_)
+    encode_many(np.ascontiguousarray(frames, np.float64), np.ascontiguousarray(observed, np.bool_), rs.prev_u,
+                rs.prev_raw, rs.prev_yaw, rs.started, t["center"], t["dr"], t["df"], t["dang"], t["any_angle"],
+                t["relative"], t["rot"], t["pos"], t["rootf"], t["fsrc"], t["normalize"], t["mean"], t["std"], F, fobs)
     return F, fobs
 
 
-def finish(rs: Any, z: np.ndarray, zstd: np.ndarray, frame: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """decode + commit + the raw std (0 where observed) for one stream; returns (completed, std), (1, C) each."""
+def finish(rs: Any, z: np.ndarray, zstd: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """decode + commit + the raw std (0 where observed) for n streams; returns (completed, std), (n, C) each.
+    The state's arrays are written in place (they may be views of a model's state pool)."""
     t = tables(rs.rep)
-    C = frame.shape[1]
-    out = np.empty((1, C))
-    sd = np.empty((1, C))
-    pu, pr = rs.prev_u[0], rs.prev_raw[0]
-    yaw = finish1(np.ascontiguousarray(z[0], np.float64), np.ascontiguousarray(zstd[0], np.float64), frame[0],
-                  observed[0], pu, pr, float(rs.prev_yaw[0]), bool(rs.started[0]), t["center"], t["const"], t["dr"],
-                  t["df"], t["dang"], t["relative"], t["rot"], t["pos"], t["rootf"], t["rsrc"], t["normalize"],
-                  t["mean"], t["std"], out[0], sd[0])
-    rs.prev_yaw[0] = yaw
-    rs.started[0] = True
+    n, C = frames.shape
+    out = np.empty((n, C))
+    sd = np.empty((n, C))
+    finish_many(np.ascontiguousarray(z, np.float64), np.ascontiguousarray(zstd, np.float64),
+                np.ascontiguousarray(frames, np.float64), np.ascontiguousarray(observed, np.bool_), rs.prev_u,
+                rs.prev_raw, rs.prev_yaw, rs.started, t["center"], t["const"], t["dr"], t["df"], t["dang"],
+                t["relative"], t["rot"], t["pos"], t["rootf"], t["rsrc"], t["normalize"], t["mean"], t["std"], out, sd)
     return out, sd
