@@ -231,6 +231,9 @@ def _number(m: dict, key: str, what: str) -> float:
     return v
 
 
+_ADD = np.add.reduce
+
+
 def _decode_frame(m: dict) -> Frame:
     # fast path for the common, well-formed frame (the daemon's hot path); anything unusual
     # goes through the checked path below, which names what is wrong
@@ -245,7 +248,9 @@ def _decode_frame(m: dict) -> Frame:
         # a mask of one 0/1 byte per channel (translate deletes those bytes: nothing may be left)
         elif type(ob) is bytes and 4 * len(ob) == len(b) and not ob.translate(None, b"\x00\x01"):
             observed = np.frombuffer(ob, dtype=np.bool_)
-            if np.isfinite(angles[observed]).all():
+            # one reduction: the float64 sum of the observed values is finite exactly when all of them
+            # are (float32 values cannot overflow it; NaN and +-inf propagate)
+            if math.isfinite(_ADD(angles, where=observed, dtype=np.float64)):
                 return Frame(sid, seq, t, angles, observed)
     return _decode_frame_checked(m)
 
@@ -382,10 +387,14 @@ def decode(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
 
 # ---- encode ----------------------------------------------------------------------------------
 def _b32(a: np.ndarray) -> bytes:
+    if type(a) is np.ndarray and a.dtype == F32 and a.flags.c_contiguous:
+        return a.tobytes()  # the daemon's own fills arrive like this: no conversion
     return np.ascontiguousarray(a, dtype=F32).tobytes()
 
 
 def _bmask(a: np.ndarray) -> bytes:
+    if type(a) is np.ndarray and a.dtype == np.bool_ and a.flags.c_contiguous:
+        return a.tobytes()  # bool is one 0/1 byte each
     return np.ascontiguousarray(a, dtype=bool).astype(np.uint8).tobytes()
 
 
