@@ -31,9 +31,9 @@ SAFETY = 1.25  # multiply cost estimates: better to degrade a little early than 
 DISCOUNT = 0.97  # per observation, for the cost fit
 PROBE_S = 1.0  # seconds: a model held on every stream gets one real step this often
 OUTLIER = 4.0  # clip a cost observation at this multiple of the current fit
-REPLY_COST_S = 30e-6
+REPLY_COST_S = 30e-6  # first guess of encode+send per reply, refined online
 STACK_MIN = 4  # streams from which a tick's inputs and replies are built as (n, C) arrays (fewer: row by row is cheaper)
-HOLD_COST_S = 20e-6  # per stream, what hold-last-value costs in the session (numpy overhead)  # first guess of encode+send per reply, refined online
+HOLD_COST_S = 20e-6  # per stream, what hold-last-value costs in the session (numpy overhead)
 
 
 class CostModel:
