@@ -191,9 +191,8 @@ class Transports:
         if len(held) >= self._flush_every:
             # a burst to one peer beyond about half its high-water mark can find the pipe full
             # (libzmq's writer sees free space in steps of hwm/2) and would lose answers
-            self._held = []
-            for h in held:
-                self._zsend(*h)
+            self.flush()
+            self.hold()
 
     def send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
         """Answer on the origin's transport; ``publish`` also puts it on PUB (topic = stream).

@@ -130,18 +130,17 @@ class FeatureModel(Model):
                     frames: np.ndarray, observed: np.ndarray,
                     rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
         """One vectorised step over n streams.  frames, observed: (n, C).  Returns (completed, std, extras)."""
-        if jit.enabled():
-            # the representation's compiled code (mocap.fastrepr), stream by stream: the same
-            # arithmetic as the numpy below in two calls instead of about a hundred and fifty
-            z, zobs = fastrepr.encode(repr_state, frames, observed)
-            out = self.core_step(core_state, z, zobs) if rows is None else self.core_step(core_state, z, zobs, rows=rows)
-            completed, std = fastrepr.finish(repr_state, out.z, out.z_std, frames, observed)
-            return completed, std, out.extras
-        z, zobs = repr_state.encode(frames, observed)
+        # the representation's compiled code (mocap.fastrepr), stream by stream, where it may run:
+        # the same arithmetic as ReprState's numpy in two calls instead of about a hundred and fifty
+        compiled = jit.enabled()
+        z, zobs = fastrepr.encode(repr_state, frames, observed) if compiled else repr_state.encode(frames, observed)
         out = self.core_step(core_state, z, zobs) if rows is None else self.core_step(core_state, z, zobs, rows=rows)
-        completed = repr_state.decode(out.z, frames, observed)
-        repr_state.commit(completed)
-        std = np.where(observed, 0.0, self._raw_std(out.z_std))
+        if compiled:
+            completed, std = fastrepr.finish(repr_state, out.z, out.z_std, frames, observed)
+        else:
+            completed = repr_state.decode(out.z, frames, observed)
+            repr_state.commit(completed)
+            std = np.where(observed, 0.0, self._raw_std(out.z_std))
         return completed, std, out.extras
 
     def _views(self, lo: int, hi: int) -> tuple[ReprState, dict[str, np.ndarray]]:
