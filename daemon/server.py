@@ -200,6 +200,8 @@ class Daemon:
                 self.metrics.inc("frames_in")
                 for o, m in self.sessions.frame(msg, origin, arrived):
                     self._send(o, m)
+            elif isinstance(msg, wire.Bundle):
+                self._bundle(msg, origin, arrived)
             elif isinstance(msg, wire.Hello):
                 ack, orphans = self.sessions.hello(msg)
                 for o, m in orphans:
@@ -218,6 +220,27 @@ class Daemon:
             self.log("error", "internal_error", where="handle", error=f"{type(e).__name__}: {e}"[:300])
             self._reject(origin, "internal", f"{type(e).__name__} while handling the message",
                          getattr(msg, "stream", None), getattr(msg, "seq", None))
+
+    def _bundle(self, msg: wire.Bundle, origin: Origin, arrived: float) -> None:
+        """Each frame of a bundle as if it had come alone, at the bundle's arrival; over ROUTER
+        their answers are marked to go back together (a third origin element, see Transports)."""
+        self.metrics.inc("bundles_in")
+        if origin[0] == "router":
+            origin = (*origin, "bundle")
+        for f in msg.items:
+            if isinstance(f, wire.WireError):
+                self._reject(origin, f.reason, f.detail, f.stream, f.seq)
+                continue
+            self.metrics.inc("frames_in")
+            try:
+                for o, m in self.sessions.frame(f, origin, arrived):
+                    self._send(o, m)
+            except SessionError as e:  # one frame's refusal is its own answer; the rest go on
+                self._reject(origin, e.reason, e.detail, f.stream, f.seq)
+            except Exception as e:
+                self.metrics.inc("internal_errors")
+                self.log("error", "internal_error", where="bundle", stream=f.stream, error=f"{type(e).__name__}: {e}"[:300])
+                self._reject(origin, "internal", f"{type(e).__name__} while handling the frame", f.stream, f.seq)
 
     def _reject(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
         self.metrics.reject(reason)

@@ -20,7 +20,7 @@ import numpy as np
 from daemon import wire
 from lacuna.filler import FillerState, Model
 
-Origin = tuple  # (transport name, address): ("router", envelope) | ("pull", None) | ("osc", (host, port))
+Origin = tuple  # (transport name, address): ("router", envelope) | ("router", envelope, "bundle") | ("pull", None) | ("osc", (host, port))
 Out = list[tuple[Origin, wire.Message]]
 
 COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset", "rejected", "degraded", "held", "predicted", "restarts")

@@ -3,7 +3,9 @@
 ``receive(ready)`` drains what arrived (bounded per socket and tick) and hands each message to
 ``on_message(bytes, origin, arrival time)``; ``send(origin, message, publish)`` answers on the
 transport the message came from and, for filled frames, also publishes on PUB.  Between
-``hold()`` and ``flush()`` ZeroMQ answers are queued and then sent together.  Sends never
+``hold()`` and ``flush()`` ZeroMQ answers are queued and then sent together; answers to the
+frames of a ``frames`` bundle (origin ``("router", envelope, "bundle")``) are joined, per peer,
+into one ``replies`` message at the flush.  Sends never
 block: a peer over its high-water mark loses that answer and the loss is counted.
 """
 from __future__ import annotations
@@ -45,6 +47,7 @@ class Transports:
         self.guard: security.Guard | None = None
         self.poller = zmq.Poller()
         self._held: list[tuple[zmq.Socket, list[bytes], str]] | None = None
+        self._bundles: dict[tuple[bytes, ...], list[bytes]] = {}  # ROUTER envelope -> held answers to bundled frames
         self._flush_every = max(1, min(FLUSH_MAX, cfg.zmq_hwm // 4))
 
     def _sock(self, kind: int) -> zmq.Socket:
@@ -168,6 +171,11 @@ class Transports:
         if held:
             for sock_, parts, kind in held:
                 self._zsend(sock_, parts, kind)
+        if self._bundles:
+            bundles, self._bundles = self._bundles, {}
+            for envelope, bodies in bundles.items():
+                for i in range(0, len(bodies), wire.MAX_BUNDLE):
+                    self._zsend(self.router, [*envelope, wire.join_replies(bodies[i:i + wire.MAX_BUNDLE])], "router")  # type: ignore[arg-type]
 
     def _zsend(self, sock_: zmq.Socket, parts: list[bytes], kind: str) -> None:
         try:
@@ -208,7 +216,12 @@ class Transports:
         body: bytes | None = None
         if kind == "router" and self.router is not None:
             body = wire.encode(msg)
-            self._zmq(self.router, [*origin[1], body], kind)
+            if len(origin) == 2:
+                self._zmq(self.router, [*origin[1], body], kind)
+            elif self._held is not None:  # an answer to a bundled frame: it goes back in one `replies`
+                self._bundles.setdefault(tuple(origin[1]), []).append(body)
+            else:
+                self._zsend(self.router, [*origin[1], wire.join_replies([body])], kind)
         elif kind == "pull" and self.pub is not None and not publish:
             topic = getattr(msg, "stream", None) or ""
             self._zmq(self.pub, [topic.encode(), wire.encode(msg)], "pub")

@@ -26,6 +26,7 @@ MAX_CHANNELS = 4096
 MAX_STREAM_ID = 128  # characters
 MAX_SEQ = (1 << 63) - 1
 MAX_NAME = 256  # characters, channel and model names
+MAX_BUNDLE = 1024  # frames in one ``frames`` message (and answers in one ``replies``)
 STATUSES = ("ok", "degraded", "passthrough")
 CONTROL_COMMANDS = ("status", "reset", "reload", "list-models")
 
@@ -140,7 +141,25 @@ class ErrorMsg:
     seq: int | None = None
 
 
-Message = Union[Hello, HelloAck, Frame, FillMsg, Drop, Control, ControlReply, ErrorMsg]
+@dataclass
+class Bundle:
+    """Several streams' frames in one message (``type: frames``), as a capture system that
+    tracks several performers has them: one capture instant, one message.  Each element is read
+    on its own: a malformed one is a :class:`WireError` in ``items`` (answered with an error)
+    and costs none of the others."""
+
+    items: list[Union[Frame, WireError]]
+
+
+@dataclass
+class Replies:
+    """The answers to a bundle's frames (``type: replies``): fills, drops and errors, each the
+    message it would have been on its own; match them to frames by stream and seq."""
+
+    items: list["Message"]
+
+
+Message = Union[Hello, HelloAck, Frame, FillMsg, Drop, Control, ControlReply, ErrorMsg, Bundle, Replies]
 
 
 # ---- decode ----------------------------------------------------------------------------------
@@ -335,8 +354,47 @@ def _decode_error(m: dict) -> ErrorMsg:
                     _get(m, "stream", str, "error", optional=True), _get(m, "seq", int, "error", optional=True))
 
 
+def _decode_bundle(m: dict) -> Bundle:
+    frames = _get(m, "frames", list, "frames")
+    if not 0 < len(frames) <= MAX_BUNDLE:
+        raise WireError("bad_length", f"frames field 'frames' must hold 1..{MAX_BUNDLE} frames (got {len(frames)})")
+    items: list[Frame | WireError] = []
+    for i, f in enumerate(frames):
+        if type(f) is not dict:
+            items.append(WireError("not_a_map", f"frames[{i}] must be a map (got {type(f).__name__})"))
+            continue
+        typ, v = f.get("type", "frame"), f.get("v", SCHEMA_VERSION)
+        if typ != "frame" or v != SCHEMA_VERSION or isinstance(v, bool):
+            items.append(WireError("bad_type", f"frames[{i}] must be a frame of schema {SCHEMA_VERSION} "
+                                                f"(got type {typ!r:.40}, v {v!r:.20})", _sid(f), _seq(f)))
+            continue
+        try:
+            items.append(_decode_frame(f))
+        except WireError as e:
+            items.append(e)
+        except Exception as e:  # same guarantee as decode(): one element's oddity is its own error
+            items.append(WireError("malformed", f"frames[{i}] could not be read ({type(e).__name__})", _sid(f), _seq(f)))
+    return Bundle(items)
+
+
+_ANSWERS = ("fill", "drop", "error")
+
+
+def _decode_replies(m: dict) -> Replies:
+    replies = _get(m, "replies", list, "replies")
+    items: list[Message] = []
+    for i, r in enumerate(replies):
+        typ = r.get("type") if type(r) is dict else None
+        if typ not in _ANSWERS:
+            raise WireError("bad_type", f"replies[{i}] must be one of {list(_ANSWERS)} (got {typ!r:.40})")
+        items.append(_DECODERS[typ](r))
+    return Replies(items)
+
+
 _DECODERS = {
     "frame": _decode_frame,
+    "frames": _decode_bundle,
+    "replies": _decode_replies,
     "hello": _decode_hello,
     "control": _decode_control,
     "fill": _decode_fill,
@@ -444,12 +502,34 @@ def to_map(msg: Message) -> dict[str, Any]:
         if msg.seq is not None:
             d["seq"] = msg.seq
         return d
+    if isinstance(msg, Bundle):
+        return {"v": 1, "type": "frames", "frames": [_bundled(to_map(f)) for f in msg.items]}  # type: ignore[arg-type]
+    if isinstance(msg, Replies):
+        return {"v": 1, "type": "replies", "replies": [to_map(r) for r in msg.items]}
     raise TypeError(f"not a wire message: {type(msg).__name__}")
+
+
+def _bundled(d: dict[str, Any]) -> dict[str, Any]:
+    if d.get("type") != "frame":
+        raise TypeError(f"a bundle carries frames only (got {d.get('type')})")
+    del d["v"], d["type"]  # implied by the bundle
+    return d
 
 
 def encode(msg: Message) -> bytes:
     """Message object -> bytes (msgpack, bin type for byte strings, floats as float64)."""
     return msgpack.packb(to_map(msg), use_bin_type=True)
+
+
+_PACK = msgpack.Packer(use_bin_type=True)
+_REPLIES_HEAD = _PACK.pack_map_header(3) + _PACK.pack("v") + _PACK.pack(SCHEMA_VERSION) + \
+    _PACK.pack("type") + _PACK.pack("replies") + _PACK.pack("replies")
+
+
+def join_replies(bodies: list[bytes]) -> bytes:
+    """Encoded answers (each ``encode(msg)``) -> one ``replies`` message, without decoding them:
+    a msgpack array is its header followed by its elements' bytes."""
+    return _REPLIES_HEAD + _PACK.pack_array_header(len(bodies)) + b"".join(bodies)
 
 
 def error_for(e: WireError) -> ErrorMsg:

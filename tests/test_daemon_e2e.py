@@ -705,3 +705,81 @@ def test_busy_poll_config_is_validated(tmp_path):
         p.write_text(f"[daemon]\nbusy_poll_ms = {bad}\n[models.m]\nbuiltin = \"passthrough\"\n")
         with pytest.raises(config_mod.ConfigError, match=f"daemon.busy_poll_ms {needle}"):
             config_mod.load(str(p))
+
+
+# ---- bundles -----------------------------------------------------------------------------------
+def _bundle(*frames):
+    """A `frames` message of raw frame maps (elements may be anything: the daemon reads each one)."""
+    import msgpack
+
+    return msgpack.packb({"v": 1, "type": "frames", "frames": list(frames)}, use_bin_type=True)
+
+
+def _fmap(sid, seq, values, observed=None):
+    m = wire.to_map(wire.Frame(sid, seq, seq / 120.0, np.asarray(values, np.float32), observed))
+    del m["v"], m["type"]
+    return m
+
+
+def test_a_bundle_of_streams_is_served_as_single_frames_and_answered_in_one_replies(tmp_path, daemons, ctx):
+    """One `frames` message carrying four streams (one frame malformed, one too narrow for its
+    stream) gets one `replies`: a fill per good frame equal to what the same frame alone gets,
+    an error naming each bad one.  Later bundles see the sessions the first one opened."""
+    d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}}))
+    s, single = dealer(ctx, d), dealer(ctx, d)
+    C = len(CH)
+    vals = np.arange(1, C + 1, dtype=np.float32)
+    obs = np.ones(C, bool)
+    obs[[1, 5]] = False
+    s.send(_bundle(_fmap("p1", 0, vals, obs), {"stream": "p2", "seq": 0, "t": 0.0, "angles": b"\0" * 5},
+                   _fmap("p3", 0, np.where(obs, vals, np.nan)), _fmap("p4", 0, vals)))
+    r = recv(s)
+    assert isinstance(r, wire.Replies), r
+    by = {(m.stream, type(m).__name__): m for m in r.items}
+    assert len(r.items) == 4 and set(by) == {("p1", "FillMsg"), ("p2", "ErrorMsg"), ("p3", "FillMsg"), ("p4", "FillMsg")}
+    assert by["p2", "ErrorMsg"].reason == "bad_length" and by["p2", "ErrorMsg"].seq == 0
+    for sid in ("p1", "p3"):
+        m = by[sid, "FillMsg"]
+        assert m.status == "ok" and m.model == "walk" and m.filled.tolist() == (~obs).tolist()
+        assert np.array_equal(m.angles[obs], vals[obs]) and np.isfinite(m.angles).all()
+    single.send(frame("alone", 0, vals, obs))                  # the same frame on its own: the same fill
+    alone = recv(single)
+    assert np.array_equal(alone.angles, by["p1", "FillMsg"].angles) and np.array_equal(alone.std, by["p1", "FillMsg"].std)
+    # second bundle: a late frame, a frame of the wrong width for its (now open) stream, a good one
+    s.send(_bundle(_fmap("p1", 0, vals), _fmap("p3", 1, vals[:3]), _fmap("p4", 1, vals, obs)))
+    r = recv(s)
+    by = {m.stream: m for m in r.items}
+    assert isinstance(by["p1"], wire.Drop) and by["p1"].reason == "duplicate"
+    assert isinstance(by["p3"], wire.ErrorMsg) and by["p3"].reason == "width" and by["p3"].seq == 1
+    assert isinstance(by["p4"], wire.FillMsg) and by["p4"].seq == 1 and by["p4"].filled.tolist() == (~obs).tolist()
+    # a bundle that is not a list of frames is refused whole, with one plain error
+    s.send(_bundle())
+    e = recv(s)
+    assert isinstance(e, wire.ErrorMsg) and e.reason == "bad_length"
+    st = loadgen_status(d)
+    # two bundles read (the empty one was refused before it was one); p2's element never became a frame
+    assert st["counters"]["bundles_in"] == 2 and st["counters"]["frames_in"] == 3 + 1 + 3
+    assert st["streams"]["p1"]["frames_out"] == 1 and st["streams"]["p4"]["frames_out"] == 2
+    assert st["rejected"] == {"bad_length": 2, "width": 1}
+
+
+def test_bundles_on_pull_publish_each_stream_on_pub(tmp_path, daemons, ctx):
+    d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"}}, pull=True))
+    sub = ctx(zmq.SUB)
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    sub.connect(d.endpoints["pub"])
+    push = ctx(zmq.PUSH)
+    push.connect(d.endpoints["pull"])
+    got: dict[str, wire.Message] = {}
+    deadline = time.monotonic() + 10
+    seq = 0
+    while len(got) < 3 and time.monotonic() < deadline:   # PUB drops what it sends before SUB joined
+        push.send(_bundle(*(_fmap(f"q{i}", seq, [1.0, float(i)]) for i in range(3))))
+        seq += 1
+        while sub.poll(200):
+            topic, body = sub.recv_multipart()
+            m = wire.decode(body)
+            assert isinstance(m, wire.FillMsg) and topic == m.stream.encode() and m.angles[1] == float(m.stream[1])
+            got[m.stream] = m
+    assert set(got) == {"q0", "q1", "q2"}
+

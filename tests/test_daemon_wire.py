@@ -197,3 +197,60 @@ def test_masked_frame_fast_path_equals_the_checked_path_and_rejects_the_same():
     # a value in a slot the mask calls missing is never read, whatever it is
     odd = w.decode(msgpack.packb({**good, "angles": np.array([1, np.inf, 3, 4], np.float32).tobytes()}, use_bin_type=True))
     assert odd.observed.tolist() == [True, False, True, False]
+
+
+# ---- bundles ------------------------------------------------------------------------------------
+FRAMES_S1_S2_SEQ7 = bytes.fromhex(  # docs/PROTOCOL.md, `frames`
+    "83a17601a474797065a66672616d6573a66672616d65739284a673747265616da27331a373657107a174cb3ff8000000"
+    "000000a6616e676c6573c40c000020410000c07f000020c085a673747265616da27332a373657107a174cb3ff8000000"
+    "000000a6616e676c6573c40c00008040000000000000803fa86f62736572766564c403010001"
+)
+REPLIES_DROP_S2_SEQ7_LATE = bytes.fromhex(  # docs/PROTOCOL.md, `replies`
+    "83a17601a474797065a77265706c696573a77265706c6965739185a17601a474797065a464726f70a673747265616da2"
+    "7332a373657107a6726561736f6ea46c617465"
+)
+
+
+def test_protocol_example_bundle_and_replies():
+    b = w.decode(FRAMES_S1_S2_SEQ7)
+    assert isinstance(b, w.Bundle) and len(b.items) == 2
+    f1, f2 = b.items
+    assert (f1.stream, f1.seq, f1.t, f1.observed) == ("s1", 7, 1.5, None) and np.isnan(f1.angles[1])
+    assert f2.stream == "s2" and f2.angles.tolist() == [4.0, 0.0, 1.0] and f2.observed.tolist() == [True, False, True]
+    assert w.encode(b) == FRAMES_S1_S2_SEQ7
+    r = w.decode(REPLIES_DROP_S2_SEQ7_LATE)
+    assert r == w.Replies([w.Drop("s2", 7, "late")])
+    assert w.encode(r) == REPLIES_DROP_S2_SEQ7_LATE == w.join_replies([w.encode(w.Drop("s2", 7, "late"))])
+
+
+def test_bundle_elements_are_read_one_by_one_and_a_bad_one_costs_only_itself():
+    good = {k: v for k, v in GOOD.items() if k not in ("v", "type")}
+    items = [good, 7, {**good, "type": "hello"}, {**good, "v": 2}, {**good, "stream": "cam3", "seq": 4, "angles": b"\0" * 5},
+             {**GOOD, "stream": "s2"}, {**good, "angles": np.array([np.inf, 1], "<f4").tobytes()}]
+    b = w.decode(_pack({"v": 1, "type": "frames", "frames": items}))
+    kinds = [type(x).__name__ if isinstance(x, w.Frame) else x.reason for x in b.items]
+    assert kinds == ["Frame", "not_a_map", "bad_type", "bad_type", "bad_length", "Frame", "non_finite"]
+    assert (b.items[4].stream, b.items[4].seq) == ("cam3", 4)     # the answer can name the frame it refuses
+    assert b.items[5].stream == "s2"                               # v/type inside an element are allowed
+
+
+@pytest.mark.parametrize("frames,reason", [([], "bad_length"), ("x", "bad_type"), (None, "missing_field"),
+                                           ([{}] * (w.MAX_BUNDLE + 1), "bad_length")])
+def test_a_bundle_that_is_not_a_list_of_1_to_max_frames_is_rejected_whole(frames, reason):
+    d = {"v": 1, "type": "frames"}
+    if frames is not None:
+        d["frames"] = frames
+    with pytest.raises(w.WireError) as ei:
+        w.decode(_pack(d), max_bytes=1 << 22)
+    assert ei.value.reason == reason
+
+
+def test_replies_carry_every_kind_of_answer_and_refuse_requests():
+    fill = w.FillMsg("a", 1, 0.5, np.ones(2, np.float32), np.array([0, 1], bool), np.zeros(2, np.float32), "ok", "m", 12)
+    rs = [fill, w.Drop("b", 3, "conflated"), w.ErrorMsg("width", "too wide", "c", 9)]
+    back = w.decode(w.join_replies([w.encode(r) for r in rs]))
+    assert isinstance(back, w.Replies) and [type(x) for x in back.items] == [w.FillMsg, w.Drop, w.ErrorMsg]
+    assert back.items[0].angles.tolist() == [1.0, 1.0] and back.items[1:] == rs[1:]
+    with pytest.raises(w.WireError) as ei:
+        w.decode(_pack({"v": 1, "type": "replies", "replies": [{"v": 1, "type": "control", "cmd": "status"}]}))
+    assert ei.value.reason == "bad_type"
