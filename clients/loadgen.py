@@ -82,13 +82,18 @@ def percentiles(rtt_ms: np.ndarray) -> dict[str, float | None]:
 
 def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: np.ndarray, *, n_streams: int,
              rate: float, seconds: float, model: str | None = None, prefix: str = "bench",
-             progress: bool = True, busy: bool = False, connections: int | None = None) -> LoadResult:
+             progress: bool = True, busy: bool = False, connections: int | None = None,
+             bundle: bool = False) -> LoadResult:
     """Offer ``n_streams`` x ``rate`` frames/s for ``seconds``; every stream replays ``frames``
     (T, C) with mask ``observed`` (T, C) from its own starting offset, cycling.
 
     ``connections``: how many DEALER sockets carry the streams (stream i on socket
     ``i % connections``).  The default, one per stream, is N separate capture plugins; one
-    connection is one capture system sending every performer's stream down one socket."""
+    connection is one capture system sending every performer's stream down one socket.
+
+    ``bundle``: each connection sends its streams' frames of a tick as one ``frames`` message
+    (and reads their answers from ``replies``), as a capture system that tracks several
+    performers has them: one capture instant, one message."""
     connections = n_streams if connections is None else connections
     if n_streams < 1 or rate <= 0 or seconds <= 0 or not 1 <= connections <= n_streams:
         raise ValueError(f"need streams >= 1, rate > 0, seconds > 0, 1 <= connections <= streams "
@@ -106,6 +111,10 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
     ctx = zmq.Context()
     conns = [dealer_socket(ctx, endpoint, DEFAULT_TIMEOUT_S) for _ in range(connections)]
     socks = [conns[i % connections] for i in range(n_streams)]
+    if bundle:  # one message per connection and tick, carrying the rows (streams) of that connection
+        senders, members = conns, [list(range(c, n_streams, connections)) for c in range(connections)]
+    else:
+        senders, members = socks, [[i] for i in range(n_streams)]
     index = {sid: i for i, sid in enumerate(ids)}   # answers name their stream: that finds the row
     poller = zmq.Poller()
     for s in conns:
@@ -125,22 +134,30 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
             due = t0 + k / rate
             # the tick's messages are built before its deadline, as a capture system has its frames
             # ready when it sends them: the burst of sends is then only sends
-            bodies = [pack({"v": wire.SCHEMA_VERSION, "type": "frame", "stream": ids[i], "seq": k, "t": wall0 + due,
-                            "angles": angle_bytes[(offsets[i] + k) % T], "observed": mask_bytes[(offsets[i] + k) % T]})
-                      for i in range(n_streams)]
+            maps = [{"v": wire.SCHEMA_VERSION, "type": "frame", "stream": ids[i], "seq": k, "t": wall0 + due,
+                     "angles": angle_bytes[(offsets[i] + k) % T], "observed": mask_bytes[(offsets[i] + k) % T]}
+                    for i in range(n_streams)]
+            if bundle:
+                for mp in maps:
+                    del mp["v"], mp["type"]  # implied by the bundle
+                bodies = [pack({"v": wire.SCHEMA_VERSION, "type": "frames", "frames": [maps[i] for i in rows]})
+                          for rows in members]
+            else:
+                bodies = [pack(mp) for mp in maps]
             _wait_until(due, poller, index, send_t, rtt, proc, res, busy)
             now = time.perf_counter()
             lateness[k] = (now - due) * 1000.0
-            for i, s in enumerate(socks):
-                body = bodies[i]
+            for j, s in enumerate(senders):
+                body = bodies[j]
+                rows = members[j]
                 t = time.perf_counter()
                 try:
                     s.send(body, zmq.NOBLOCK, copy=False)
                 except zmq.Again:
-                    res.unsent += 1
+                    res.unsent += len(rows)
                     continue
-                send_t[i, k] = t
-                res.sent += 1
+                send_t[rows, k] = t
+                res.sent += len(rows)
             if progress and now >= next_report:
                 next_report += PROGRESS_EVERY_S
                 print(f"\r  bench: {k + 1}/{n_ticks} ticks, {res.served} served, {res.dropped} dropped",
@@ -208,10 +225,19 @@ def _account(data: bytes, index: dict[str, int], t: float, send_t: np.ndarray, r
     try:
         m = msgpack.unpackb(data, raw=False)
         typ = m["type"]
+        if typ == "replies":  # the answers to a bundle, read as if they had come one by one
+            for r in m["replies"]:
+                _count(r, r["type"], index, t, send_t, rtt, proc, res)
+            return
     except Exception:  # noqa: BLE001 - a malformed answer is counted, never fatal to the run
         res.errors += 1
         res.error_reasons["unreadable"] = res.error_reasons.get("unreadable", 0) + 1
         return
+    _count(m, typ, index, t, send_t, rtt, proc, res)
+
+
+def _count(m: dict, typ: str, index: dict[str, int], t: float, send_t: np.ndarray, rtt: np.ndarray,
+           proc: np.ndarray, res: LoadResult) -> None:
     if typ == "fill":
         k = m.get("seq", -1)
         i = index.get(m.get("stream"), -1)
