@@ -70,13 +70,15 @@ def _daemon_counts(status: dict[str, Any], prefix: str) -> dict[str, int]:
 
 def run_one(endpoint: str, channels: list[str], frames: np.ndarray, observed: np.ndarray, *, streams: int,
             rate: float, seconds: float, model: str | None, prefix: str, pid: int | None,
-            progress: bool = True, busy: bool = False, connections: int | None = None) -> tuple[dict[str, Any], np.ndarray]:
+            progress: bool = True, busy: bool = False, connections: int | None = None,
+            bundle: bool = False) -> tuple[dict[str, Any], np.ndarray]:
     """One load run; returns (JSON-ready row, round trips in ms)."""
     cpu0 = cpu_seconds(pid) if pid else None
     rss0 = rss_bytes(pid) if pid else None
     w0 = time.perf_counter()
     res = loadgen.run_load(endpoint, channels, frames, observed, n_streams=streams, rate=rate, seconds=seconds,
-                           model=model, prefix=prefix, progress=progress, busy=busy, connections=connections)
+                           model=model, prefix=prefix, progress=progress, busy=busy, connections=connections,
+                           bundle=bundle)
     wall = time.perf_counter() - w0
     cpu1 = cpu_seconds(pid) if pid else None
     rss1 = rss_bytes(pid) if pid else None
@@ -84,7 +86,7 @@ def run_one(endpoint: str, channels: list[str], frames: np.ndarray, observed: np
     dc = _daemon_counts(st, prefix)
     row: dict[str, Any] = {
         "model": model or st.get("default_model"), "streams": streams, "rate_hz": rate, "seconds": seconds,
-        "connections": streams if connections is None else connections,
+        "connections": streams if connections is None else connections, "bundle": bundle,
         **loadgen.percentiles(res.rtt_ms),
         "served": res.served, "degraded": res.degraded, "dropped": res.dropped, "passthrough": res.passthrough,
         "errors": res.errors, "lost": res.lost, "sent": res.sent, "unsent": res.unsent,
@@ -96,7 +98,7 @@ def run_one(endpoint: str, channels: list[str], frames: np.ndarray, observed: np
         "daemon_proc_ms_p50": float(np.median(res.proc_us) / 1000.0) if res.proc_us.size else None,
         "daemon_proc_ms_p99": float(np.percentile(res.proc_us, 99) / 1000.0) if res.proc_us.size else None,
         "send_lateness_ms_p99": float(np.percentile(res.lateness_ms, 99)),
-        "daemon_counts": dc,
+        "daemon_counts": dc, "cpu_latency": st.get("cpu_latency"),
         "counts_agree": dc["served"] == res.served and dc["dropped"] == res.dropped and dc["degraded"] == res.degraded,
     }
     return row, res.rtt_ms
@@ -115,7 +117,8 @@ def run(args: Any) -> int:
             channels = list(meta["channels"])
             daemon = DaemonProcess({"bench": args.model, FLOOR_MODEL: {"builtin": "passthrough", "channels": channels}},
                                    "bench", daemon={"budget_ms": float(args.budget_ms),
-                                                    **({"busy_poll_ms": float(args.busy_poll)} if args.busy_poll else {})})
+                                                    **({"busy_poll_ms": float(args.busy_poll)} if args.busy_poll else {}),
+                                                    **({"cpu_latency_us": args.cpu_latency} if args.cpu_latency is not None else {})})
             if progress:
                 print(f"starting the daemon on {daemon.endpoint} with {args.model} ...", file=sys.stderr, flush=True)
             daemon.start()
@@ -148,7 +151,7 @@ def run(args: Any) -> int:
             runs[label], rtts[label] = run_one(endpoint, channels, frames, observed, streams=args.streams,
                                                rate=args.rate, seconds=args.seconds, model=name, prefix=prefix,
                                                pid=pid, progress=progress, busy=args.busy_poll > 0,
-                                               connections=args.connections)
+                                               connections=args.connections, bundle=args.bundle)
     finally:
         if daemon is not None:
             daemon.stop()
@@ -190,8 +193,9 @@ def format_table(runs: dict[str, dict[str, Any]]) -> str:
     for k, r in runs.items():
         f = lambda v: "   -   " if v is None else f"{v:7.3f}"  # noqa: E731
         cpu = "  -" if r["cpu_percent"] is None else f"{r['cpu_percent']:6.1f}"
-        lines.append(f"{k:<6} {str(r['model'])[:10]:<10} {r['streams']:>7} {r.get('connections', r['streams']):>5} {r['rate_hz']:>5g} {f(r['p50_ms'])} {f(r['p90_ms'])}"
+        lines.append(f"{k:<6} {str(r['model'])[:10]:<10} {r['streams']:>7} {str(r.get('connections', r['streams'])) + ('b' if r.get('bundle') else ''):>5} {r['rate_hz']:>5g} {f(r['p50_ms'])} {f(r['p90_ms'])}"
                      f" {f(r['p99_ms'])} {f(r['p999_ms'])} {f(r['max_ms'])} {r['served']:>8} {r['degraded']:>8}"
                      f" {r['dropped']:>8} {cpu}")
-    lines.append("(round trips in ms over ZeroMQ DEALER->ROUTER on loopback; cpu% = daemon process, % of one core)")
+    lines.append("(round trips in ms over ZeroMQ DEALER->ROUTER on loopback; cpu% = daemon process, % of one core;"
+                 " conns 'b' = one `frames` bundle per connection and tick)")
     return "\n".join(lines)

@@ -83,6 +83,12 @@ def add_commands(cli) -> None:
     p.add_argument("--connections", type=int, default=None, metavar="K",
                    help="DEALER sockets carrying the streams, stream i on socket i %% K (default: one per stream, "
                         "N separate plugins; 1 = one capture system multiplexing every performer)")
+    p.add_argument("--cpu-latency", type=int, default=None, metavar="US",
+                   help="with --model: the daemon holds a PM QoS CPU latency request of US microseconds "
+                        "(daemon.cpu_latency_us; 0 keeps the CPUs out of sleep states) while it runs")
+    p.add_argument("--bundle", action="store_true",
+                   help="each connection sends its streams' frames of a tick as one `frames` message (answers come "
+                        "back as one `replies`), as a capture system tracking several performers has them")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", dest="json_out", metavar="OUT")
     p.add_argument("--plot", metavar="OUT.png")
@@ -205,6 +211,11 @@ def _bench(args: argparse.Namespace) -> int:
                           f"(got {args.streams}, {args.rate}, {args.seconds})")
     if args.connections is not None and not 1 <= args.connections <= args.streams:
         raise LacunaError(f"--connections must be between 1 and --streams ({args.streams}), got {args.connections}")
+    if args.cpu_latency is not None and not args.model:
+        raise LacunaError("--cpu-latency sets the config of the daemon --model starts; a daemon at --connect "
+                          "takes it from its own config (daemon.cpu_latency_us)")
+    if args.cpu_latency is not None and not 0 <= args.cpu_latency <= 1_000_000:
+        raise LacunaError(f"--cpu-latency must be between 0 and 1000000 microseconds (got {args.cpu_latency})")
     return bench.run(args)
 
 

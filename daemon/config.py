@@ -55,6 +55,7 @@ class Config:
     max_batch: int = 256
     log_level: str = "info"
     busy_poll_ms: float = 0.0  # spin this long after the last message before sleeping in poll (0: never spin)
+    cpu_latency_us: int | None = None  # PM QoS request held while running (daemon/pmqos.py); None: none
     default_model: str = ""
     models: dict[str, ModelSpec] = field(default_factory=dict)
     stream_models: dict[str, str] = field(default_factory=dict)
@@ -70,6 +71,7 @@ class Config:
 
     def summary(self) -> dict[str, Any]:
         return {"path": self.path, "budget_ms": self.budget_ms, "busy_poll_ms": self.busy_poll_ms,
+                "cpu_latency_us": self.cpu_latency_us,
                 "default_model": self.default_model,
                 "router": self.zmq_router, "pull": self.zmq_pull, "sub": self.zmq_sub, "pub": self.zmq_pub,
                 "osc_listen": _hp(self.osc_listen), "osc_send": _hp(self.osc_send),
@@ -91,6 +93,7 @@ _SCHEMA: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "max_batch": (int, (1, 100000)),
         "log_level": (str, LOG_LEVELS),
         "busy_poll_ms": ((int, float), (0.0, 1000.0)),
+        "cpu_latency_us": (int, (0, 1_000_000)),
         "default_model": (str, None),
     },
     "zmq": {
@@ -157,7 +160,7 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
     cfg.budget_ms = float(d.get("budget_ms", cfg.budget_ms))
     cfg.idle_timeout_s = float(d.get("idle_timeout_s", cfg.idle_timeout_s))
     cfg.busy_poll_ms = float(d.get("busy_poll_ms", cfg.busy_poll_ms))
-    for k in ("max_streams", "max_message_bytes", "max_gap_frames", "max_batch", "log_level"):
+    for k in ("max_streams", "max_message_bytes", "max_gap_frames", "max_batch", "log_level", "cpu_latency_us"):
         if k in d:
             setattr(cfg, k, d[k])
 

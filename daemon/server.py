@@ -25,6 +25,7 @@ from daemon import osc, security, wire
 from daemon.metrics import Metrics, MetricsHTTP
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
+from daemon.pmqos import CpuLatency
 from daemon.scheduler import Scheduler, fill_messages
 from daemon.session import Origin, SessionError, SessionTable
 from daemon.transport import Transports
@@ -62,6 +63,7 @@ class Daemon:
         self.log = log or Log(cfg.log_level)
         self.metrics = Metrics()
         self.notify = Notifier()
+        self.qos = CpuLatency()
         self.models: dict[str, Loaded] = {}
         self.sched = Scheduler(cfg.budget_ms, cfg.max_gap_frames, cfg.max_batch)
         self.sessions = SessionTable(self._resolve, cfg.max_streams, self._count)
@@ -103,6 +105,7 @@ class Daemon:
         self.net.open()
         if self.cfg.metrics_http:
             self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom)
+        self._request_cpu_latency()
         self._prom = self.metrics.prometheus(self.status())
         self.log("info", "ready", always=True, pid=os.getpid(), config=self.cfg.path, endpoints=self.endpoints(),
                  models={n: m.info() for n, m in self.models.items()})
@@ -120,6 +123,18 @@ class Daemon:
                 n = self.sessions.rebind(name, ld.model)
                 self.log("info", "model_swapped", model=name, file=ld.spec.file, streams=n)
         self.models = table
+
+    def _request_cpu_latency(self) -> None:
+        us = self.cfg.cpu_latency_us
+        if us == self.qos.requested_us and (self.qos.held or us is None):
+            return
+        if self.qos.request(us):
+            self.log("info", "cpu_latency", requested_us=us, effective_us=self.qos.effective_us(),
+                     detail="CPUs kept out of idle states slower to leave than this while the daemon runs")
+        elif us is not None:
+            self.metrics.inc("cpu_latency_refused")
+            self.log("warning", "cpu_latency_refused", requested_us=us, error=self.qos.error,
+                     detail="serving without it; see docs/PROTOCOL.md (daemon.cpu_latency_us)")
 
     def endpoints(self) -> dict[str, Any]:
         out = self.net.endpoints() if self.net is not None else {}
@@ -345,6 +360,7 @@ class Daemon:
             "expired": self.sessions.expired, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
             "security": self.net.guard.info() if self.net is not None and self.net.guard is not None else None,
+            "cpu_latency": self.qos.info(),
         }
 
     def _status_line(self) -> str:
@@ -402,6 +418,7 @@ class Daemon:
             self.sched.max_gap, self.sched.max_batch = new_cfg.max_gap_frames, new_cfg.max_batch
             self.sessions.max_streams = new_cfg.max_streams
             self.log = Log(new_cfg.log_level, self.log.stream)
+            self._request_cpu_latency()
             if self.net is not None and self.net.guard is not None:
                 skipped = self.net.guard.reload(new_cfg.security)  # re-reads the authorized keys
                 if skipped:
@@ -459,6 +476,7 @@ class Daemon:
         if self.http is not None:
             self.http.close()
             self.http = None
+        self.qos.release()
         self.notify.close()
 
 

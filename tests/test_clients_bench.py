@@ -115,3 +115,31 @@ def test_bench_streams_multiplexed_on_one_connection_are_all_answered(tmp_path, 
     # more connections than streams is refused with a clear message
     assert main(["bench", "--streams", "2", "--connections", "3", "--model", str(tmp_path / "hold.npz"), "-q"]) == 2
     assert "--connections" in capsys.readouterr().err
+
+
+def test_bench_bundles_carry_every_stream_of_a_connection_in_one_message(tmp_path, capsys):
+    """--bundle: each connection sends its streams' frames of a tick as one `frames` message and
+    reads their answers from `replies`; every frame is still answered and counted on its own
+    stream, and the counts agree with the daemon's.  --cpu-latency 0 makes the started daemon
+    hold a PM QoS request, reported in the JSON whether the machine grants it or not."""
+    from clients import synth
+
+    g = synth.gait(2.0, seed=6)
+    HoldModel.fit([g.frames], g.channels).save(str(tmp_path / "hold.npz"))
+    rc = main(["bench", "--streams", "12", "--connections", "3", "--bundle", "--cpu-latency", "0", "--rate", "120",
+               "--seconds", "1", "--model", str(tmp_path / "hold.npz"), "--json", str(tmp_path / "b.json"), "-q"])
+    assert rc == 0
+    r = json.loads((tmp_path / "b.json").read_text())["runs"]["model"]
+    assert r["bundle"] is True and r["connections"] == 3 and r["sent"] == 12 * 120
+    assert r["counts_agree"] and r["served"] + r["dropped"] == r["sent"] and r["lost"] == 0 and r["errors"] == 0
+    assert r["served"] > 0.9 * r["sent"]
+    q = r["cpu_latency"]
+    assert q["requested_us"] == 0
+    if os.access("/dev/cpu_dma_latency", os.W_OK):
+        assert q["held"] and q["effective_us"] == 0 and q["error"] is None
+    else:
+        assert not q["held"] and "cpu_dma_latency" in q["error"]
+    assert "3b" in capsys.readouterr().out
+    # --cpu-latency only sets up a daemon that bench starts itself
+    assert main(["bench", "--connect", "127.0.0.1:1", "--cpu-latency", "0", "-q"]) == 2
+    assert "--cpu-latency" in capsys.readouterr().err
