@@ -202,6 +202,128 @@ class Client(_DealerLink):
         return r.result
 
 
+class CaptureClient(_DealerLink):
+    """Several performers' streams of one capture system on one connection: each capture instant
+    goes out as one ``frames`` bundle and its answers come back as one ``replies`` (docs/PROTOCOL.md).
+
+        with CaptureClient("tcp://127.0.0.1:5555", {"actor1": names, "actor2": names}) as cap:
+            out = cap.fill({"actor1": angles1, "actor2": (angles2, observed2)})
+            out["actor1"].angles, out["actor2"].status       # FillMsg, or Drop / ErrorMsg for that stream
+
+    Parameters as :class:`Client`, with ``streams`` mapping stream id -> studio channel names (or
+    None for the model's own list).  A timeout rebuilds the socket, re-sends the handshakes and
+    sends the bundle again (same sequence numbers), ``retries`` times, then DaemonUnavailable.
+    """
+
+    def __init__(self, endpoint: str, streams: dict[str, list[str] | None], model: str | None = None, *,
+                 timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
+                 ctx: zmq.Context | None = None):
+        if not streams:
+            raise ValueError("a capture client needs at least one stream")
+        if len(streams) > wire.MAX_BUNDLE:
+            raise ValueError(f"at most {wire.MAX_BUNDLE} streams go in one bundle (got {len(streams)})")
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be positive (got {timeout_s})")
+        self.endpoint = endpoint
+        self.sessions = {sid: StreamSession(sid, ch, model) for sid, ch in streams.items()}
+        self.session = next(iter(self.sessions.values()))  # _DealerLink counts reconnects on this one
+        self.timeout_s, self.retries = float(timeout_s), int(retries)
+        self._own_ctx = ctx is None
+        self.ctx = ctx or zmq.Context()
+        self.sock: zmq.Socket | None = None
+        self._mon: zmq.Socket | None = None
+        self._open()
+
+    def _open(self) -> None:
+        self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)
+        self._mon = open_monitor(self.ctx, self.sock, "capture-" + self.session.stream.encode().hex()[:24])
+
+    def reconnect(self) -> None:
+        super().reconnect()
+        for ss in self.sessions.values():
+            ss.link_lost()
+
+    def __enter__(self) -> "CaptureClient":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _recv(self, deadline: float) -> wire.Message:
+        assert self.sock is not None
+        if not self.sock.poll(max(0, int((deadline - time.monotonic()) * 1000)), zmq.POLLIN):
+            raise TimeoutError
+        return decode_reply(self.sock.recv())
+
+    def _handshakes(self) -> None:
+        seen = self.session.disconnects
+        self.session.drain_monitor(self._mon)   # the monitor counts on the first session: pass it on
+        if self.session.disconnects != seen:
+            for ss in list(self.sessions.values())[1:]:
+                ss.link_lost()
+        todo = [ss for ss in self.sessions.values() if not ss.handshaken]
+        assert self.sock is not None
+        for ss in todo:
+            self.sock.send(ss.hello_bytes())
+        deadline = time.monotonic() + self.timeout_s
+        waiting = {ss.stream: ss for ss in todo}
+        while waiting:
+            msg = self._recv(deadline)
+            sid = getattr(msg, "stream", None)
+            if isinstance(msg, (wire.HelloAck, wire.ErrorMsg)) and sid in waiting:
+                waiting.pop(sid).on_ack(msg)  # an error here raises DaemonRefused: a stream was refused
+
+    def fill(self, frames: dict[str, Any], t: float | None = None) -> dict[str, wire.Message]:
+        """Send one capture instant (stream id -> angles, or (angles, observed)) as one bundle and
+        wait for every answer: stream id -> FillMsg, Drop, or ErrorMsg (that frame was refused)."""
+        unknown = set(frames) - set(self.sessions)
+        if unknown:
+            raise ValueError(f"streams not opened by this client: {sorted(unknown)[:5]}")
+        t = time.time() if t is None else t
+        seqs: dict[str, int] = {}
+        maps = []
+        for sid, v in frames.items():
+            angles, observed = v if isinstance(v, tuple) else (v, None)
+            seqs[sid], f = self.sessions[sid].frame_msg(angles, observed, t)
+            maps.append(f)
+        data = wire.encode(wire.Bundle(maps))
+        for attempt in range(self.retries + 1):
+            try:
+                self._handshakes()
+                assert self.sock is not None
+                try:
+                    self.sock.send(data, copy=False)
+                except zmq.Again:
+                    raise TimeoutError from None
+                return self._await(seqs)
+            except TimeoutError:
+                if attempt < self.retries:
+                    self.reconnect()
+        raise DaemonUnavailable(f"no answer from {self.endpoint} for a bundle of {len(frames)} frame(s) "
+                                f"after {self.retries + 1} tries of {self.timeout_s:g} s")
+
+    def _await(self, seqs: dict[str, int]) -> dict[str, wire.Message]:
+        out: dict[str, wire.Message] = {}
+        deadline = time.monotonic() + self.timeout_s
+        while len(out) < len(seqs):
+            msg = self._recv(deadline)
+            items = msg.items if isinstance(msg, wire.Replies) else [msg]
+            for m in items:
+                sid = getattr(m, "stream", None)
+                if sid in seqs and getattr(m, "seq", None) == seqs[sid]:
+                    out[sid] = m
+                elif isinstance(m, wire.ErrorMsg) and sid is None and not isinstance(msg, wire.Replies):
+                    raise DaemonRefused(m)   # the bundle itself was refused
+                # else: an answer to an earlier bundle that timed out, not ours to keep
+        return out
+
+    def status(self) -> dict[str, Any]:
+        r = control(self.endpoint, "status", timeout_s=self.timeout_s, ctx=self.ctx)
+        if not r.ok:
+            raise DaemonRefused(wire.ErrorMsg("status", r.error or "status failed"))
+        return r.result
+
+
 def decode_reply(data: bytes) -> wire.Message:
     """Decode an answer from the daemon.
 

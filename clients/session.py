@@ -97,6 +97,12 @@ class StreamSession:
 
         angles : (C,) degrees, NaN where missing.  observed : (C,) bool or None.
         """
+        seq, msg = self.frame_msg(angles, observed, t, seq)
+        return seq, wire.encode(msg)
+
+    def frame_msg(self, angles: Any, observed: Any = None, t: float | None = None,
+                  seq: int | None = None) -> tuple[int, wire.Frame]:
+        """:meth:`frame_bytes` before encoding (a bundle encodes several at once)."""
         a = np.asarray(angles, dtype=np.float64)
         if a.ndim != 1:
             raise ValueError(f"angles must be one frame of shape (C,) (got shape {a.shape})")
@@ -113,8 +119,7 @@ class StreamSession:
             self.next_seq += 1
         else:
             self.next_seq = max(self.next_seq, seq + 1)
-        msg = wire.Frame(self.stream, int(seq), float(time.time() if t is None else t), a.astype(np.float32), obs)
-        return seq, wire.encode(msg)
+        return seq, wire.Frame(self.stream, int(seq), float(time.time() if t is None else t), a.astype(np.float32), obs)
 
     def on_ack(self, msg: wire.Message) -> wire.HelloAck:
         if isinstance(msg, wire.ErrorMsg):

@@ -198,3 +198,46 @@ def test_asyncio_client_reconnects_after_daemon_restart(hold_file, tmp_path):
     np.testing.assert_allclose(r.angles[:4], [model.mean_[idx[ch]] for ch in names[:4]], atol=1e-4)
     np.testing.assert_array_equal(r.angles[4:-1], frames[3, 4:-1].astype(np.float32))
     assert session.disconnects >= 1 and session.next_seq == 4
+
+
+def test_capture_client_sends_performers_as_one_bundle_and_survives_a_restart(hold_file, tmp_path):
+    """CaptureClient: three performers (studio names, the model's own list, a stream the daemon
+    refuses frame by frame) in one bundle per instant; each gets its own answer, equal to what a
+    one-stream Client gets for the same frame.  After a daemon crash and restart every stream's
+    handshake is sent again and the sequence numbers go on."""
+    from clients import CaptureClient
+
+    _, model = hold_file
+    names, frames = studio_take(model.channels)
+    C = len(model.channels)
+    d = DaemonProcess({"hold": hold_file[0]}, workdir=str(tmp_path), daemon={"budget_ms": 200.0})
+    d.start()
+    try:
+        obs = np.ones(len(names), bool)
+        obs[:4] = False
+        own = np.asarray(model.mean_, np.float64) + 1.0
+        with CaptureClient(d.endpoint, {"a1": names, "a2": None}, timeout_s=2.0, retries=5) as cap, \
+                Client(d.endpoint, "solo", names, timeout_s=2.0) as solo:
+            for k in range(3):
+                out = cap.fill({"a1": (frames[k], obs), "a2": own})
+                assert set(out) == {"a1", "a2"} and out["a1"].seq == out["a2"].seq == k
+                ref = solo.fill(frames[k], obs)
+                np.testing.assert_array_equal(out["a1"].angles, ref.angles)
+                np.testing.assert_array_equal(out["a1"].filled, ref.filled)
+                np.testing.assert_array_equal(out["a2"].angles, own.astype(np.float32))
+            # a frame of the wrong width for a2's stream is that stream's error, a1 is served
+            out = cap.fill({"a1": frames[3], "a2": np.zeros(C + 1)})
+            assert isinstance(out["a1"], wire.FillMsg) and isinstance(out["a2"], wire.ErrorMsg)
+            assert out["a2"].reason == "width"
+            with pytest.raises(ValueError, match="not opened"):
+                cap.fill({"stranger": frames[4]})
+            d.kill()
+            d.start()
+            out = cap.fill({"a1": (frames[5], obs), "a2": own})
+            assert isinstance(out["a1"], wire.FillMsg) and out["a1"].seq == out["a2"].seq == 4   # numbering goes on
+            assert out["a1"].filled[:4].all() and not out["a1"].filled[-1]   # studio names mapped again
+            st = cap.status()["streams"]
+            assert st["a1"]["frames_out"] == 1 and st["a1"]["passthrough"] == 1   # the new daemon got a hello
+            assert st["a2"]["frames_out"] == 1
+    finally:
+        d.stop()
