@@ -16,6 +16,8 @@ squares over recent steps and seeded by a warm-up step when a model is loaded.
 """
 from __future__ import annotations
 
+import math
+
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -370,15 +372,24 @@ def _identity_fills(items: list[tuple[Session, Fill, str]], C: int, now: float) 
         raise ValueError(f"fills do not stack to ({n}, {C})")
     angles = np.where(sent, given, model_out)  # observed values exactly as sent, whatever the model returned
     filled &= ~sent
+    exs = [fl.extras or _NONE for _, fl, _ in items]
+    styles: Any = [ex.get("style") for ex in exs]
+    if None not in styles:
+        try:  # every stream has a style posterior: one (n, K) float32 array, a row each
+            styles = np.array(styles, dtype=np.float32).reshape(n, -1)
+        except ValueError:  # posteriors of different lengths (two models' streams): one by one
+            styles = [np.asarray(st, np.float32).ravel() for st in styles]
+    else:
+        styles = [None if st is None else np.asarray(st, np.float32).ravel() for st in styles]
     msgs = []
     for j, (s, fill, status) in enumerate(items):
         f = fr[j]
-        ex = fill.extras or {}
-        style = ex.get("style")
-        phase = ex.get("phase")
+        phase = exs[j].get("phase")
         msgs.append(wire.FillMsg(f.stream, f.seq, f.t, angles[j], filled[j], std[j], status, s.model_name,
                                  int((now - s.pending.arrived) * 1e6),  # type: ignore[union-attr]
-                                 None if style is None else np.asarray(style, np.float32).ravel(),
-                                 None if phase is None or not np.isfinite(phase) else float(phase),
+                                 styles[j], None if phase is None or not math.isfinite(phase) else float(phase),
                                  0 if s.last_seq is None else max(0, f.seq - s.last_seq - 1)))
     return msgs
+
+
+_NONE: dict[str, Any] = {}

@@ -254,3 +254,54 @@ def test_replies_carry_every_kind_of_answer_and_refuse_requests():
     with pytest.raises(w.WireError) as ei:
         w.decode(_pack({"v": 1, "type": "replies", "replies": [{"v": 1, "type": "control", "cmd": "status"}]}))
     assert ei.value.reason == "bad_type"
+
+
+def test_bundle_fast_path_equals_reading_each_frame_alone(rng):
+    """A well-formed bundle is checked as (n, C) arrays at once; it must give exactly the frames
+    the element-by-element path gives, and leave every irregular bundle to that path."""
+    from daemon.wire import _bundle_fast
+
+    C = 6
+    def elem(i, masked):
+        a = rng.normal(size=C).astype(np.float32)
+        obs = rng.random(C) > 0.3
+        d = {"stream": f"p{i}", "seq": 10 + i, "t": 0.25 * i}
+        if masked:
+            a[~obs] = rng.choice([np.nan, np.inf, 7.0])           # unread slots may hold anything
+            d.update(angles=a.tobytes(), observed=obs.astype(np.uint8).tobytes())
+        else:
+            a[~obs] = np.nan
+            d.update(angles=a.tobytes())
+        return d
+
+    for masked in (True, False):
+        els = [elem(i, masked) for i in range(9)]
+        fast = _bundle_fast(els)
+        assert fast is not None
+        alone = [w.decode(_pack({"v": 1, "type": "frame", **e})) for e in els]
+        for x, y in zip(fast, alone):
+            assert (x.stream, x.seq, x.t) == (y.stream, y.seq, y.t)
+            assert np.array_equal(x.angles, y.angles, equal_nan=True)
+            assert (x.observed is None and y.observed is None) or x.observed.tolist() == y.observed.tolist()
+        # irregular bundles fall back (and the slow path then reads or refuses each element)
+        for bad in ({"angles": b"\0" * 4 * (C + 1)},              # another width
+                    {"observed": b"\2" * C} if masked else {"observed": b"\1" * C},   # bad mask / mixed
+                    {"t": float("inf")}, {"stream": "a\nb"}, {"seq": -1}, {"type": "hello"}, {"v": 2},
+                    {"angles": np.full(C, np.inf, np.float32).tobytes()}):
+            assert _bundle_fast(els[:4] + [{**els[4], **bad}] + els[5:]) is None, bad
+
+
+def test_mutated_bundles_never_raise_anything_but_wire_error():
+    """Every single-byte change of the bundle example decodes to a message or raises WireError;
+    a bundle that decodes holds only Frames and WireErrors."""
+    base = bytearray(FRAMES_S1_S2_SEQ7)
+    for i in range(len(base)):
+        for val in (0x00, 0xC1, 0xFF, 0x7F, base[i] ^ 0x01):
+            b = bytearray(base)
+            b[i] = val
+            try:
+                m = w.decode(bytes(b))
+            except w.WireError:
+                continue
+            if isinstance(m, w.Bundle):
+                assert all(isinstance(x, (w.Frame, w.WireError)) for x in m.items)
