@@ -331,3 +331,48 @@ def test_tick_inputs_and_replies_built_as_arrays_equal_the_row_by_row_ones():
     out = fill_messages(bad, 0.001)
     assert isinstance(out[2], Exception)
     assert all(isinstance(m, wire.FillMsg) for i, m in enumerate(out) if i != 2)
+
+
+def test_receive_reads_no_more_per_turn_than_its_time_allows_and_loses_nothing():
+    """Transports.receive on a real ROUTER: with no time to spare it reads one chunk a turn (the
+    rest waits in the socket, bounded by the high-water mark) and later turns read the rest, in
+    order, each stamped when read; with time it reads everything waiting."""
+    import zmq
+
+    from daemon.metrics import Metrics
+    from daemon.transport import DRAIN_CHUNK, Transports
+
+    cfg = config.from_dict({"models": {"m": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
+    got: list[tuple[bytes, float]] = []
+    net = Transports(cfg, lambda data, origin, t: got.append((data, t)), lambda *a: None, Metrics(), lambda *a, **k: None)
+    net.open()
+    ctx = zmq.Context()
+    d = ctx.socket(zmq.DEALER)
+    d.setsockopt(zmq.LINGER, 0)
+    try:
+        d.connect(net.endpoints()["router"])
+        n = 3 * DRAIN_CHUNK + 5
+        for i in range(n):
+            d.send(b"%d" % i)
+        deadline = time.monotonic() + 5
+        turns = []
+        while len(got) < n and time.monotonic() < deadline:
+            ready = net.poll(100)
+            if ready:
+                before = len(got)
+                net.receive(ready, 0.0)
+                turns.append(len(got) - before)
+        assert [int(b) for b, _ in got] == list(range(n))
+        assert max(turns) <= DRAIN_CHUNK and len(turns) >= 4
+        stamps = [t for _, t in got]
+        assert stamps == sorted(stamps)
+        for i in range(n):
+            d.send(b"x")
+        time.sleep(0.3)   # all queued at the ROUTER
+        got.clear()
+        net.receive(net.poll(100))   # unbounded time: one turn reads everything
+        assert len(got) == n
+    finally:
+        d.close()
+        ctx.term()
+        net.close()
