@@ -5,6 +5,11 @@ Measured as process CPU time (not wall time) per frame, so that the other jobs o
 machine disturb it far less than round-trip latency; medians over repeats.
 
     .venv/bin/python bench/daemon_hotpath.py --repeats 7 --json bench/daemon_hotpath.json
+
+``--bundle`` adds rows where the 64 streams' frames of a tick come as one ``frames`` message.
+``--gap-ms G`` sleeps G ms between ticks, as the live daemon waits between capture frames: the
+caches and the CPU are then as cold as they are live (back to back, the figure is the warm
+one).  ``--cpu-latency US`` holds a PM QoS request while measuring (daemon.cpu_latency_us).
 """
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ import numpy as np
 
 from daemon import config, wire
 from daemon.models import load_all
+from daemon.pmqos import CpuLatency
 from daemon.server import Daemon
 from mocap.baselines import HoldModel, NearestNeighbourModel
 from mocap.protocols import get_protocol
@@ -26,30 +32,39 @@ from mocap.protocols import get_protocol
 WARM_TICKS = 20  # a filter's first frames cost more (the HLM's posterior starts over every phase)
 
 
-def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarray, channels: list[str]) -> float:
-    """CPU microseconds per frame for ``ticks`` rounds of one frame on each of n streams, after
-    WARM_TICKS rounds that are not timed."""
+def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarray, channels: list[str],
+            bundle: bool = False, gap_s: float = 0.0) -> tuple[float, float]:
+    """(CPU, wall) microseconds per frame for ``ticks`` rounds of one frame on each of n streams,
+    after WARM_TICKS rounds that are not timed; ``bundle``: each round is one ``frames`` message;
+    ``gap_s``: a sleep between rounds.  CPU is process time over all rounds; wall is the median
+    round's own duration (the sleeps excluded).  With sleeps, trust wall: the kernel charges CPU
+    time by the scheduler tick, and a thread that wakes on a timer is running when ticks land."""
     out: list[bytes] = []
     d._send = lambda o, m, publish=False: out.append(wire.encode(m))  # type: ignore[method-assign]
     sids = [f"{model}-{n_streams}-{time.monotonic_ns()}-{i}" for i in range(n_streams)]
     for sid in sids:
         d._handle(wire.encode(wire.Hello(sid, channels, model)), ("router", [b"x"]), time.perf_counter())
-    msgs = [[wire.encode(wire.Frame(sid, k, k / 120, frames[k % len(frames)])) for sid in sids]
-            for k in range(WARM_TICKS + ticks)]
+    fr = [[wire.Frame(sid, k, k / 120, frames[k % len(frames)]) for sid in sids] for k in range(WARM_TICKS + ticks)]
+    msgs = [[wire.encode(wire.Bundle(fs))] if bundle else [wire.encode(f) for f in fs] for fs in fr]
     for k in range(WARM_TICKS):
         for b in msgs[k]:
             d._handle(b, ("router", [b"x"]), time.perf_counter())
         d._serve()
     msgs = msgs[WARM_TICKS:]
+    walls = np.empty(ticks)
     c0 = time.process_time()
     for k in range(ticks):
+        w0 = time.perf_counter()
         for b in msgs[k]:
             d._handle(b, ("router", [b"x"]), time.perf_counter())
         d._serve()
+        walls[k] = time.perf_counter() - w0
+        if gap_s:
+            time.sleep(gap_s)
     cpu = time.process_time() - c0
     for sid in sids:
         d.sessions.reset(sid)
-    return 1e6 * cpu / (ticks * n_streams)
+    return 1e6 * cpu / (ticks * n_streams), 1e6 * float(np.median(walls)) / n_streams
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,8 +73,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=3000, help="frames per measurement")
     ap.add_argument("--model", action="append", default=[], metavar="NAME=FILE", help="extra model file (HLM, CRBM)")
     ap.add_argument("--models", default="floor,hold,nn", help="builtin set to measure")
+    ap.add_argument("--bundle", action="store_true", help="also 64 streams sent as one frames message a tick")
+    ap.add_argument("--gap-ms", type=float, default=0.0, help="sleep between ticks (default 0: back to back)")
+    ap.add_argument("--cpu-latency", type=int, default=None, metavar="US", help="hold a PM QoS request while measuring")
     ap.add_argument("--json", dest="json_out")
     args = ap.parse_args(argv)
+    qos = CpuLatency()
+    if args.cpu_latency is not None and not qos.request(args.cpu_latency):
+        raise SystemExit(f"--cpu-latency: {qos.error}")
     proto = get_protocol("pan2009")
     ts = proto.training_set()
     ch = list(ts.channels)
@@ -78,13 +99,20 @@ def main(argv: list[str] | None = None) -> int:
     d._install(table)
     rows = []
     for model in args.models.split(",") + [s.split("=", 1)[0] for s in args.model]:
-        for n in (1, 64):
+        for n, bundle in ((1, False), (64, False)) + (((64, True),) if args.bundle else ()):
             ticks = max(2, args.frames // n) if model in ("floor", "hold") else max(10, 600 // n)
-            vals = [measure(d, model, n, ticks, frames, ch) for _ in range(args.repeats)]
-            row = {"model": model, "streams": n, "cpu_us_per_frame_median": round(float(np.median(vals)), 1),
-                   "cpu_us_per_frame_min": round(float(np.min(vals)), 1), "repeats": args.repeats}
+            if args.gap_ms:
+                ticks = min(ticks, 200)  # each tick waits gap_ms
+            got = [measure(d, model, n, ticks, frames, ch, bundle, args.gap_ms / 1000.0) for _ in range(args.repeats)]
+            vals, walls = [g[0] for g in got], [g[1] for g in got]
+            row = {"model": model, "streams": n, "bundle": bundle, "gap_ms": args.gap_ms,
+                   "cpu_latency_us": args.cpu_latency,
+                   "cpu_us_per_frame_median": round(float(np.median(vals)), 1),
+                   "cpu_us_per_frame_min": round(float(np.min(vals)), 1),
+                   "wall_us_per_frame_median": round(float(np.median(walls)), 1), "repeats": args.repeats}
             rows.append(row)
-            print(f"{model:>6} {n:>3} streams: {row['cpu_us_per_frame_median']} us CPU per frame (min {row['cpu_us_per_frame_min']})",
+            print(f"{model:>6} {n:>3} streams{' bundled' if bundle else ''}: {row['cpu_us_per_frame_median']} us CPU "
+                  f"per frame (min {row['cpu_us_per_frame_min']}), wall {row['wall_us_per_frame_median']} us per frame",
                   file=sys.stderr, flush=True)
     if args.json_out:
         with open(args.json_out, "w") as fh:

@@ -34,7 +34,8 @@ from mocap.protocols import TrainingSet  # noqa: E402
 
 SECTION = "## Daemon latency (lacuna bench)"
 TRAIN = ["35_01", "35_06", "35_07", "35_08", "35_09", "35_10", "35_11", "35_12"]
-LOADS = [(1, 120.0, None), (64, 120.0, None), (64, 120.0, 1)]  # (streams, Hz, connections; None = one each)
+LOADS = [(1, 120.0, None, False), (64, 120.0, None, False), (64, 120.0, 1, False)]  # (streams, Hz, connections
+# (None = one each), bundled)
 OPTIONS = {"fps": 120.0, "cycle_frames": 140}
 SMALL = {"hlm": {"n_iter": 10, "styles": 2, "restarts": 1, "progress": False},
          "crbm": {"hidden": 100, "epochs": 40, "order": 3, "progress": False}}
@@ -63,19 +64,25 @@ def train_models(out: Path, names: list[str]) -> dict[str, Path]:
 BUSY_POLL_MS = 50.0
 
 
-def run(files: dict[str, Path], out: Path, repeats: int, seconds: float, waits: list[str]) -> list[dict]:
+def run(files: dict[str, Path], out: Path, repeats: int, seconds: float, waits: list[str],
+        cpu_latency: int | None = None) -> list[dict]:
     rows = []
     for name, f in files.items():
-        for streams, rate, conns in LOADS:
+        for streams, rate, conns, bundle in LOADS:
             for wait in waits:
                 reps = []
                 for r in range(repeats):
-                    tag = f"{streams}x{rate:g}" + (f"c{conns}" if conns else "")
+                    tag = f"{streams}x{rate:g}" + (f"c{conns}" if conns else "") + ("b" if bundle else "") + \
+                        (f"-q{cpu_latency}" if cpu_latency is not None else "")
                     j = out / f"{name}-{tag}-{wait}-r{r}.json"
                     cmd = ["bench", "--streams", str(streams), "--rate", str(rate), "--seconds", str(seconds),
                            "--model", str(f), "--floor", "--json", str(j), "--plot", str(j.with_suffix(".png")), "-q"]
                     if conns:
                         cmd += ["--connections", str(conns)]
+                    if bundle:
+                        cmd += ["--bundle"]
+                    if cpu_latency is not None:
+                        cmd += ["--cpu-latency", str(cpu_latency)]
                     if wait == "busy":
                         cmd += ["--busy-poll", f"{BUSY_POLL_MS:g}"]
                     print(f"lacuna {' '.join(cmd)}", file=sys.stderr, flush=True)
@@ -83,7 +90,8 @@ def run(files: dict[str, Path], out: Path, repeats: int, seconds: float, waits: 
                         raise SystemExit(f"bench run failed: {cmd}")
                     reps.append(json.loads(j.read_text()))
                 rows.append({**summarise(name, streams, rate, seconds, reps), "wait": wait,
-                             "connections": conns or streams})
+                             "connections": conns or streams, "bundle": bundle, "cpu_latency_us": cpu_latency,
+                             "cpu_latency_held": all((r.get("cpu_latency") or {}).get("held") for r in reps)})
     return rows
 
 
@@ -120,7 +128,10 @@ def table(rows: list[dict], repeats: int, seconds: float) -> str:
             f = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
             cpu = "-" if m["cpu_percent"] is None else f"{m['cpu_percent']:.0f}%"
             conns = r.get("connections", r["streams"])
-            load = f"{r['streams']} x {r['rate']:g} Hz" + (f", {conns} conn." if conns != r["streams"] else "")
+            load = f"{r['streams']} x {r['rate']:g} Hz" + (f", {conns} conn." if conns != r["streams"] else "") + \
+                (", bundled" if r.get("bundle") else "")
+            if r.get("cpu_latency_us") is not None:
+                load += f", cpu_latency {r['cpu_latency_us']} µs" + ("" if r.get("cpu_latency_held") else " (REFUSED)")
             L.append(f"| {label} | {load} | {r.get('wait', 'sleep')} | {f(m['p50_ms'])} | {f(m['p90_ms'])} | "
                      f"{f(m['p99_ms'])} ({m['p99_range'][0]:.2f}-{m['p99_range'][1]:.2f}) | {f(m['p999_ms'])} | "
                      f"{f(m['max_ms'])} | {m['served']} / {m['offered']} | {m['degraded']} | {m['dropped']} | "
@@ -145,8 +156,11 @@ def main() -> int:
     ap.add_argument("--note", default="", help="a sentence added under the table (e.g. which branches were measured)")
     ap.add_argument("--models", default="hold,nn,hlm,crbm", help="comma-separated (default hold,nn,hlm,crbm)")
     ap.add_argument("--loads", default="1x120,64x120,64x120/1",
-                    help="comma-separated STREAMSxHZ[/CONNECTIONS] (default 1x120,64x120,64x120/1: one DEALER per "
-                         "stream, and 64 streams down one connection)")
+                    help="comma-separated STREAMSxHZ[/CONNECTIONS[b]] (default 1x120,64x120,64x120/1: one DEALER per "
+                         "stream, and 64 streams down one connection; a trailing b sends each connection's frames "
+                         "of a tick as one bundle, 64x120/1b)")
+    ap.add_argument("--cpu-latency", type=int, default=None, metavar="US",
+                    help="every daemon holds a PM QoS CPU latency request of US µs (lacuna bench --cpu-latency)")
     ap.add_argument("--waits", default="sleep,busy",
                     help=f"comma-separated: sleep (both sides sleep in poll), busy (--busy-poll {BUSY_POLL_MS:g}: both spin)")
     ap.add_argument("--no-write", action="store_true", help="print the section instead of writing docs/BENCHMARKS.md")
@@ -158,22 +172,29 @@ def main() -> int:
     for x in args.loads.split(","):
         load, _, conns = x.partition("/")
         a, b = load.split("x")
-        LOADS.append((int(a), float(b), int(conns) if conns else None))
+        bundle = conns.endswith("b")
+        conns = conns.rstrip("b")
+        LOADS.append((int(a), float(b), int(conns) if conns else (int(a) if bundle else None), bundle))
     files = {k: v for k, v in train_models(out, args.models.split(",")).items()}
     t0 = time.time()
     waits = args.waits.split(",")
     if not set(waits) <= {"sleep", "busy"}:
         raise SystemExit(f"--waits takes sleep and/or busy (got {args.waits})")
-    rows = run(files, out, args.repeats, args.seconds, waits)
+    rows = run(files, out, args.repeats, args.seconds, waits, args.cpu_latency)
     (out / "latency-summary.json").write_text(json.dumps(rows, indent=2))
     load = subprocess.run(["cat", "/proc/loadavg"], capture_output=True, text=True).stdout.split()[:3]
     text = "\n".join([
         f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime(t0))} with "
-        f"`.venv/bin/python bench/latency.py --repeats {args.repeats} --seconds {args.seconds:g}` "
+        f"`.venv/bin/python bench/latency.py --repeats {args.repeats} --seconds {args.seconds:g} "
+        f"--models {args.models} --loads {args.loads} --waits {args.waits}"
+        + (f" --cpu-latency {args.cpu_latency}" if args.cpu_latency is not None else "") + "` "
         f"(each row: `lacuna bench --streams N --rate 120 --seconds {args.seconds:g} --model FILE --floor`, "
         f"with `--connections 1` where the load says 1 conn. (every stream down one DEALER, as one capture "
-        f"system would send them; otherwise one DEALER per stream), "
-        f"a fresh daemon per repeat; medians over {args.repeats} repeats, p99 range in brackets; "
+        f"system would send them; otherwise one DEALER per stream), `--bundle` where it says bundled (each "
+        f"tick's frames of a connection in one `frames` message), "
+        + (f"`--cpu-latency {args.cpu_latency}` (the daemon holds a PM QoS request: idle CPUs poll), "
+           if args.cpu_latency is not None else "")
+        + f"a fresh daemon per repeat; medians over {args.repeats} repeats, p99 range in brackets; "
         f"served/offered/degraded/dropped summed over repeats). Round trip = client send to client receive, "
         f"ZeroMQ DEALER -> ROUTER on loopback, ms. Wait: `sleep` = daemon and client sleep in poll between "
         f"messages; `busy` = `--busy-poll {BUSY_POLL_MS:g}` (the daemon's busy_poll_ms and the client both spin, "
