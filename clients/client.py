@@ -31,9 +31,22 @@ class _DealerLink:
 
     sock: Any
     _mon: Any
+    _monitor_name = ""
+
+    def _link(self, endpoint: str, timeout_s: float, retries: int, ctx: zmq.Context | None) -> None:
+        """The blocking clients' connection state; the socket opens in ``_open``."""
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be positive (got {timeout_s})")
+        self.endpoint = endpoint
+        self.timeout_s, self.retries = float(timeout_s), int(retries)
+        self._own_ctx = ctx is None
+        self.ctx = ctx or zmq.Context()
+        self.sock = None
+        self._mon = None
 
     def _open(self) -> None:
-        raise NotImplementedError
+        self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)
+        self._mon = open_monitor(self.ctx, self.sock, self._monitor_name)
 
     def _close_socket(self) -> None:
         if self.sock is not None:
@@ -76,23 +89,12 @@ class Client(_DealerLink):
     def __init__(self, endpoint: str, stream: str, channels: list[str] | None = None, model: str | None = None,
                  *, timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
                  ctx: zmq.Context | None = None, first_seq: int = 0):
-        if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be positive (got {timeout_s})")
-        self.endpoint = endpoint
         self.session = StreamSession(stream, channels, model, first_seq)
-        self.timeout_s = float(timeout_s)
-        self.retries = int(retries)
-        self._own_ctx = ctx is None
-        self.ctx = ctx or zmq.Context()
-        self.sock: zmq.Socket | None = None
-        self._mon: zmq.Socket | None = None
+        self._link(endpoint, timeout_s, retries, ctx)
+        self._monitor_name = self.session.stream.encode().hex()[:32]
         self._open()
 
     # ---- socket lifecycle ------------------------------------------------------------------
-    def _open(self) -> None:
-        self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)
-        self._mon = open_monitor(self.ctx, self.sock, self.session.stream.encode().hex()[:32])
-
     def __enter__(self) -> "Client":
         return self
 
@@ -222,25 +224,15 @@ class CaptureClient(_DealerLink):
             raise ValueError("a capture client needs at least one stream")
         if len(streams) > wire.MAX_BUNDLE:
             raise ValueError(f"at most {wire.MAX_BUNDLE} streams go in one bundle (got {len(streams)})")
-        if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be positive (got {timeout_s})")
-        self.endpoint = endpoint
         self.sessions = {sid: StreamSession(sid, ch, model) for sid, ch in streams.items()}
         self.session = next(iter(self.sessions.values()))  # _DealerLink counts reconnects on this one
-        self.timeout_s, self.retries = float(timeout_s), int(retries)
-        self._own_ctx = ctx is None
-        self.ctx = ctx or zmq.Context()
-        self.sock: zmq.Socket | None = None
-        self._mon: zmq.Socket | None = None
+        self._link(endpoint, timeout_s, retries, ctx)
+        self._monitor_name = "capture-" + self.session.stream.encode().hex()[:24]
         self._open()
 
-    def _open(self) -> None:
-        self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)
-        self._mon = open_monitor(self.ctx, self.sock, "capture-" + self.session.stream.encode().hex()[:24])
-
     def reconnect(self) -> None:
-        super().reconnect()
-        for ss in self.sessions.values():
+        super().reconnect()   # marks the first session
+        for ss in list(self.sessions.values())[1:]:
             ss.link_lost()
 
     def __enter__(self) -> "CaptureClient":
