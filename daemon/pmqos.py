@@ -14,7 +14,7 @@ The price: CPUs held out of sleep draw power and heat, and on a virtual machine 
 CPU.  It is a capture-box setting, off unless ``daemon.cpu_latency_us`` is set, and it affects
 the whole machine (the kernel takes the smallest of all open requests).
 
-The device is root-only (0600) on most distributions: see docs/PROTOCOL.md for running the
+The device is root-only (0600) on most distributions: systemd/lacuna.service says how to run the
 daemon with it under systemd.  A request the daemon cannot make is logged and reported in
 ``status``; the daemon serves on without it.
 """

@@ -135,7 +135,7 @@ class Daemon:
         elif us is not None:
             self.metrics.inc("cpu_latency_refused")
             self.log("warning", "cpu_latency_refused", requested_us=us, error=self.qos.error,
-                     detail="serving without it; see docs/PROTOCOL.md (daemon.cpu_latency_us)")
+                     detail="serving without it; see systemd/lacuna.service for granting the device")
 
     def endpoints(self) -> dict[str, Any]:
         out = self.net.endpoints() if self.net is not None else {}
