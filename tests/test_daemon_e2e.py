@@ -830,6 +830,48 @@ def test_cpu_latency_request_is_held_while_serving_and_follows_reload(tmp_path, 
     assert isinstance(recv(s), wire.FillMsg)
 
 
+def test_cpu_latency_refused_is_reported_and_the_daemon_serves_on(tmp_path, daemons, ctx):
+    """The device is root-only: a daemon without the right to it logs cpu_latency_refused,
+    counts it, shows the error in status and serves.  As root the test runs the daemon as
+    nobody (setpriv) so the refusal is a real one either way."""
+    import shutil
+    import tempfile
+
+    from daemon.loadgen import DaemonProcess
+
+    if os.geteuid() == 0 and shutil.which("setpriv") is None:
+        pytest.skip("running as root without setpriv: no way to start an unprivileged daemon here")
+    d_dir = tempfile.mkdtemp(prefix="lacuna-qos-")              # readable by the unprivileged daemon
+    os.chmod(d_dir, 0o755)
+    cfg = write_config(tmp_path, {"floor": {"builtin": "passthrough"}})
+    dst = os.path.join(d_dir, "lacuna.toml")
+    with open(cfg) as fh, open(dst, "w") as out:
+        out.write(fh.read().replace("[daemon]\n", "[daemon]\ncpu_latency_us = 0\n", 1))
+    os.chmod(dst, 0o644)
+    python = sys.executable
+    if os.geteuid() == 0:
+        python = os.path.join(d_dir, "python-as-nobody")
+        with open(python, "w") as fh:
+            fh.write(f"#!/bin/sh\nexec setpriv --reuid=65534 --regid=65534 --clear-groups {sys.executable} \"$@\"\n")
+        os.chmod(python, 0o755)
+    d = DaemonProcess(dst, {"HOME": d_dir}, python=python)
+    try:
+        d.start()
+        rec = d.wait_for("cpu_latency_refused", 5)
+        assert rec["requested_us"] == 0 and "cpu_dma_latency" in rec["error"]
+        s = ctx(zmq.DEALER)
+        s.connect(d.endpoints["router"])
+        s.send(frame("q", 0, [1.0, 2.0]))
+        assert isinstance(recv(s), wire.FillMsg)
+        st = loadgen_status(d)
+        assert st["counters"]["cpu_latency_refused"] == 1 and st["pid"] != os.getpid()
+        q = st["cpu_latency"]
+        assert not q["held"] and q["requested_us"] == 0 and q["error"].startswith("cannot open")
+    finally:
+        d.stop()
+        shutil.rmtree(d_dir, ignore_errors=True)
+
+
 def test_cpu_latency_request_mechanics_on_real_files(tmp_path):
     from daemon import config as config_mod
     from daemon.pmqos import CpuLatency
