@@ -32,7 +32,6 @@ from daemon.transport import Transports
 
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
 HOUSEKEEPING_S = 0.5
-TURN_READ_SHARE = 0.5  # of the per-frame budget, spent at most reading one socket per turn (the step needs the rest)
 REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, summarised
 DRAIN_LINGER_MS = 1000  # on SIGTERM, let answers already queued reach their peers
 LEVELS = {"debug": 10, "info": 20, "warning": 30, "error": 40}
@@ -165,7 +164,7 @@ class Daemon:
                 try:
                     if ready:
                         self._last_rx = time.perf_counter()
-                        net.receive(ready, self.sched.budget_s * TURN_READ_SHARE)  # type: ignore[union-attr]
+                        net.receive(ready)  # type: ignore[union-attr]
                     self._serve()
                 except Exception as e:  # never let a bug end the service: log, count, go on
                     self.metrics.inc("internal_errors")
