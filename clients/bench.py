@@ -97,6 +97,9 @@ def run_one(endpoint: str, channels: list[str], frames: np.ndarray, observed: np
         "daemon_rss_growth_mb": None if rss0 is None or rss1 is None else (rss1 - rss0) / 2**20,
         "daemon_proc_ms_p50": float(np.median(res.proc_us) / 1000.0) if res.proc_us.size else None,
         "daemon_proc_ms_p99": float(np.percentile(res.proc_us, 99) / 1000.0) if res.proc_us.size else None,
+        # the share of served frames whose receipt-to-reply overran the daemon's per-frame budget
+        "daemon_over_budget_pct": (float(100.0 * np.mean(res.proc_us > 1000.0 * float(st["budget_ms"])))
+                                   if res.proc_us.size and st.get("budget_ms") else None),
         "send_lateness_ms_p99": float(np.percentile(res.lateness_ms, 99)),
         "daemon_counts": dc, "cpu_latency": st.get("cpu_latency"),
         "counts_agree": dc["served"] == res.served and dc["dropped"] == res.dropped and dc["degraded"] == res.degraded,
