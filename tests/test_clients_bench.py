@@ -133,6 +133,8 @@ def test_bench_bundles_carry_every_stream_of_a_connection_in_one_message(tmp_pat
     assert r["bundle"] is True and r["connections"] == 3 and r["sent"] == 12 * 120
     assert r["counts_agree"] and r["served"] + r["dropped"] == r["sent"] and r["lost"] == 0 and r["errors"] == 0
     assert r["served"] > 0.9 * r["sent"]
+    # the daemon's own receipt-to-reply of served frames, and the share of them over its budget
+    assert 0 < r["daemon_proc_ms_p50"] <= r["daemon_proc_ms_p99"] and 0.0 <= r["daemon_over_budget_pct"] <= 100.0
     q = r["cpu_latency"]
     assert q["requested_us"] == 0
     if os.access("/dev/cpu_dma_latency", os.W_OK):
