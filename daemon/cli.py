@@ -79,10 +79,15 @@ def render(st: dict[str, Any]) -> str:
     L.append("frames: in {} out {} degraded {} dropped conflated/late/duplicate {}/{}/{} rejected {}".format(
         c.get("frames_in", 0), c.get("frames_out", 0), c.get("degraded", 0), c.get("dropped_conflated", 0),
         c.get("dropped_late", 0), c.get("dropped_duplicate", 0), c.get("rejected", 0)))
-    other = {k: c[k] for k in ("send_dropped", "send_errors", "internal_errors", "reloads", "reload_failures",
-                                "expired", "osc_recv_errors") if c.get(k)}
+    other = {k: c[k] for k in ("bundles_in", "send_dropped", "send_errors", "internal_errors", "reloads",
+                                "reload_failures", "expired", "osc_recv_errors") if c.get(k)}
     if other:
         L.append("other: " + ", ".join(f"{k} {v}" for k, v in other.items()))
+    q = st.get("cpu_latency") or {}
+    if q.get("requested_us") is not None:
+        L.append(f"cpu latency request: {q['requested_us']} us, "
+                 + (f"held (machine-wide bound now {_f(q.get('effective_us'))} us)" if q.get("held")
+                    else f"NOT HELD: {q.get('error')}"))
     if st.get("rejected"):
         L.append("rejected by reason: " + ", ".join(f"{k} {v}" for k, v in sorted(st["rejected"].items())))
     L.append("models:")

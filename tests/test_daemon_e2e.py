@@ -757,6 +757,9 @@ def test_a_bundle_of_streams_is_served_as_single_frames_and_answered_in_one_repl
     e = recv(s)
     assert isinstance(e, wire.ErrorMsg) and e.reason == "bad_length"
     st = loadgen_status(d)
+    from daemon.cli import render
+
+    assert "bundles_in 2" in render(st)
     # two bundles read (the empty one was refused before it was one); p2's element never became a frame
     assert st["counters"]["bundles_in"] == 2 and st["counters"]["frames_in"] == 3 + 1 + 3
     assert st["streams"]["p1"]["frames_out"] == 1 and st["streams"]["p4"]["frames_out"] == 2
@@ -814,6 +817,9 @@ def test_cpu_latency_request_is_held_while_serving_and_follows_reload(tmp_path, 
     assert q["requested_us"] == 0 and q["device"] == DEVICE
     if os.access(DEVICE, os.W_OK):
         assert q["held"] and q["effective_us"] == 0 and q["error"] is None
+        from daemon.cli import render
+
+        assert "cpu latency request: 0 us, held (machine-wide bound now 0 us)" in render(loadgen_status(d))
         assert _fds_to(d.proc.pid, DEVICE) == 1
         d.wait_for("cpu_latency", 5, requested_us=0)
         with open(cfg, "w") as fh:
@@ -867,6 +873,9 @@ def test_cpu_latency_refused_is_reported_and_the_daemon_serves_on(tmp_path, daem
         assert st["counters"]["cpu_latency_refused"] == 1 and st["pid"] != os.getpid()
         q = st["cpu_latency"]
         assert not q["held"] and q["requested_us"] == 0 and q["error"].startswith("cannot open")
+        from daemon.cli import render
+
+        assert "cpu latency request: 0 us, NOT HELD: cannot open /dev/cpu_dma_latency" in render(st)
     finally:
         d.stop()
         shutil.rmtree(d_dir, ignore_errors=True)
