@@ -17,7 +17,6 @@ squares over recent steps and seeded by a warm-up step when a model is loaded.
 from __future__ import annotations
 
 import math
-
 import time
 from dataclasses import dataclass
 from typing import Any

@@ -55,8 +55,7 @@ class Transports:
         self.poller = zmq.Poller()
         self._held: list[tuple[zmq.Socket, list[bytes], str]] | None = None
         self._bundles: dict[tuple[bytes, ...], list[bytes]] = {}  # ROUTER envelope -> held answers to bundled frames
-        # wire.encode with one Packer for the daemon's thread (msgpack.packb builds one per call)
-        self._pack = msgpack.Packer(use_bin_type=True).pack
+        self._pack = msgpack.Packer(use_bin_type=True).pack  # one for the daemon's thread (packb builds one per call)
         self._flush_every = max(1, min(FLUSH_MAX, cfg.zmq_hwm // 4))
 
     def _sock(self, kind: int) -> zmq.Socket:
@@ -211,6 +210,10 @@ class Transports:
             self.flush()
             self.hold()
 
+    def _encode(self, msg: wire.Message) -> bytes:
+        """``wire.encode``, with this thread's Packer."""
+        return self._pack(wire.to_map(msg))
+
     def send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
         """Answer on the origin's transport; ``publish`` also puts it on PUB (topic = stream).
         Answers to PULL/SUB input (acks, drops, errors) go to PUB, since there is no way back."""
@@ -224,7 +227,7 @@ class Transports:
                 self.log("debug", "send_error", transport=kind, error=str(e))
         body: bytes | None = None
         if kind == "router" and self.router is not None:
-            body = self._pack(wire.to_map(msg))
+            body = self._encode(msg)
             if len(origin) == 2:
                 self._zmq(self.router, [*origin[1], body], kind)
             elif self._held is not None:  # an answer to a bundled frame: it goes back in one `replies`
@@ -233,9 +236,9 @@ class Transports:
                 self._zsend(self.router, [*origin[1], wire.join_replies([body])], kind)
         elif kind == "pull" and self.pub is not None and not publish:
             topic = getattr(msg, "stream", None) or ""
-            self._zmq(self.pub, [topic.encode(), self._pack(wire.to_map(msg))], "pub")
+            self._zmq(self.pub, [topic.encode(), self._encode(msg)], "pub")
         if publish and self.pub is not None:
-            self._zmq(self.pub, [msg.stream.encode(), body or self._pack(wire.to_map(msg))], "pub")  # type: ignore[union-attr]
+            self._zmq(self.pub, [msg.stream.encode(), body or self._encode(msg)], "pub")  # type: ignore[union-attr]
 
     def close(self, linger_ms: int = 0) -> None:
         for s in (self.router, self.pull, self.sub, self.pub):

@@ -396,15 +396,13 @@ def _bundle_fast(frames: list) -> list[Frame] | None:
             return None
         sid, seq, t, b, ob = f.get("stream"), f.get("seq"), f.get("t"), f.get("angles"), f.get("observed")
         if not (type(sid) is str and 0 < len(sid) <= MAX_STREAM_ID and type(seq) is int and 0 <= seq <= MAX_SEQ
-                and type(t) is float and type(b) is bytes and len(b) == nbytes
+                and type(t) is float and type(b) is bytes
                 and f.get("type", "frame") == "frame" and f.get("v", SCHEMA_VERSION) is SCHEMA_VERSION):
-            if nbytes >= 0 or type(b) is not bytes or not 0 < len(b) <= 4 * MAX_CHANNELS or len(b) % 4:
+            return None
+        if len(b) != nbytes:  # the first element sets the width, every other one must have it
+            if nbytes >= 0 or not 0 < len(b) <= 4 * MAX_CHANNELS or len(b) % 4:
                 return None
-            nbytes = len(b)  # the first element sets the width; it is checked again below
-            if not (type(sid) is str and 0 < len(sid) <= MAX_STREAM_ID and type(seq) is int and 0 <= seq <= MAX_SEQ
-                    and type(t) is float and f.get("type", "frame") == "frame"
-                    and f.get("v", SCHEMA_VERSION) is SCHEMA_VERSION):
-                return None
+            nbytes = len(b)
         if masked:
             if type(ob) is not bytes or 4 * len(ob) != nbytes:
                 return None
@@ -513,7 +511,7 @@ def _bmask(a: np.ndarray) -> bytes:
 
 def to_map(msg: Message) -> dict[str, Any]:
     """Message object -> the msgpack map (fixed key order)."""
-    if type(msg) is FillMsg:  # the daemon's hot path: checked first
+    if isinstance(msg, FillMsg):  # the daemon's hot path: checked first
         d = {"v": 1, "type": "fill", "stream": msg.stream, "seq": msg.seq, "t": msg.t,
              "angles": _b32(msg.angles), "filled": _bmask(msg.filled), "std": _b32(msg.std),
              "status": msg.status, "model": msg.model, "proc_us": int(msg.proc_us)}
@@ -535,9 +533,6 @@ def to_map(msg: Message) -> dict[str, Any]:
         if msg.model:
             d["model"] = msg.model
         return d
-    if isinstance(msg, FillMsg):  # a subclass
-        return to_map(FillMsg(msg.stream, msg.seq, msg.t, msg.angles, msg.filled, msg.std, msg.status, msg.model,
-                              msg.proc_us, msg.style, msg.phase, msg.gap))
     if isinstance(msg, HelloAck):
         return {"v": 1, "type": "hello-ack", "stream": msg.stream, "model": msg.model,
                 "channels": list(msg.channels), "passthrough": list(msg.passthrough), "missing": list(msg.missing)}
