@@ -2,9 +2,9 @@
 
 A CPU that goes idle enters a C-state, and the deeper the state the longer it takes to wake
 when a frame arrives; a virtual CPU that halts may be handed to another guest and comes back
-with cold caches.  On the 2-core VM of docs/BENCHMARKS.md that costs 0.3-1 ms of wake-up per
-frame and doubles the CPU time of a 64-stream tick (1.35 ms back to back, 3.1 ms with 8 ms of
-sleep between ticks).  Writing a latency bound in microseconds to ``/dev/cpu_dma_latency``
+with cold caches.  On the 2-core VM of docs/BENCHMARKS.md one HLM stream's frame took 576 us
+of the daemon's time after an 8 ms wait against 65 us back to back, and 208 us with this request
+held ("CPU cost per frame", `bench/daemon_hotpath.py --gap-ms 8`).  Writing a latency bound in microseconds to ``/dev/cpu_dma_latency``
 asks the kernel to use no idle state whose exit latency exceeds it; ``0`` keeps every CPU in
 its polling idle loop.  The request holds for as long as the file stays open and ends when it
 is closed (or the process dies), so the daemon keeps it open for its lifetime.  This is what

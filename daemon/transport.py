@@ -10,9 +10,8 @@ loses that answer and the loss is counted.
 
 ``receive`` reads everything waiting (up to DRAIN_MAX a socket) before it handles any of it, so
 the sessions see the newest frame of every stream and conflate the rest.  Reading less per turn
-does not shorten a frame's wait, it only moves it into the socket where nothing sees it: with at
-most 0.4 ms of reading a turn, 64 HLM streams offered at 480 Hz were all served, none conflated,
-0.5-0.9 s late (docs/BENCHMARKS.md).
+does not shorten a frame's wait, it moves part of it into the socket where nothing sees it or
+conflates it (tried and reverted; docs/BENCHMARKS.md, the overload paragraph).
 """
 from __future__ import annotations
 
