@@ -2,8 +2,9 @@
 
 One thread serves everything: ``poll(timeout)`` over the ZeroMQ sockets and the OSC UDP socket,
 drain what arrived (bounded), decode, hand frames to their sessions (conflating per stream),
-one batched scheduler step per model, answer, then housekeeping against deadlines (watchdog,
-idle expiry, metrics snapshot, signal flags).  Signal handlers only set flags.  A reload loads
+one batched scheduler step per model, answer, then answer the frames of the burst that a newer
+frame of their stream superseded (set aside undecoded, see ``_batch``), then housekeeping
+against deadlines (watchdog, idle expiry, metrics snapshot, signal flags).  Signal handlers only set flags.  A reload loads
 and checks the new models on a helper thread and swaps them between two ticks, so no frame is
 dropped or held up by the load; a file that fails keeps the old model and the log says why.
 """
@@ -30,6 +31,7 @@ from daemon.scheduler import Scheduler, fill_messages
 from daemon.session import Origin, SessionError, SessionTable
 from daemon.transport import Transports
 
+BATCH_MIN = 3  # messages in a turn from which frames superseded within it are answered after the step
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
 HOUSEKEEPING_S = 0.5
 REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, summarised
@@ -79,6 +81,10 @@ class Daemon:
         self.started = time.time()
         self._rej_window, self._rej_logged, self._rej_suppressed = 0.0, 0, 0
         self._last_rx = 0.0  # perf_counter of the last poll that found a message (busy_poll_ms)
+        # frames a newer one superseded within a burst, answered after the turn's fills (_batch):
+        # (session, its last answered seq before the burst, the served frame's Pending,
+        #  [(unpacked map, origin, arrived) or None where the served frame came, ...])
+        self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
 
     @property
     def _busy_s(self) -> float:
@@ -101,7 +107,8 @@ class Daemon:
             raise config_mod.ConfigError("; ".join(f"model {n}: {e}" for n, e in errors.items()))
         self._install(table)
         # the log object changes on reload (level): look it up at each call
-        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, lambda *a, **k: self.log(*a, **k))
+        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, lambda *a, **k: self.log(*a, **k),
+                              self._batch)
         self.net.open()
         if self.cfg.metrics_http:
             self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom)
@@ -166,6 +173,10 @@ class Daemon:
                         self._last_rx = time.perf_counter()
                         net.receive(ready)  # type: ignore[union-attr]
                     self._serve()
+                    if self._superseded:
+                        net.flush()  # type: ignore[union-attr]  # the fills first
+                        net.hold()  # type: ignore[union-attr]
+                        self._answer_superseded()
                 except Exception as e:  # never let a bug end the service: log, count, go on
                     self.metrics.inc("internal_errors")
                     self.log("error", "internal_error", where="loop", error=f"{type(e).__name__}: {e}"[:300])
@@ -201,16 +212,147 @@ class Daemon:
             os.sched_yield()  # let ZeroMQ's I/O thread, which moves the bytes, run on this core at once
         return net.poll(timeout_ms)  # type: ignore[union-attr]
 
-    def _handle(self, data: bytes, origin: Origin, arrived: float) -> None:
-        self.metrics.inc("messages_in")
-        msg: Any = None
+    def _handle(self, data: bytes, origin: Origin, arrived: float, counted: bool = False) -> None:
+        if not counted:
+            self.metrics.inc("messages_in")
         try:
+            msg = osc.decode(data, self.cfg.max_message_bytes) if origin[0] == "osc" else \
+                wire.decode(data, self.cfg.max_message_bytes)
+        except wire.WireError as e:
+            self._reject(origin, e.reason, e.detail, e.stream, e.seq)
+            return
+        except Exception as e:  # a decoder bug must cost one message, never the loop
+            self._internal("decode", e, origin, None, None)
+            return
+        self._dispatch(msg, origin, arrived)
+
+    def _handle_map(self, m: dict | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
+        """:meth:`_handle` for a message already unpacked by :meth:`_batch` (or its unpack error;
+        bytes: an OSC datagram, not unpacked), counted there."""
+        if type(m) is bytes:
+            self._handle(m, origin, arrived, counted=True)
+            return
+        if isinstance(m, wire.WireError):
+            self._reject(origin, m.reason, m.detail, m.stream, m.seq)
+            return
+        try:
+            msg = wire.decode_map(m)
+        except wire.WireError as e:
+            self._reject(origin, e.reason, e.detail, e.stream, e.seq)
+            return
+        except Exception as e:
+            self._internal("decode", e, origin, None, None)
+            return
+        self._dispatch(msg, origin, arrived)
+
+    def _internal(self, where: str, e: Exception, origin: Origin | None, sid: str | None, seq: int | None) -> None:
+        self.metrics.inc("internal_errors")
+        self.log("error", "internal_error", where=where, stream=sid, error=f"{type(e).__name__}: {e}"[:300])
+        self._reject(origin, "internal", f"{type(e).__name__} while handling the message", sid, seq)
+
+    def _batch(self, items: list[tuple[bytes, Origin, float]]) -> None:
+        """A turn's ZeroMQ messages, in arrival order.  Under a backlog most of them are frames
+        that a newer frame of the same stream in the same burst supersedes; only the newest is
+        served.  Those superseded frames are set aside, each burst only unpacked, and handled
+        after the turn's fills went out (:meth:`_answer_superseded`), so the frames served do
+        not wait for them.  Everything else is handled now, in order.
+
+        The answers are exactly those of handling every message in order: a set-aside frame is
+        decoded and checked later through the same session code, against the stream's state
+        as it was before the burst, and nothing is set aside when the burst has a message that
+        changes sessions (hello, control, bundle), for a stream that is new or has a frame
+        waiting, or when the frame meant to supersede them is not taken (malformed, say): then
+        they are handled at once, in order."""
+        if len(items) < BATCH_MIN:
+            for data, origin, arrived in items:
+                self._handle(data, origin, arrived)
+            return
+        self.metrics.inc("messages_in", len(items))
+        maxb = self.cfg.max_message_bytes
+        maps: list[dict | wire.WireError | bytes] = []
+        keys: list[tuple[str, int] | None] = []
+        barrier = False
+        for data, origin, _ in items:
+            k = None
+            if origin[0] == "osc":  # OSC is decoded on its own path, in order
+                m: dict | wire.WireError | bytes = data
+                barrier = True
+            else:
+                try:
+                    m = wire.unpack(data, maxb)
+                except wire.WireError as e:
+                    m = e
+            if type(m) is dict:
+                k = wire.frame_key(m)
+                if k is None and m.get("type") != "frame":
+                    barrier = True  # hello, control, bundle, ...: handled in order with everything else
+            maps.append(m)
+            keys.append(k)
+        chains: dict[str, list[int]] = {}  # stream -> indices set aside, behind its newest frame
+        if not barrier:
+            sessions = self.sessions.sessions
+            newest: dict[str, int] = {}
+            for i, k in enumerate(keys):
+                if k is None:
+                    continue
+                sid, seq = k
+                j = newest.get(sid)
+                if j is None:
+                    s = sessions.get(sid)
+                    if s is not None and s.pending is None:
+                        newest[sid] = i
+                elif seq > keys[j][1]:  # type: ignore[index]
+                    chains.setdefault(sid, []).append(j)
+                    newest[sid] = i
+                else:  # not newer than the newest so far: answered late/duplicate with the chain
+                    chains.setdefault(sid, []).append(i)
+            heads = {newest[sid]: sid for sid in chains}
+            aside = {i for c in chains.values() for i in c}
+        else:
+            heads, aside = {}, set()
+        for i, (m, (_, origin, arrived)) in enumerate(zip(maps, items)):
+            if i in aside:
+                continue
+            self._handle_map(m, origin, arrived)
+            sid = heads.get(i)
+            if sid is None:
+                continue
+            chain = sorted(chains[sid])
+            s = self.sessions.sessions[sid]
+            p = s.pending
+            if p is not None and p.frame.seq == keys[i][1]:  # type: ignore[index]
+                # in arrival order, with None where the served frame came
+                self._superseded.append((s, s.last_seq, p, [None if d == i else (maps[d], items[d][1], items[d][2])
+                                                            for d in sorted(chain + [i])]))
+            else:  # the newest frame was refused and changed nothing: the rest count as usual
+                for d in chain:
+                    self._handle_map(maps[d], items[d][1], items[d][2])
+
+    def _answer_superseded(self) -> None:
+        """The frames :meth:`_batch` set aside, after the turn's fills: each decoded and taken by
+        its session as it would have been in arrival order, before the frame that was served
+        (the stream's last answered seq put back, no frame waiting), so it gets the answer it
+        would have had then (``drop`` conflated, late or duplicate, or an ``error``)."""
+        todo, self._superseded = self._superseded, []
+        for s, last_seq, served, chain in todo:
+            # (the burst held no hello or reset, so the session is the same object; a SIGHUP swap
+            # runs between turns and keeps it)
+            assert self.sessions.sessions.get(s.sid) is s and s.pending is None
+            now_seq, s.last_seq = s.last_seq, last_seq
             try:
-                msg = osc.decode(data, self.cfg.max_message_bytes) if origin[0] == "osc" else \
-                    wire.decode(data, self.cfg.max_message_bytes)
-            except wire.WireError as e:
-                self._reject(origin, e.reason, e.detail, e.stream, e.seq)
-                return
+                for item in chain:
+                    if item is None:  # where the served frame came: it supersedes the one waiting
+                        for o, msg in self.sessions.conflate(s):
+                            self._send(o, msg)
+                        s.pending = served  # (frames after it are late or duplicates against it)
+                    else:
+                        self._handle_map(*item)
+            finally:
+                s.last_seq = now_seq
+                s.pending = None
+
+    def _dispatch(self, msg: Any, origin: Origin, arrived: float) -> None:
+        try:
             if isinstance(msg, wire.Frame):
                 self.metrics.inc("frames_in")
                 for o, m in self.sessions.frame(msg, origin, arrived):
@@ -231,10 +373,7 @@ class Daemon:
         except SessionError as e:
             self._reject(origin, e.reason, e.detail, getattr(msg, "stream", None), getattr(msg, "seq", None))
         except Exception as e:  # a bug must cost one message, never the loop
-            self.metrics.inc("internal_errors")
-            self.log("error", "internal_error", where="handle", error=f"{type(e).__name__}: {e}"[:300])
-            self._reject(origin, "internal", f"{type(e).__name__} while handling the message",
-                         getattr(msg, "stream", None), getattr(msg, "seq", None))
+            self._internal("handle", e, origin, getattr(msg, "stream", None), getattr(msg, "seq", None))
 
     def _bundle(self, msg: wire.Bundle, origin: Origin, arrived: float) -> None:
         """Each frame of a bundle as if it had come alone, at the bundle's arrival; over ROUTER
@@ -316,15 +455,19 @@ class Daemon:
             self.sched.reply_cost = 0.9 * self.sched.reply_cost + 0.1 * per
 
     def _abandon_pending(self, why: str) -> None:
-        """After a failed tick: answer every waiting frame with an error rather than retrying
-        the same failure in a tight loop."""
+        """After a failed tick: answer every waiting frame (and every frame set aside as
+        superseded) with an error rather than retrying the same failure in a tight loop."""
+        todo, self._superseded = self._superseded, []
+        owed = [(p.origin, s.sid, p.frame.seq) for s in self.sessions.sessions.values() if (p := s.pending) is not None]
+        owed += [(origin, s.sid, k[1] if isinstance(m, dict) and (k := wire.frame_key(m)) else None)
+                 for s, _, _, chain in todo for m, origin, _ in filter(None, chain)]
         for s in self.sessions.sessions.values():
-            if s.pending is not None:
-                p, s.pending = s.pending, None
-                try:
-                    self._reject(p.origin, "internal", why, s.sid, p.frame.seq)
-                except Exception:  # the answer itself failing must not stop the loop either
-                    pass
+            s.pending = None
+        for origin, sid, seq in owed:
+            try:
+                self._reject(origin, "internal", why, sid, seq)
+            except Exception:  # the answer itself failing must not stop the loop either
+                pass
 
     # ---- output -----------------------------------------------------------------------------
     def _send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
@@ -463,6 +606,7 @@ class Daemon:
                 break
             self.net.receive(ready)
             self._serve()
+            self._answer_superseded()
         self._serve()
         c = self.metrics.counters
         self.log("info", "stopped", always=True, frames_in=c.get("frames_in", 0), frames_out=c.get("frames_out", 0),

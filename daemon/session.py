@@ -201,6 +201,15 @@ class SessionTable:
             n += 1
         return n
 
+    def conflate(self, s: Session) -> Out:
+        """The frame waiting in ``s`` is superseded by a newer one that was served: ``conflated``."""
+        if s.pending is None:
+            return []
+        p, s.pending = s.pending, None
+        s.counts["dropped_conflated"] += 1
+        self.count("dropped_conflated", s.sid)
+        return [(p.origin, wire.Drop(s.sid, p.frame.seq, "conflated"))]
+
     # ---- frames -----------------------------------------------------------------------------
     def frame(self, f: wire.Frame, origin: Origin, arrived: float) -> Out:
         """Take a frame into its session's pending slot; returns the immediate answers."""

@@ -1,7 +1,8 @@
 """Transports: the daemon's sockets (ZeroMQ ROUTER/PULL/SUB/PUB, OSC over UDP) behind one poller.
 
-``receive(ready)`` drains what arrived (bounded per socket and tick) and hands each message to
-``on_message(bytes, origin, arrival time)``; ``send(origin, message, publish)`` answers on the
+``receive(ready)`` drains what arrived (bounded per socket and tick) and hands the ZeroMQ
+messages of the turn, in arrival order, to ``on_batch([(bytes, origin, arrival time), ...])``
+and each OSC datagram to ``on_message(bytes, origin, arrival time)``; ``send(origin, message, publish)`` answers on the
 transport the message came from and, for filled frames, also publishes on PUB.  Between
 ``hold()`` and ``flush()`` ZeroMQ answers are queued and then sent together; answers to the
 frames of a ``frames`` bundle (origin ``("router", envelope, "bundle")``) are joined, per peer,
@@ -38,9 +39,11 @@ ZMQ_MAXMSG_FLOOR = 1 << 20  # bytes
 
 class Transports:
     def __init__(self, cfg: Config, on_message: Callable[[bytes, Origin, float], None],
-                 on_reject: Callable[..., None], metrics: Metrics, log: Callable[..., None]):
+                 on_reject: Callable[..., None], metrics: Metrics, log: Callable[..., None],
+                 on_batch: Callable[[list[tuple[bytes, Origin, float]]], None] | None = None):
         self.cfg = cfg
         self.on_message = on_message
+        self.on_batch = on_batch or (lambda items: [on_message(*it) for it in items])
         self.on_reject = on_reject
         self.metrics = metrics
         self.log = log
@@ -130,6 +133,7 @@ class Transports:
             return {}
 
     def receive(self, ready: dict) -> None:
+        batch: list[tuple[bytes, Origin, float]] = []
         for sock_, name in ((self.router, "router"), (self.pull, "pull"), (self.sub, "sub")):
             if sock_ is None or sock_ not in ready:
                 continue
@@ -150,7 +154,9 @@ class Transports:
                     origin: Origin = ("router", parts[:-1])
                 else:
                     origin = ("pull", None)
-                self.on_message(parts[-1], origin, arrived)
+                batch.append((parts[-1], origin, arrived))
+        if batch:
+            self.on_batch(batch)
         if self.udp is not None and self.udp.fileno() in ready:
             for _ in range(DRAIN_MAX):
                 try:

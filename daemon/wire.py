@@ -464,6 +464,13 @@ def decode(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
     The size cap is checked before msgpack sees the bytes, and msgpack's own limits stop a
     small message from declaring a huge container.
     """
+    return decode_map(unpack(data, max_bytes))
+
+
+def unpack(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> dict:
+    """The first half of :func:`decode`: bytes -> the msgpack map, unchecked beyond being one.
+    Raises WireError.  The daemon unpacks a whole burst first to see which frames a newer one
+    of the same stream supersedes (:func:`frame_key`), and decodes those after it served."""
     if len(data) > max_bytes:
         raise WireError("too_large", f"message is {len(data)} bytes, the limit is {max_bytes}")
     try:
@@ -481,6 +488,22 @@ def decode(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
         raise WireError("not_msgpack", f"{len(data)} bytes are not one msgpack value ({type(e).__name__})") from None
     if not isinstance(m, dict):
         raise WireError("not_a_map", f"message must be a msgpack map (got {type(m).__name__})")
+    return m
+
+
+def frame_key(m: dict) -> tuple[str, int] | None:
+    """(stream, seq) of a map that claims to be a v1 ``frame`` with usable ids, else None.  Only
+    the ids are looked at: the frame may still fail :func:`decode_map`."""
+    if m.get("type") != "frame" or m.get("v") != SCHEMA_VERSION:
+        return None
+    sid, seq = m.get("stream"), m.get("seq")
+    if type(sid) is str and type(seq) is int:
+        return sid, seq
+    return None
+
+
+def decode_map(m: dict) -> Message:
+    """The second half of :func:`decode`: a map from :func:`unpack` -> message object."""
     v = m.get("v")
     if v != SCHEMA_VERSION or isinstance(v, bool):
         raise WireError("version", f"schema version must be {SCHEMA_VERSION} (got {v!r:.40})", _sid(m), _seq(m))

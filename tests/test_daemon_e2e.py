@@ -221,16 +221,71 @@ def test_push_to_pub_round_trip(tmp_path, daemons, ctx):
         assert topic == b"cam1" and isinstance(m, wire.FillMsg) and m.seq == seq
         assert m.angles[2] == 3.0 and m.filled[2] and m.filled.sum() == 1
     # a burst: the daemon serves the newest; every older frame is answered as conflated (or
-    # served, if the daemon got to it first): each seq exactly once, the last one filled
+    # served, if the daemon got to it first): each seq exactly once, the last one filled (the
+    # drops of a burst can come after the fill that superseded them)
     for seq in range(5, 45):
         push.send(frame("cam1", seq, row))
     seen = {}
-    while 44 not in seen:
+    while len(seen) < 40:
         topic, m = next_msg()
         assert topic == b"cam1" and m.seq not in seen
         seen[m.seq] = m
     assert sorted(seen) == list(range(5, 45)) and isinstance(seen[44], wire.FillMsg)
     assert all(isinstance(m, wire.FillMsg) or m.reason == "conflated" for m in seen.values())
+
+
+def test_a_burst_is_answered_frame_by_frame_with_its_superseded_frames_after_the_fill(tmp_path, daemons, ctx):
+    """The daemon stopped (SIGSTOP) while a client sends a burst, so it reads the burst at once:
+    the newest frame is served, every other frame gets the answer it would have had one by one
+    (conflated, duplicate, or an error for a malformed one), and the counters agree."""
+    d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 3.0)}}))
+    s = dealer(ctx, d)
+    row = np.arange(len(CH), dtype=np.float32)
+    row[2] = np.nan
+    s.send(frame("take", 0, row))  # opens the stream
+    assert isinstance(recv(s), wire.FillMsg)
+    expect: dict[int, list[str]] = {}  # seq -> the answers its frames must get
+    burst = []
+    for seq in range(1, 121):
+        if seq % 37 == 0:  # infinity where a value is promised: an error, not a frame
+            bad = row.copy()
+            bad[0] = np.inf
+            burst.append(frame("take", seq, bad))
+            expect[seq] = ["error:non_finite"]
+            continue
+        if seq % 29 == 0:  # a wrong channel count
+            burst.append(frame("take", seq, row[:-1]))
+            expect[seq] = ["error:width"]
+            continue
+        burst.append(frame("take", seq, row))
+        expect[seq] = ["conflated"]
+        if seq % 20 == 0:  # sent twice
+            burst.append(frame("take", seq, row))
+            expect[seq].append("duplicate")
+    expect[120] = ["duplicate", "fill"]
+    os.kill(d.proc.pid, signal.SIGSTOP)
+    try:
+        for b in burst:
+            s.send(b)
+        time.sleep(0.3)
+    finally:
+        os.kill(d.proc.pid, signal.SIGCONT)
+    got: dict[int, list[str]] = {}
+    order = []
+    for _ in range(len(burst)):
+        m = recv(s)
+        got.setdefault(m.seq, []).append("fill" if isinstance(m, wire.FillMsg) else m.reason
+                                         if isinstance(m, wire.Drop) else f"error:{m.reason}")
+        order.append((m.seq, got[m.seq][-1]))
+    assert {k: sorted(v) for k, v in got.items()} == {k: sorted(v) for k, v in expect.items()}
+    # the fill of the newest frame went out before the answers to the frames it superseded
+    assert order.index((120, "fill")) < order.index((119, "conflated"))
+    st = loadgen_status(d)["streams"]["take"]
+    n_err = 3 + 4
+    assert st["frames_out"] == 2 and st["dropped_duplicate"] == 6 and st["rejected"] == n_err
+    assert st["dropped_conflated"] == 119 - n_err
+    assert st["frames_in"] == 1 + len(burst) - n_err  # (a refused frame is not taken in)
+    assert not s.poll(200)  # nothing answered twice
 
 
 # ---- OSC --------------------------------------------------------------------------------------

@@ -331,3 +331,145 @@ def test_tick_inputs_and_replies_built_as_arrays_equal_the_row_by_row_ones():
     out = fill_messages(bad, 0.001)
     assert isinstance(out[2], Exception)
     assert all(isinstance(m, wire.FillMsg) for i, m in enumerate(out) if i != 2)
+
+
+# ---- a burst's superseded frames, answered after the step (server.Daemon._batch) ---------------
+class _Recording:
+    """server.Daemon whose answers are kept in order instead of sent (the burst logic is tested
+    here, in process, against in-order handling; tests/test_daemon_e2e.py has it over sockets)."""
+
+    @staticmethod
+    def make(batch_min: int):
+        from daemon import server
+
+        class D(server.Daemon):
+            def _send(self, origin, msg, publish=False):
+                self.sent.append((origin, msg))
+
+            def _batch(self, items):
+                old, server.BATCH_MIN = server.BATCH_MIN, batch_min
+                try:
+                    super()._batch(items)
+                finally:
+                    server.BATCH_MIN = old
+
+        cfg = config.from_dict({"daemon": {"budget_ms": 1000.0, "max_streams": 8, "log_level": "error"},
+                                "models": {"pt": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
+        d = D(cfg, server.Log("error"))
+        d.sent = []
+        from daemon.models import load_all
+
+        table, errors = load_all(cfg)
+        assert not errors
+        d._install(table)
+        return d
+
+
+def _answers(d) -> list[tuple]:
+    out = []
+    for origin, m in d.sent:
+        if isinstance(m, wire.FillMsg):
+            out.append(("fill", origin[1], m.stream, m.seq, m.status, m.angles.tobytes(), m.gap))
+        elif isinstance(m, wire.Drop):
+            out.append(("drop", origin[1], m.stream, m.seq, m.reason))
+        elif isinstance(m, wire.ErrorMsg):
+            out.append(("error", origin[1], m.stream, m.seq, m.reason))
+        else:
+            out.append((type(m).__name__, origin[1], getattr(m, "stream", None)))
+    return sorted(out, key=repr)
+
+
+def _turn(d, items) -> int:
+    """One loop turn as Daemon.run does it; returns how many frames were set aside."""
+    d._batch(items)
+    n = sum(item is not None for *_, c in d._superseded for item in c)
+    d._serve()
+    d._answer_superseded()
+    return n
+
+
+def _burst(rng, C: int, turn: int) -> list[tuple[bytes, tuple, float]]:
+    """Frames of streams a, b (open) and c (sometimes new), in and out of order, duplicates,
+    some malformed (wrong width, infinity, not msgpack, bad seq), now and then a hello."""
+    items = []
+    seqs = {"a": 100 * turn, "b": 100 * turn, "c": 100 * turn}
+    for k in range(int(rng.integers(3, 40))):
+        sid = str(rng.choice(["a", "a", "b", "c"]))
+        seqs[sid] += int(rng.choice([1, 1, 1, 2, 0, -1, -3]))
+        vals = rng.normal(size=C).astype(np.float32)
+        r = rng.random()
+        if r < 0.05:
+            data = b"\x93not a map"
+        elif r < 0.10:
+            data = wire.encode(wire.Frame(sid, seqs[sid], 0.0, np.ones(C + 1, np.float32)))
+        elif r < 0.15:
+            vals[0] = np.inf
+            data = wire.encode(wire.Frame(sid, seqs[sid], 0.0, vals))
+        elif r < 0.165:
+            data = wire.encode(wire.Hello(sid, [f"ch{i}" for i in range(C)]))
+        elif r < 0.21:
+            m = wire.to_map(wire.Frame(sid, max(seqs[sid], 0), 0.0, vals))
+            m["seq"] = -5
+            import msgpack
+
+            data = msgpack.packb(m, use_bin_type=True)
+        else:
+            vals[rng.random(C) < 0.3] = np.nan
+            data = wire.encode(wire.Frame(sid, max(seqs[sid], 0), 0.0, vals))
+        items.append((data, ("router", [f"peer{k % 3}".encode()]), float(k)))
+    return items
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_burst_answers_equal_in_order_handling(seed):
+    """Setting superseded frames aside changes when they are answered, never what: every answer,
+    session counter and global counter equals handling each message in arrival order."""
+    rng = np.random.default_rng(seed)
+    C = 5
+    fast, ref = _Recording.make(3), _Recording.make(10**9)
+    for d in (fast, ref):
+        for sid in ("a", "b"):
+            d.sessions.hello(wire.Hello(sid, [f"ch{i}" for i in range(C)]))
+    set_aside = 0
+    for turn in range(10):
+        items = _burst(rng, C, turn)
+        fast.sent.clear()
+        ref.sent.clear()
+        set_aside += _turn(fast, list(items))
+        assert _turn(ref, list(items)) == 0
+        assert _answers(fast) == _answers(ref), f"turn {turn}"
+        assert fast.metrics.counters == ref.metrics.counters and fast.metrics.rejected == ref.metrics.rejected
+        assert {k: s.counts for k, s in fast.sessions.sessions.items()} == \
+            {k: s.counts for k, s in ref.sessions.sessions.items()}
+        assert {k: s.last_seq for k, s in fast.sessions.sessions.items()} == \
+            {k: s.last_seq for k, s in ref.sessions.sessions.items()}
+    assert set_aside > 0  # the bursts did exercise the set-aside path
+
+
+def test_burst_sets_superseded_frames_aside_until_the_fills_are_out():
+    """A burst of one open stream: only the newest frame is decoded and served before the step;
+    the older ones are answered `conflated` after its fill, in their own order."""
+    C = 4
+    d = _Recording.make(3)
+    d.sessions.hello(wire.Hello("a", [f"ch{i}" for i in range(C)]))
+    items = [(wire.encode(wire.Frame("a", s, 0.0, np.full(C, s, np.float32))), ("router", [b"p"]), float(s))
+             for s in range(10)]
+    d._batch(items)
+    assert [len(c) for *_, c in d._superseded] == [10] and d.sessions.sessions["a"].pending.frame.seq == 9
+    d._serve()
+    assert [type(m).__name__ for _, m in d.sent] == ["FillMsg"] and d.sent[0][1].seq == 9
+    d._answer_superseded()
+    assert [(type(m).__name__, m.seq, m.reason) for _, m in d.sent[1:]] == [("Drop", s, "conflated") for s in range(9)]
+    s = d.sessions.sessions["a"]
+    assert s.counts["dropped_conflated"] == 9 and s.counts["frames_in"] == 10 and s.last_seq == 9 and s.pending is None
+    # a new stream, or a hello in the burst: nothing is set aside (handled in order)
+    d.sent.clear()
+    items = [(wire.encode(wire.Frame("new", s, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0) for s in range(5)]
+    d._batch(items)
+    assert d._superseded == [] and [m.seq for _, m in d.sent] == [0, 1, 2, 3]
+    d._serve()
+    items = [(wire.encode(wire.Frame("a", s, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0) for s in (10, 11)]
+    items.insert(1, (wire.encode(wire.Hello("b", [f"ch{i}" for i in range(C)])), ("router", [b"p"]), 0.0))
+    items.append((wire.encode(wire.Frame("a", 12, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0))
+    d._batch(items)
+    assert d._superseded == []
