@@ -152,7 +152,9 @@ class Scheduler:
         cm = self.cost(model, levels[-1])
         order = sorted(group, key=lambda s: -s.held_streak)
         n = len(order)
-        while n > 0 and cm.estimate(n, rounds) > avail:
+        # (the streams held cost time too: what is left for the step is avail less their hold)
+        per_hold = hold / max(len(group), 1)
+        while n > 0 and cm.estimate(n, rounds) + per_hold * (len(order) - n) > avail:
             n -= 1
         if n == 0 and now - self.last_step.get(id(model), 0.0) > PROBE_S:
             # estimates only improve when the model runs: without an occasional step a
@@ -176,7 +178,7 @@ class Scheduler:
                 plan = self.plan(model, chunk, time.perf_counter())
                 if plan.hold:
                     t0 = time.perf_counter()
-                    results.extend(self._hold(s) for s in plan.hold)
+                    results.extend(self._hold_many(plan.hold))
                     self.hold_cost.observe(len(plan.hold), time.perf_counter() - t0)
                 if plan.step:
                     results.extend(self._step(model, plan))
@@ -187,15 +189,26 @@ class Scheduler:
         assert p is not None
         frame, obs = s.to_model(p.frame)
         last = s.last_out if s.last_out is not None else np.full(frame.shape, np.nan)
-        out = np.where(obs, frame, last)
-        filled = ~obs & np.isfinite(last)
-        # hold-last-value has no uncertainty estimate: NaN says "unknown", not "certain"
-        std = np.where(filled, np.nan, 0.0)
+        return self._held(s, *_hold_rows(frame, obs, last))
+
+    def _hold_many(self, group: list[Session]) -> list[tuple[Session, Fill, str]]:
+        """:meth:`_hold` for every stream of a group, as (n, C) arrays when there are enough
+        streams of one width to pay for the stacking (holding is what the daemon does when it
+        is short of time: per stream it must cost a few microseconds, not a few dozen)."""
+        C = group[0].mapping.n_model
+        if len(group) < STACK_MIN or any(s.last_out is None or s.last_out.shape != (C,) for s in group):
+            return [self._hold(s) for s in group]
+        frames, obs = model_inputs(group, C)
+        out, std, filled = _hold_rows(frames, obs, np.array([s.last_out for s in group]))
+        return [self._held(s, out[i], std[i], filled[i]) for i, s in enumerate(group)]
+
+    @staticmethod
+    def _held(s: Session, out: np.ndarray, std: np.ndarray, filled: np.ndarray) -> tuple[Session, Fill, str]:
         s.last_out = out
         # the filter skips held frames rather than predicting them later: replaying them when
         # the stream steps again would cost the time the daemon is short of (a death spiral)
         if s.model_seq is not None:
-            s.model_seq = p.frame.seq
+            s.model_seq = s.pending.frame.seq  # type: ignore[union-attr]
         s.held_streak += 1
         s.counts["held"] += 1
         return s, Fill(out, std, filled, {}, True), "degraded"
@@ -277,6 +290,15 @@ class Scheduler:
             finally:
                 if knob:
                     model.set_iterations(lvls[0])  # type: ignore[attr-defined]
+
+
+def _hold_rows(frame: np.ndarray, obs: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hold-last-value, for one frame (C,) or a stack (n, C): (completed, std, filled)."""
+    out = np.where(obs, frame, last)
+    filled = ~obs & np.isfinite(last)
+    # hold-last-value has no uncertainty estimate: NaN says "unknown", not "certain"
+    std = np.where(filled, np.nan, 0.0)
+    return out, std, filled
 
 
 def fill_message(s: Session, fill: Fill, status: str, now: float) -> wire.FillMsg:

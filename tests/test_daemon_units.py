@@ -213,6 +213,7 @@ def test_levels_and_plan_degrades_iterations_then_holds():
     group = list(t.sessions.values())
     sched = Scheduler(budget_ms=1.0, max_gap=5, max_batch=64)
     sched.reply_cost = 0.0
+    sched.hold_cost.observe(10, 20e-6)  # holding: 2 us a stream
     # cost per stream: 1 ms at K=30 ... proportional to K
     for lv in levels_of(m):
         for _ in range(3):
@@ -287,11 +288,18 @@ def test_partial_step_without_knob_is_full_quality_not_degraded():
         t.frame(_frame(f"s{i}", 0, [1.0, np.nan, 3.0]), ("pull", None), 0.0)
     sched = Scheduler(budget_ms=0.23, max_gap=5, max_batch=64)
     sched.reply_cost = 0.0
+    sched.hold_cost.observe(10, 20e-6)  # holding: 2 us a stream
     for _ in range(3):
         sched.cost(m, None).observe(1, 1e-3 / 30)
         sched.cost(m, None).observe(10, 1e-2 / 30)
     plan = sched.plan(m, list(t.sessions.values()), now=0.0)
+    # 5 steps at 41.7 us (1.25 x 33.3) and 5 holds at 2.5 us fit in 230 us
     assert len(plan.step) == 5 and len(plan.hold) == 5 and not plan.degraded
+    # the streams held cost time too: at 10 us a hold, only 3 step (3 x 41.7 + 7 x 12.5 = 212 us)
+    sched.hold_cost = CostModel()
+    sched.hold_cost.observe(10, 100e-6)
+    plan = sched.plan(m, list(t.sessions.values()), now=0.0)
+    assert len(plan.step) == 3 and len(plan.hold) == 7
 
 
 def test_tick_inputs_and_replies_built_as_arrays_equal_the_row_by_row_ones():
@@ -473,3 +481,40 @@ def test_burst_sets_superseded_frames_aside_until_the_fills_are_out():
     items.append((wire.encode(wire.Frame("a", 12, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0))
     d._batch(items)
     assert d._superseded == []
+
+
+def test_hold_of_a_group_as_arrays_equals_holding_stream_by_stream():
+    """Scheduler._hold_many stacks a group's held streams; each must get what _hold gives it
+    alone: observed values as sent, the rest from its last output (NaN std), state advanced."""
+    from daemon.scheduler import STACK_MIN
+
+    model = HoldModel(CH, np.array([5.0, 6.0, 7.0]), np.ones(3))
+    rng = np.random.default_rng(3)
+    tables = [_table(model, max_streams=64)[0] for _ in range(2)]
+    n = STACK_MIN + 4
+    for t in tables:
+        t.hello(wire.Hello("remap", ["c.rx", "zz", "a.rx"]))
+    for i in range(n):
+        vals = rng.normal(size=3)
+        last = rng.normal(size=3)
+        if i % 4 == 0:
+            vals[1] = np.nan
+        if i % 5 == 0:
+            last[2] = np.nan  # nothing to hold for that channel
+        mask = np.array([1, 0, 1], bool) if i % 3 == 1 else None
+        for t in tables:
+            t.frame(_frame(f"s{i}", 7, vals, mask), ("pull", None), 0.0)
+            s = t.sessions[f"s{i}"]
+            s.last_out, s.model_seq = last.copy(), 3
+    for t in tables:
+        t.frame(_frame("remap", 7, [1.0, 42.0, np.nan]), ("pull", None), 0.0)
+        t.sessions["remap"].last_out, t.sessions["remap"].model_seq = np.array([9.0, 8.0, 7.0]), 3
+    sched = Scheduler(100.0, 5, 64)
+    many = sched._hold_many(list(tables[0].sessions.values()))
+    one = [sched._hold(s) for s in tables[1].sessions.values()]
+    assert len(many) == len(one) == n + 1
+    for (s1, f1, st1), (s2, f2, st2) in zip(many, one):
+        assert s1.sid == s2.sid and st1 == st2 == "degraded" and f1.degraded and f2.degraded
+        for a, b in ((f1.frame, f2.frame), (f1.std, f2.std), (f1.filled, f2.filled), (s1.last_out, s2.last_out)):
+            assert np.array_equal(a, b, equal_nan=True), s1.sid
+        assert (s1.model_seq, s1.held_streak, s1.counts["held"]) == (s2.model_seq, s2.held_streak, s2.counts["held"]) == (7, 1, 1)
