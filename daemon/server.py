@@ -85,6 +85,7 @@ class Daemon:
         # (session, its last answered seq before the burst, the served frame's Pending,
         #  [(unpacked map, origin, arrived) or None where the served frame came, ...])
         self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
+        self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` drops, sent after its fills
 
     @property
     def _busy_s(self) -> float:
@@ -173,7 +174,7 @@ class Daemon:
                         self._last_rx = time.perf_counter()
                         net.receive(ready)  # type: ignore[union-attr]
                     self._serve()
-                    if self._superseded:
+                    if self._superseded or self._conflated:
                         net.flush()  # type: ignore[union-attr]  # the fills first
                         net.hold()  # type: ignore[union-attr]
                         self._answer_superseded()
@@ -328,11 +329,22 @@ class Daemon:
                 for d in chain:
                     self._handle_map(maps[d], items[d][1], items[d][2])
 
+    def _frame_answers(self, out: list) -> None:
+        """A session's immediate answers to a frame: a ``conflated`` drop (of the frame it
+        replaced) waits for the turn's fills (:meth:`_answer_superseded`), the rest go now."""
+        for o, m in out:
+            if type(m) is wire.Drop and m.reason == "conflated":
+                self._conflated.append((o, m))
+            else:
+                self._send(o, m)
+
     def _answer_superseded(self) -> None:
-        """The frames :meth:`_batch` set aside, after the turn's fills: each decoded and taken by
-        its session as it would have been in arrival order, before the frame that was served
-        (the stream's last answered seq put back, no frame waiting), so it gets the answer it
-        would have had then (``drop`` conflated, late or duplicate, or an ``error``)."""
+        """After the turn's fills: the ``conflated`` drops of the turn, and the frames
+        :meth:`_batch` set aside, each decoded and taken by its session as it would have been
+        in arrival order, before the frame that was served (the stream's last answered seq put
+        back, no frame waiting), so it gets the answer it would have had then (``drop``
+        conflated, late or duplicate, or an ``error``)."""
+        self._send_conflated()
         todo, self._superseded = self._superseded, []
         for s, last_seq, served, chain in todo:
             # (the burst held no hello or reset, so the session is the same object; a SIGHUP swap
@@ -342,21 +354,25 @@ class Daemon:
             try:
                 for item in chain:
                     if item is None:  # where the served frame came: it supersedes the one waiting
-                        for o, msg in self.sessions.conflate(s):
-                            self._send(o, msg)
+                        self._frame_answers(self.sessions.conflate(s))
                         s.pending = served  # (frames after it are late or duplicates against it)
                     else:
                         self._handle_map(*item)
             finally:
                 s.last_seq = now_seq
                 s.pending = None
+        self._send_conflated()
+
+    def _send_conflated(self) -> None:
+        todo, self._conflated = self._conflated, []
+        for o, m in todo:
+            self._send(o, m)
 
     def _dispatch(self, msg: Any, origin: Origin, arrived: float) -> None:
         try:
             if isinstance(msg, wire.Frame):
                 self.metrics.inc("frames_in")
-                for o, m in self.sessions.frame(msg, origin, arrived):
-                    self._send(o, m)
+                self._frame_answers(self.sessions.frame(msg, origin, arrived))
             elif isinstance(msg, wire.Bundle):
                 self._bundle(msg, origin, arrived)
             elif isinstance(msg, wire.Hello):
@@ -387,8 +403,7 @@ class Daemon:
                 continue
             self.metrics.inc("frames_in")
             try:
-                for o, m in self.sessions.frame(f, origin, arrived):
-                    self._send(o, m)
+                self._frame_answers(self.sessions.frame(f, origin, arrived))
             except SessionError as e:  # one frame's refusal is its own answer; the rest go on
                 self._reject(origin, e.reason, e.detail, f.stream, f.seq)
             except Exception as e:
@@ -426,6 +441,10 @@ class Daemon:
             return
         t0 = time.perf_counter()
         results = self.sched.run(groups, t0)
+        if len(results) > 1:
+            # answered oldest first: the frame that arrived first is the nearest its budget
+            # (earliest deadline first), and each reply is a few dozen microseconds of the tick
+            results.sort(key=_arrival)
         self.metrics.inc("ticks")  # frames_out / ticks = the mean batch the scheduler stepped
         self.metrics.step_time(time.perf_counter() - t0)
         t1 = time.perf_counter()
@@ -458,6 +477,10 @@ class Daemon:
         """After a failed tick: answer every waiting frame (and every frame set aside as
         superseded) with an error rather than retrying the same failure in a tight loop."""
         todo, self._superseded = self._superseded, []
+        try:
+            self._send_conflated()  # (those frames were answered already: drops owed, not errors)
+        except Exception:
+            self._conflated = []
         owed = [(p.origin, s.sid, p.frame.seq) for s in self.sessions.sessions.values() if (p := s.pending) is not None]
         owed += [(origin, s.sid, k[1] if isinstance(m, dict) and (k := wire.frame_key(m)) else None)
                  for s, _, _, chain in todo for m, origin, _ in filter(None, chain)]
@@ -608,6 +631,7 @@ class Daemon:
             self._serve()
             self._answer_superseded()
         self._serve()
+        self._answer_superseded()
         c = self.metrics.counters
         self.log("info", "stopped", always=True, frames_in=c.get("frames_in", 0), frames_out=c.get("frames_out", 0),
                  dropped=sum(v for k, v in c.items() if k.startswith("dropped_")),
@@ -622,6 +646,10 @@ class Daemon:
             self.http = None
         self.qos.release()
         self.notify.close()
+
+
+def _arrival(r: tuple) -> float:
+    return r[0].pending.arrived
 
 
 def serve(path: str) -> int:

@@ -347,7 +347,7 @@ class _Recording:
     here, in process, against in-order handling; tests/test_daemon_e2e.py has it over sockets)."""
 
     @staticmethod
-    def make(batch_min: int):
+    def make(batch_min: int, budget_ms: float = 100.0):
         from daemon import server
 
         class D(server.Daemon):
@@ -361,7 +361,7 @@ class _Recording:
                 finally:
                     server.BATCH_MIN = old
 
-        cfg = config.from_dict({"daemon": {"budget_ms": 1000.0, "max_streams": 8, "log_level": "error"},
+        cfg = config.from_dict({"daemon": {"budget_ms": budget_ms, "max_streams": 8, "log_level": "error"},
                                 "models": {"pt": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
         d = D(cfg, server.Log("error"))
         d.sent = []
@@ -424,7 +424,7 @@ def _burst(rng, C: int, turn: int) -> list[tuple[bytes, tuple, float]]:
         else:
             vals[rng.random(C) < 0.3] = np.nan
             data = wire.encode(wire.Frame(sid, max(seqs[sid], 0), 0.0, vals))
-        items.append((data, ("router", [f"peer{k % 3}".encode()]), float(k)))
+        items.append((data, ("router", [f"peer{k % 3}".encode()]), time.perf_counter()))  # (fresh: none is late)
     return items
 
 
@@ -474,8 +474,13 @@ def test_burst_sets_superseded_frames_aside_until_the_fills_are_out():
     d.sent.clear()
     items = [(wire.encode(wire.Frame("new", s, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0) for s in range(5)]
     d._batch(items)
-    assert d._superseded == [] and [m.seq for _, m in d.sent] == [0, 1, 2, 3]
+    assert d._superseded == [] and d.sent == []
+    # (handled in order: each older frame was conflated as the next came; those drops, too,
+    # wait for the turn's fills)
+    assert [(m.seq, m.reason) for _, m in d._conflated] == [(s, "conflated") for s in range(4)]
     d._serve()
+    d._answer_superseded()
+    assert [m.seq for _, m in d.sent] == [4, 0, 1, 2, 3] and d._conflated == []
     items = [(wire.encode(wire.Frame("a", s, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0) for s in (10, 11)]
     items.insert(1, (wire.encode(wire.Hello("b", [f"ch{i}" for i in range(C)])), ("router", [b"p"]), 0.0))
     items.append((wire.encode(wire.Frame("a", 12, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0))
@@ -518,3 +523,16 @@ def test_hold_of_a_group_as_arrays_equals_holding_stream_by_stream():
         for a, b in ((f1.frame, f2.frame), (f1.std, f2.std), (f1.filled, f2.filled), (s1.last_out, s2.last_out)):
             assert np.array_equal(a, b, equal_nan=True), s1.sid
         assert (s1.model_seq, s1.held_streak, s1.counts["held"]) == (s2.model_seq, s2.held_streak, s2.counts["held"]) == (7, 1, 1)
+
+
+def test_a_tick_answers_its_frames_oldest_first():
+    """Replies are a few dozen microseconds each: the frame that arrived first, nearest its
+    budget, is answered first whatever the order of the streams in the session table."""
+    d = _Recording.make(3)
+    C = 3
+    for sid, arrived in (("late", 5.0), ("early", 1.0), ("mid", 3.0), ("latest", 7.0)):
+        d.sessions.hello(wire.Hello(sid, [f"ch{i}" for i in range(C)]))
+        d.sessions.frame(wire.Frame(sid, 0, 0.0, np.zeros(C, np.float32)), ("router", [sid.encode()]), arrived)
+    d._serve()
+    assert [m.stream for _, m in d.sent] == ["early", "mid", "late", "latest"]
+    assert all(isinstance(m, wire.FillMsg) for _, m in d.sent)
