@@ -391,6 +391,7 @@ def _turn(d, items) -> int:
     """One loop turn as Daemon.run does it; returns how many frames were set aside."""
     d._batch(items)
     n = sum(item is not None for *_, c in d._superseded for item in c)
+    d.sched.frame_cost = 0.0  # no triage: what is compared is _batch against in-order handling
     d._serve()
     d._answer_superseded()
     return n
@@ -536,3 +537,123 @@ def test_a_tick_answers_its_frames_oldest_first():
     d._serve()
     assert [m.stream for _, m in d.sent] == ["early", "mid", "late", "latest"]
     assert all(isinstance(m, wire.FillMsg) for _, m in d.sent)
+
+
+def test_triage_leaves_a_late_frame_for_its_successor_only_when_one_is_due():
+    m = HoldModel(CH, np.zeros(3), np.ones(3))
+    t, _ = _table(m, max_streams=16)
+    now = 100.0
+    ages = {"s0": 3.0e-3, "s1": 1.0e-3, "s2": 0.5e-3, "s3": 0.2e-3}
+    for sid, age in ages.items():
+        t.frame(_frame(sid, 5, [1.0, np.nan, 3.0]), ("pull", None), now - age)
+        t.sessions[sid].period = 2.0e-3  # 500 Hz
+    group = list(t.sessions.values())
+    sched = Scheduler(budget_ms=4.0, max_gap=5, max_batch=64)
+    assert sched.triage(group, now) == []  # the cost of a frame is not known yet: serve everything
+    sched.frame_cost = 1.5e-3
+    # four frames: done 6 ms from now, after s0's budget (1 ms left): s0 waits; three: 4.5 ms,
+    # after s1's (3 ms left): s1 waits; two: 3 ms, within s2's 3.5 ms: s2 and s3 are served
+    assert [s.sid for s in sched.triage(group, now)] == ["s0", "s1"]
+    # a stream that sends slower than the budget has no successor due: served, however late
+    t.sessions["s1"].period = 8.3e-3
+    assert [s.sid for s in sched.triage(group, now)] == ["s0", "s2"]
+    # a frame left waiting stays left until its wait is over; then it is served, as is a
+    # successor of a frame that waited (a stream never leaves two frames in a row)
+    t.sessions["s1"].period = 2.0e-3
+    s0 = t.sessions["s0"]
+    s0.deferred_seq, s0.deferred_until = 5, now + 1e-3
+    assert [s.sid for s in sched.triage(group, now)] == ["s0", "s1"]  # s0 still waits, s1 newly
+    s0.deferred_until = now - 1e-3
+    assert [s.sid for s in sched.triage(group, now)] == ["s1", "s2"]  # s0 served: s1, s2 wait
+    s0.deferred_until, s0.pending.frame.seq = now + 1e-3, 6  # its successor came
+    assert [s.sid for s in sched.triage(group, now)] == ["s1", "s2"]
+    s0.deferred_seq, s0.pending.frame.seq = None, 5
+    sched.frame_cost = 0.5e-3  # a cheap tick: only the hopeless s0 waits
+    assert [s.sid for s in sched.triage(group, now)] == ["s0"] and sched.frame_cost == 0.5e-3
+    sched.frame_cost = 0.25e-3
+    assert sched.triage(group, now) == []
+    # the cost per frame rises at once, falls slowly
+    sched.tick_cost(1.25e-3)
+    assert sched.frame_cost == pytest.approx(0.75e-3)
+    sched.tick_cost(0.25e-3)
+    assert sched.frame_cost == pytest.approx(0.95 * 0.75e-3 + 0.05 * 0.25e-3)
+
+
+def test_frame_period_is_measured_per_sequence_number_through_conflation():
+    m = HoldModel(CH, np.zeros(3), np.ones(3))
+    t, _ = _table(m, max_streams=4)
+    for seq, at in ((0, 1.000), (4, 1.008), (8, 1.016)):  # every 4th of a 500 Hz stream reaches the session
+        t.frame(_frame("a", seq, [1.0, 2.0, 3.0]), ("pull", None), at)
+        t.sessions["a"].pending = None
+    t.frame(_frame("a", 6, [1.0, 2.0, 3.0]), ("pull", None), 1.010)  # an older frame taken later: no news
+    assert t.sessions["a"].period == pytest.approx(2e-3) and t.sessions["a"].ref == (1.016, 8)
+
+
+def test_a_deferred_frame_is_replaced_by_its_successor_or_served_when_its_wait_is_over():
+    from daemon import wire as w
+
+    d = _Recording.make(3, budget_ms=4.0)
+    C = 3
+    for sid in ("a", "b"):
+        d.sessions.hello(w.Hello(sid, [f"ch{i}" for i in range(C)]))
+    d.sched.frame_cost = 2e-3
+    a = d.sessions.sessions["a"]
+
+    def frames(seq, age_a):
+        now = time.perf_counter()
+        for sid, age in (("a", age_a), ("b", 0.1e-3)):
+            d._frame_answers(d.sessions.frame(w.Frame(sid, seq, 0.0, np.zeros(C, np.float32)), ("router", [sid.encode()]), now - age))
+            d.sessions.sessions[sid].period = 3.5e-3
+        return now
+
+    now = frames(10, 1e-3)  # two frames: 4 ms from now, after a's budget (3 ms left)
+    d._serve()
+    assert [m.stream for _, m in d.sent] == ["b"] and a.pending.frame.seq == 10 and a.deferred_seq == 10
+    assert a.counts["deferred"] == 1 and d.metrics.counters["deferred"] == 1
+    assert d._wait_until == a.deferred_until == pytest.approx(now - 1e-3 + 5.25e-3)  # a period and a half
+    d._serve()  # a tick before the successor came and before the wait is over: a still waits
+    assert [m.stream for _, m in d.sent] == ["b"] and a.pending is not None and a.counts["deferred"] == 1
+    # its successor arrives: the waiting frame is answered `conflated`, the successor served
+    d.sent.clear()
+    d._frame_answers(d.sessions.frame(w.Frame("a", 11, 0.0, np.ones(C, np.float32)), ("router", [b"a"]), time.perf_counter()))
+    d._serve()
+    d._answer_superseded()
+    assert [(type(m).__name__, m.seq) for _, m in d.sent] == [("FillMsg", 11), ("Drop", 10)]
+    assert a.deferred_seq is None and a.pending is None
+    # no successor comes: once the wait is over the frame is served as it is
+    d.sent.clear()
+    frames(12, 1e-3)
+    d._serve()
+    assert [m.stream for _, m in d.sent] == ["b"] and a.deferred_seq == 12
+    time.sleep(max(0.0, a.deferred_until - time.perf_counter()) + 1e-3)
+    d._serve()
+    assert [(m.stream, m.seq) for _, m in d.sent] == [("b", 12), ("a", 12)] and d._wait_until == 0.0
+    # draining answers everything at once
+    d.sent.clear()
+    frames(13, 3.5e-3)
+    d._serve(final=True)
+    assert sorted(m.stream for _, m in d.sent) == ["a", "b"]
+
+
+def test_a_burst_survivor_left_for_its_successor_still_answers_the_frames_it_superseded():
+    d = _Recording.make(3, budget_ms=4.0)
+    C = 3
+    for sid in ("a", "b"):
+        d.sessions.hello(wire.Hello(sid, [f"ch{i}" for i in range(C)]))
+        d.sessions.sessions[sid].period = 2e-3
+    d.sched.frame_cost = 2e-3
+    now = time.perf_counter()
+    items = [(wire.encode(wire.Frame("a", s, 0.0, np.zeros(C, np.float32))), ("router", [b"a"]), now - 3.5e-3)
+             for s in range(20, 25)]
+    items.append((wire.encode(wire.Frame("b", 20, 0.0, np.zeros(C, np.float32))), ("router", [b"b"]), now))
+    d._batch(items)
+    d._serve()
+    d._answer_superseded()
+    a = d.sessions.sessions["a"]
+    assert a.deferred_seq == 24 and a.pending is not None and a.pending.frame.seq == 24
+    assert [(type(m).__name__, m.stream, m.seq) for _, m in d.sent] == \
+        [("FillMsg", "b", 20)] + [("Drop", "a", s) for s in range(20, 24)]
+    d.sent.clear()
+    d._serve()
+    assert [(type(m).__name__, m.stream, m.seq) for _, m in d.sent] == [("FillMsg", "a", 24)]
+    assert a.counts["dropped_conflated"] == 4 and a.counts["frames_out"] == 1 and a.counts["deferred"] == 1
