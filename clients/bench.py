@@ -57,7 +57,7 @@ def bench_take(channels: list[str], seed: int = 0) -> tuple[np.ndarray, np.ndarr
 
 
 def _daemon_counts(status: dict[str, Any], prefix: str) -> dict[str, int]:
-    out = {"frames_in": 0, "served": 0, "degraded": 0, "dropped": 0, "rejected": 0, "deferred": 0}
+    out = {"frames_in": 0, "served": 0, "degraded": 0, "dropped": 0, "rejected": 0}
     for sid, s in (status.get("streams") or {}).items():
         if sid.startswith(prefix + "-"):
             out["frames_in"] += int(s.get("frames_in", 0))
@@ -65,7 +65,6 @@ def _daemon_counts(status: dict[str, Any], prefix: str) -> dict[str, int]:
             out["degraded"] += int(s.get("degraded", 0))
             out["dropped"] += int(s.get("dropped", 0))
             out["rejected"] += int(s.get("rejected", 0))
-            out["deferred"] += int(s.get("deferred", 0))  # ticks a frame was left for its successor
     return out
 
 

@@ -110,7 +110,6 @@ class Scheduler:
         self.probes = 0
         self.step_errors = 0
         self.last_error = ""
-        self.frame_cost = 0.0  # seconds of a tick per frame answered (step and reply), running mean; 0 = not yet known
 
     def cost(self, model: Model, level: int | None) -> CostModel:
         key = (id(model), level)
@@ -168,51 +167,6 @@ class Scheduler:
         # the streams that do step get the cheapest level: degraded only if that is cheaper
         # than asked (the held ones are marked degraded by the hold itself)
         return StepPlan(order[:n], order[n:], levels[-1], levels[-1] != levels[0])
-
-    def triage(self, pending: list[Session], now: float) -> list[Session]:
-        """The streams whose waiting frame is left for its successor this tick.
-
-        A tick of n frames is done about ``n * frame_cost`` from now (the batched step and the
-        replies: every frame waits for the step).  Oldest first, a frame that would be answered
-        after its budget ran out, of a stream that sends faster than the budget (its next frame
-        is due within it), waits instead, until its successor replaces it (``conflated``) and
-        is served fresh, or for a period and a half (``deferred_until``), after which it is
-        served as it is.  The tick is shorter for the others meanwhile.  A stream leaves one
-        frame waiting at most, never its successor, so none starves; at a rate the daemon keeps
-        up with nothing waits (a frame a period slower than the budget is never left).
-        Returns the streams left: those already waiting (``deferred_seq`` is the pending
-        frame's) and the newly left (``deferred_seq`` None; the caller marks them)."""
-        c = self.frame_cost
-        if c <= 0.0:
-            return []
-        budget = self.budget_s
-        out: list[Session] = []
-        rest: list[Session] = []
-        for s in pending:
-            if s.deferred_seq is None:
-                rest.append(s)
-            elif s.deferred_seq == s.pending.frame.seq and now < s.deferred_until:  # type: ignore[union-attr]
-                out.append(s)  # still waiting for its successor
-            # else its successor came (or its wait is over): served whatever happens
-        n = len(pending) - len(out)
-        if n < 2:
-            return out  # (one frame alone: nobody else's tick to shorten)
-        for s in sorted(rest, key=_pending_arrival):
-            if not 0.0 < s.period < budget:
-                continue  # no successor due within the budget: served however late
-            if now + c * n <= s.pending.arrived + budget:  # type: ignore[union-attr]
-                break  # it makes it, and so does every newer frame
-            out.append(s)
-            n -= 1
-        return out
-
-    def tick_cost(self, per_frame: float) -> None:
-        """Learn ``frame_cost`` from a tick that took ``per_frame`` seconds per frame answered:
-        up quickly, down slowly (a tick with prediction rounds costs several plain ones, and
-        triage must not count on the cheap ones)."""
-        fc = self.frame_cost
-        self.frame_cost = per_frame if fc <= 0.0 else (0.5 if per_frame > fc else 0.95) * fc + \
-            (0.5 if per_frame > fc else 0.05) * per_frame
 
     # ---- stepping ---------------------------------------------------------------------------
     def run(self, groups: dict[int, tuple[Model, list[Session]]], now: float) -> list[tuple[Session, Fill, str]]:
@@ -336,10 +290,6 @@ class Scheduler:
             finally:
                 if knob:
                     model.set_iterations(lvls[0])  # type: ignore[attr-defined]
-
-
-def _pending_arrival(s: Session) -> float:
-    return s.pending.arrived  # type: ignore[union-attr]
 
 
 def _hold_rows(frame: np.ndarray, obs: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import gc
 import json
-import math
 import os
 import signal
 import sys
@@ -86,7 +85,6 @@ class Daemon:
         # (session, its last answered seq before the burst, the served frame's Pending,
         #  [(unpacked map, origin, arrived) or None where the served frame came, ...])
         self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
-        self._wait_until = 0.0  # perf_counter: frames left waiting for their successors are served by then
         self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` drops, sent after its fills
 
     @property
@@ -165,9 +163,6 @@ class Daemon:
             while True:
                 pending = any(s.pending is not None for s in self.sessions.sessions.values())
                 timeout = 0 if pending else IDLE_POLL_MS
-                if pending and self._wait_until:
-                    # only frames left for their successors wait: sleep until one is due
-                    timeout = max(0, math.ceil((self._wait_until - time.perf_counter()) * 1000))
                 wd = self.notify.watchdog_due(time.monotonic())
                 if wd is not None:
                     timeout = min(timeout, max(0, int(wd * 1000)))
@@ -353,12 +348,9 @@ class Daemon:
         todo, self._superseded = self._superseded, []
         for s, last_seq, served, chain in todo:
             # (the burst held no hello or reset, so the session is the same object; a SIGHUP swap
-            # runs between turns and keeps it.  The frame served may still wait: left for its
-            # successor by the scheduler's triage)
-            waiting = s.pending
-            assert self.sessions.sessions.get(s.sid) is s and waiting in (None, served)
+            # runs between turns and keeps it)
+            assert self.sessions.sessions.get(s.sid) is s and s.pending is None
             now_seq, s.last_seq = s.last_seq, last_seq
-            s.pending = None  # as before the burst
             try:
                 for item in chain:
                     if item is None:  # where the served frame came: it supersedes the one waiting
@@ -368,7 +360,7 @@ class Daemon:
                         self._handle_map(*item)
             finally:
                 s.last_seq = now_seq
-                s.pending = waiting
+                s.pending = None
         self._send_conflated()
 
     def _send_conflated(self) -> None:
@@ -438,33 +430,16 @@ class Daemon:
         if origin is not None:
             self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
 
-    def _serve(self, final: bool = False) -> None:
-        """One tick: step and answer every waiting frame, but those ``Scheduler.triage`` leaves
-        for their successor (none when ``final``: draining)."""
-        waiting = [s for s in self.sessions.sessions.values() if s.pending is not None]
-        self._wait_until = 0.0
-        if not waiting:
-            return
-        t0 = time.perf_counter()
-        if not final:
-            later = self.sched.triage(waiting, t0)
-            if later:
-                for s in later:
-                    if s.deferred_seq is None:  # newly left: it waits for its successor a period and a half at most
-                        p = s.pending
-                        s.deferred_seq, s.deferred_until = p.frame.seq, p.arrived + 1.5 * s.period  # type: ignore[union-attr]
-                        s.counts["deferred"] += 1
-                        self.metrics.inc("deferred")
-                self._wait_until = min(s.deferred_until for s in later)
-                skip = set(map(id, later))
-                waiting = [s for s in waiting if id(s) not in skip]
+    def _serve(self) -> None:
         groups: dict[tuple[int, int], tuple[Any, list]] = {}
-        for s in waiting:
-            # by width too: a pass-through "any channels" model serves streams of different
-            # widths, and one batch stacks frames of one width
-            groups.setdefault((id(s.model), s.mapping.n_model), (s.model, []))[1].append(s)
+        for s in self.sessions.sessions.values():
+            if s.pending is not None:
+                # by width too: a pass-through "any channels" model serves streams of different
+                # widths, and one batch stacks frames of one width
+                groups.setdefault((id(s.model), s.mapping.n_model), (s.model, []))[1].append(s)
         if not groups:
             return
+        t0 = time.perf_counter()
         results = self.sched.run(groups, t0)
         if len(results) > 1:
             # answered oldest first: the frame that arrived first is the nearest its budget
@@ -478,7 +453,6 @@ class Daemon:
             p = s.pending
             s.last_seq = p.frame.seq
             s.pending = None
-            s.deferred_seq = None
             if isinstance(msg, Exception):  # a fill the wire cannot carry: answer with an error, keep serving
                 e = msg
                 self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
@@ -496,10 +470,8 @@ class Daemon:
             self.metrics.latency(now - p.arrived)
             self._send(p.origin, msg, publish=True)
         if results:
-            t2 = time.perf_counter()
-            per = (t2 - t1) / len(results)
+            per = (time.perf_counter() - t1) / len(results)
             self.sched.reply_cost = 0.9 * self.sched.reply_cost + 0.1 * per
-            self.sched.tick_cost((t2 - t0) / len(results))
 
     def _abandon_pending(self, why: str) -> None:
         """After a failed tick: answer every waiting frame (and every frame set aside as
@@ -656,9 +628,9 @@ class Daemon:
             if not ready:
                 break
             self.net.receive(ready)
-            self._serve(final=True)
+            self._serve()
             self._answer_superseded()
-        self._serve(final=True)
+        self._serve()
         self._answer_superseded()
         c = self.metrics.counters
         self.log("info", "stopped", always=True, frames_in=c.get("frames_in", 0), frames_out=c.get("frames_out", 0),

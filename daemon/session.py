@@ -23,7 +23,7 @@ from lacuna.filler import FillerState, Model
 Origin = tuple  # (transport name, address): ("router", envelope) | ("router", envelope, "bundle") | ("pull", None) | ("osc", (host, port))
 Out = list[tuple[Origin, wire.Message]]
 
-COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset", "rejected", "degraded", "held", "predicted", "restarts", "deferred")
+COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset", "rejected", "degraded", "held", "predicted", "restarts")
 
 
 @dataclass
@@ -83,11 +83,6 @@ class Session:
     pending: Pending | None = None
     last_active: float = field(default_factory=time.monotonic)
     held_streak: int = 0
-    # the frame left waiting for its successor (Scheduler.triage): its seq, and until when it waits
-    deferred_seq: int | None = None
-    deferred_until: float = 0.0
-    period: float = 0.0  # seconds per sequence number, as the frames arrive here (running mean)
-    ref: tuple[float, int] | None = None  # (arrival, seq) of the newest frame taken, for ``period``
     counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
 
     def restart(self) -> None:
@@ -243,10 +238,4 @@ class SessionTable:
             self.count("dropped_conflated", f.stream)
             out.append((p.origin, wire.Drop(f.stream, p.frame.seq, "conflated")))
         s.pending = Pending(f, origin, arrived)
-        ref = s.ref
-        if ref is None or f.seq > ref[1]:  # (a frame set aside and taken later is older: no news)
-            if ref is not None and arrived > ref[0]:
-                per = (arrived - ref[0]) / (f.seq - ref[1])
-                s.period = per if s.period <= 0.0 else 0.9 * s.period + 0.1 * per
-            s.ref = (arrived, f.seq)
         return out
