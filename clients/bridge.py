@@ -91,12 +91,22 @@ class Bridge:
 
     # ---- one datagram ----------------------------------------------------------------------
     def handle(self, data: bytes) -> list[wire.Message]:
-        """Decode one OSC datagram, fill it through the daemon, emit and return the answers."""
+        """Decode one OSC datagram (a message, or a bundle of them: each handled as if it had
+        come alone, in order), fill it through the daemon, emit and return the answers."""
         try:
-            msg = osc.decode(data)
+            msgs: list[wire.Message | wire.WireError] = (osc.decode_bundle(data) if data.startswith(osc.BUNDLE_PREFIX)
+                                                         else [osc.decode(data)])
         except wire.WireError as e:
+            msgs = [e]
+        out: list[wire.Message] = []
+        for m in msgs:
+            out += self._one(m)
+        return out
+
+    def _one(self, msg: wire.Message | wire.WireError) -> list[wire.Message]:
+        if isinstance(msg, wire.WireError):
             self.counts.rejected += 1
-            out: list[wire.Message] = [wire.error_for(e)]
+            out: list[wire.Message] = [wire.error_for(msg)]
             self._emit(out)
             return out
         if isinstance(msg, wire.Hello):

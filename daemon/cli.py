@@ -79,7 +79,7 @@ def render(st: dict[str, Any]) -> str:
     L.append("frames: in {} out {} degraded {} dropped conflated/late/duplicate {}/{}/{} rejected {}".format(
         c.get("frames_in", 0), c.get("frames_out", 0), c.get("degraded", 0), c.get("dropped_conflated", 0),
         c.get("dropped_late", 0), c.get("dropped_duplicate", 0), c.get("rejected", 0)))
-    other = {k: c[k] for k in ("bundles_in", "send_dropped", "send_errors", "internal_errors", "reloads",
+    other = {k: c[k] for k in ("bundles_in", "osc_bundles_in", "send_dropped", "send_errors", "internal_errors", "reloads",
                                 "reload_failures", "expired", "osc_recv_errors") if c.get(k)}
     if other:
         L.append("other: " + ", ".join(f"{k} {v}" for k, v in other.items()))

@@ -17,6 +17,8 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 from daemon import wire
 
 PREFIX = "/lacuna/"
+BUNDLE_PREFIX = b"#bundle\x00"
+MAX_DEPTH = 4  # bundles within bundles, at most
 
 
 def _msg(address: str, args: list[tuple[object, str]]) -> OscMessageBuilder:
@@ -52,7 +54,8 @@ def decode(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES) -> wire.Message
     if len(data) > max_bytes:
         raise wire.WireError("too_large", f"datagram is {len(data)} bytes, the limit is {max_bytes}")
     if not data.startswith(b"/"):
-        raise wire.WireError("not_osc", f"{len(data)} bytes are not an OSC message (bundles are not accepted as input)")
+        what = "an OSC bundle (decode_bundle reads those)" if data.startswith(BUNDLE_PREFIX) else "not an OSC message"
+        raise wire.WireError("not_osc", f"{len(data)} bytes are {what}")
     try:
         m = OscMessage(data)
         addr, args = m.address, list(m.params)
@@ -83,6 +86,43 @@ def decode(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES) -> wire.Message
         raise wire.WireError("malformed", f"OSC {addr} could not be read ({type(e).__name__})") from None
     raise wire.WireError("unknown_type", f"OSC address {addr[:60]!r} is not one of /lacuna/frame, /lacuna/frame/masked, "
                                          f"/lacuna/hello, /lacuna/reset")
+
+
+def decode_bundle(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES, depth: int = 0) -> list[wire.Message | wire.WireError]:
+    """One OSC bundle datagram -> its messages in order, nested bundles flattened, each what
+    :func:`decode` gives for it or the WireError it raised: a malformed element costs only
+    itself (an element whose size field is wrong leaves the rest unreadable: one error for
+    them).  The timetag is not honoured: the elements are served as they arrive.  Raises
+    WireError when the datagram is not a usable bundle at all (too large, too short, nested
+    deeper than MAX_DEPTH, more than wire.MAX_BUNDLE messages)."""
+    if len(data) > max_bytes:
+        raise wire.WireError("too_large", f"datagram is {len(data)} bytes, the limit is {max_bytes}")
+    if not data.startswith(BUNDLE_PREFIX) or len(data) < 16:
+        raise wire.WireError("not_osc", f"{len(data)} bytes are not an OSC bundle (#bundle, a timetag, elements)")
+    if depth >= MAX_DEPTH:
+        raise wire.WireError("malformed", f"OSC bundles nested more than {MAX_DEPTH} deep")
+    out: list[wire.Message | wire.WireError] = []
+    i, n = 16, len(data)
+    while i < n:
+        size = int.from_bytes(data[i:i + 4], "big", signed=True) if n - i >= 4 else -1
+        if size <= 0 or size % 4 or i + 4 + size > n:
+            out.append(wire.WireError("malformed", f"OSC bundle element at byte {i} declares {size} bytes with "
+                                                   f"{n - i - 4} left: the rest of the bundle cannot be read"))
+            break
+        el = data[i + 4:i + 4 + size]
+        i += 4 + size
+        try:
+            if el.startswith(BUNDLE_PREFIX):
+                out.extend(decode_bundle(el, max_bytes, depth + 1))
+            else:
+                out.append(decode(el, max_bytes))
+        except wire.WireError as e:
+            if e.reason == "too_large" and el.startswith(BUNDLE_PREFIX):  # over the message cap: the whole is
+                raise
+            out.append(e)
+        if len(out) > wire.MAX_BUNDLE:
+            raise wire.WireError("too_large", f"an OSC bundle of more than {wire.MAX_BUNDLE} messages")
+    return out
 
 
 def _via_wire(d: dict) -> wire.Message:

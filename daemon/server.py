@@ -216,16 +216,25 @@ class Daemon:
     def _handle(self, data: bytes, origin: Origin, arrived: float, counted: bool = False) -> None:
         if not counted:
             self.metrics.inc("messages_in")
+        maxb = self.cfg.max_message_bytes
+        bundle = origin[0] == "osc" and data.startswith(osc.BUNDLE_PREFIX)
         try:
-            msg = osc.decode(data, self.cfg.max_message_bytes) if origin[0] == "osc" else \
-                wire.decode(data, self.cfg.max_message_bytes)
+            if bundle:  # several messages of one instant: each handled as if it had come alone, in order
+                items: list[Any] = osc.decode_bundle(data, maxb)
+                self.metrics.inc("osc_bundles_in")
+            else:
+                items = [osc.decode(data, maxb) if origin[0] == "osc" else wire.decode(data, maxb)]
         except wire.WireError as e:
             self._reject(origin, e.reason, e.detail, e.stream, e.seq)
             return
         except Exception as e:  # a decoder bug must cost one message, never the loop
             self._internal("decode", e, origin, None, None)
             return
-        self._dispatch(msg, origin, arrived)
+        for m in items:
+            if isinstance(m, wire.WireError):  # a malformed element of an OSC bundle costs only itself
+                self._reject(origin, m.reason, m.detail, m.stream, m.seq)
+            else:
+                self._dispatch(m, origin, arrived)
 
     def _handle_map(self, m: dict | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
         """:meth:`_handle` for a message already unpacked by :meth:`_batch` (or its unpack error;

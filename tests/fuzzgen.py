@@ -87,7 +87,14 @@ def zmq_reason(data: bytes, max_bytes: int) -> tuple[str, str | None] | None:
 
 
 def osc_reason(data: bytes, max_bytes: int) -> tuple[str, str | None] | None:
+    """Why the daemon refuses this datagram (reason, stream charged), or None when it is not a
+    single refusal (a bundle that is read is answered element by element)."""
     try:
+        if data.startswith(osc.BUNDLE_PREFIX):
+            items = osc.decode_bundle(data, max_bytes)
+            if len(items) == 1 and isinstance(items[0], wire.WireError):
+                return items[0].reason, items[0].stream
+            return None
         osc.decode(data, max_bytes)
     except wire.WireError as e:
         return e.reason, e.stream
@@ -297,8 +304,9 @@ class Fuzz:
         if k < 0.5:
             b = self._bytes(self.r.randrange(1, 200))
             return b if not b.startswith(b"/") else b"x" + b
-        if k < 0.7:  # bundles are output only
-            return b"#bundle\0" + b"\0" * 8 + osc_blob(osc_frame("fz", 1, 0.0, self._angles()))
+        if k < 0.7:  # a bundle whose element declares more bytes than it has: nothing in it is readable
+            el = osc_frame("fz", 1, 0.0, self._angles())
+            return b"#bundle\0" + b"\0" * 8 + (len(el) + 4 * self.r.randrange(1, 64)).to_bytes(4, "big") + el
         return b"/" + self._bytes(self.r.randrange(0, 120))  # an address, then garbage
 
     def osc_truncated(self) -> bytes:
@@ -365,7 +373,7 @@ class Fuzz:
                       "osc_bad_values", "osc_unknown_address")
 
     def osc_batch(self, n: int, oversize_share: float = 0.01) -> list[tuple[bytes, str, str, str | None]]:
-        """n datagrams ``(bytes, category, expected reason, stream charged)``, all refused by osc.decode."""
+        """n datagrams ``(bytes, category, expected reason, stream charged)``, each refused whole by the daemon."""
         gens: list[Callable[[], bytes]] = [getattr(self, c) for c in self.OSC_CATEGORIES]
         out = []
         while len(out) < n:

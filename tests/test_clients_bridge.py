@@ -146,3 +146,31 @@ def test_bridge_rejects_garbage_and_keeps_serving(pipeline, run_bridge):
     cap.sendto(osc_frame("actor", 0, 0.0, [1.0]), b.address)
     assert next_fill(down)["status"] == "passthrough"
     assert b.counts.rejected == 1
+
+
+def test_bridge_takes_an_osc_bundle_of_performers(pipeline, run_bridge, tmp_path):
+    """A capture tool that sends each instant as one OSC bundle: every message in it is
+    handled as if it had come alone; a malformed one gets its own error."""
+    down, cap = pipeline
+    model = tmp_path / "hold.npz"
+    HoldModel(CH, np.full(len(CH), 7.0), np.full(len(CH), 1.0)).save(str(model))
+    d = DaemonProcess({"hold": str(model)}, workdir=str(tmp_path / "d"), daemon={"budget_ms": 200.0})
+    d.start()
+    try:
+        b = run_bridge(d.endpoint, down.getsockname(), timeout_s=2.0, probe_s=0.2)
+        vals = np.array([1.0, np.nan, 2.0, 3.0, 4.0], np.float32)
+        els = [osc_frame("a1", 0, 0.0, vals), b"/lacuna/bogus\x00\x00\x00,\x00\x00\x00", osc_frame("a2", 0, 0.0, vals)]
+        cap.sendto(b"#bundle\x00" + b"\x00" * 7 + b"\x01" + b"".join(len(e).to_bytes(4, "big") + e for e in els), b.address)
+        fills, errors = {}, []
+        while len(fills) + len(errors) < 3:
+            data, _ = down.recvfrom(1 << 16)
+            if OscBundle.dgram_is_bundle(data):
+                f = {m.address: m.params for m in OscBundle(data)}["/lacuna/fill"]
+                fills[f[0]] = f
+            else:
+                errors.append(data)
+        assert sorted(fills) == ["a1", "a2"] and all(f[3] == "ok" and f[8] == pytest.approx(7.0) for f in fills.values())
+        assert len(errors) == 1 and errors[0].startswith(b"/lacuna/error")
+        assert b.counts.filled == 2 and b.counts.rejected == 1
+    finally:
+        d.stop()

@@ -327,6 +327,50 @@ def test_osc_round_trip(tmp_path, daemons):
         u.close()
 
 
+def test_osc_bundle_of_performers_is_served_message_by_message(tmp_path, daemons):
+    """A capture tool sends each instant as one OSC bundle (python-osc's builder, timetag
+    "immediately"): a hello and frames of several performers, one of them malformed. Each
+    message is answered as if it had come alone; the malformed one costs only itself."""
+    from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+
+    d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", -4.0)}}, osc=True))
+    host, port = d.endpoints["osc"].rsplit(":", 1)
+    u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    u.bind(("127.0.0.1", 0))
+    u.settimeout(5.0)
+    row = [1.0, float("nan"), 2.5, 0.0, 1.0, 2.0, 3.0, 4.0]
+    try:
+        bb = OscBundleBuilder(IMMEDIATELY)
+        h = OscMessageBuilder("/lacuna/hello")
+        for a in ["actor3", "", "lfemur.ry", "lfemur.rx"]:
+            h.add_arg(a, "s")
+        bb.add_content(h.build())
+        bb.add_content(OscMessage(_osc_frame("actor1", 0, row)))
+        bb.add_content(OscMessage(_osc_frame("actor2", 0, row[:-1] + [float("inf")])))  # infinity: refused
+        bb.add_content(OscMessage(_osc_frame("actor2", 1, row)))
+        bb.add_content(OscMessage(_osc_frame("actor3", 0, [5.0, float("nan")])))
+        u.sendto(bb.build().dgram, (host, int(port)))
+        fills, other = {}, []
+        while len(fills) + len(other) < 5:
+            data = u.recv(65535)
+            if OscBundle.dgram_is_bundle(data):
+                msgs = {m.address: m.params for m in OscBundle(data)}
+                fills[msgs["/lacuna/fill"][0]] = msgs["/lacuna/fill"]
+            else:
+                m = OscMessage(data)
+                other.append((m.address, m.params[0]))
+        assert sorted(other) == [("/lacuna/error", "non_finite"), ("/lacuna/hello-ack", "actor3")]
+        assert sorted(fills) == ["actor1", "actor2", "actor3"]
+        assert fills["actor1"][7:] == [1.0, -4.0, 2.5, 0.0, 1.0, 2.0, 3.0, 4.0]
+        assert fills["actor2"][1] == 1 and fills["actor3"][7:] == [5.0, -4.0]  # (its own channel order)
+        st = loadgen_status(d)
+        assert st["counters"]["osc_bundles_in"] == 1 and st["counters"]["messages_in"] == 2  # it, and this status request
+        # (actor2's refused frame came before its stream existed: counted globally only)
+        assert st["rejected"] == {"non_finite": 1} and st["streams"]["actor2"]["frames_out"] == 1
+    finally:
+        u.close()
+
+
 # ---- bad input ----------------------------------------------------------------------------------
 def test_bad_messages_are_counted_rejections_and_other_streams_keep_going(tmp_path, daemons, ctx):
     d = daemons(write_config(tmp_path, {"floor": {"builtin": "passthrough"}}, http=True))

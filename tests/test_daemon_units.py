@@ -127,6 +127,66 @@ def test_osc_raises_on_bad_datagram(data, reason):
     assert ei.value.reason == reason, ei.value.detail
 
 
+def _bundle(*elements: bytes, tt: bytes = b"\x00" * 7 + b"\x01") -> bytes:
+    """An OSC bundle by hand: #bundle, timetag, then (int32 size, element) each."""
+    return osc.BUNDLE_PREFIX + tt + b"".join(len(e).to_bytes(4, "big") + e for e in elements)
+
+
+def _fr(sid, seq, *vals):
+    return _osc("/lacuna/frame", (sid, "s"), (seq, "i"), (0.5, "d"), *[(v, "f") for v in vals])
+
+
+def test_osc_bundle_gives_each_message_and_a_malformed_one_costs_only_itself():
+    hello = _osc("/lacuna/hello", ("p2", "s"), ("", "s"), ("x.rx", "s"), ("y.rx", "s"))
+    inner = _bundle(_fr("p3", 1, 5.0, 6.0))
+    items = osc.decode_bundle(_bundle(_fr("p1", 7, 1.0, float("nan")), hello, _osc("/other", (1, "i")),
+                                      _fr("p2", 7, 3.0, 4.0), inner, _osc("/lacuna/reset", ("p1", "s"))))
+    kinds = [type(m).__name__ for m in items]
+    assert kinds == ["Frame", "Hello", "WireError", "Frame", "Frame", "Control"]
+    assert (items[0].stream, items[0].seq) == ("p1", 7) and np.isnan(items[0].angles[1])
+    assert items[2].reason == "unknown_type" and items[4].stream == "p3" and items[5] == wire.Control("reset", "p1")
+    # the same bytes as python-osc would build (timetag "immediately")
+    from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+    from pythonosc.osc_message import OscMessage
+
+    bb = OscBundleBuilder(IMMEDIATELY)
+    bb.add_content(OscMessage(_fr("p1", 7, 1.0, 2.0)))
+    assert bb.build().dgram == _bundle(_fr("p1", 7, 1.0, 2.0))
+    assert [m.seq for m in osc.decode_bundle(bb.build().dgram)] == [7]
+    assert osc.decode_bundle(_bundle()) == []  # an empty bundle is valid OSC: nothing to answer
+
+
+def test_osc_bundle_structure_errors():
+    good = _fr("p1", 7, 1.0, 2.0)
+    # an element that declares more bytes than are left: what came before is kept, one error for the rest
+    bad_size = osc.BUNDLE_PREFIX + b"\0" * 8 + len(good).to_bytes(4, "big") + good + (999).to_bytes(4, "big") + good
+    items = osc.decode_bundle(bad_size)
+    assert isinstance(items[0], wire.Frame) and len(items) == 2 and items[1].reason == "malformed"
+    assert "cannot be read" in items[1].detail
+    # nested too deep: that element is an error, its neighbours are served
+    deep = good
+    for _ in range(osc.MAX_DEPTH + 1):
+        deep = _bundle(deep)
+    items = osc.decode_bundle(_bundle(good, deep))
+    assert isinstance(items[0], wire.Frame) and items[1].reason == "malformed" and "nested" in items[1].detail
+    with pytest.raises(wire.WireError) as ei:  # more messages than a bundle may carry
+        osc.decode_bundle(_bundle(*[good] * (wire.MAX_BUNDLE + 1)), max_bytes=1 << 20)
+    assert ei.value.reason == "too_large"
+    with pytest.raises(wire.WireError) as ei:  # the same, hidden in a nested bundle
+        osc.decode_bundle(_bundle(good, _bundle(*[good] * wire.MAX_BUNDLE)), max_bytes=1 << 20)
+    assert ei.value.reason == "too_large"
+    for data, reason in ((b"#bundle\x00\x00", "not_osc"), (good, "not_osc"), (_bundle(good) + b"\0" * 200, "too_large")):
+        with pytest.raises(wire.WireError) as ei:
+            osc.decode_bundle(data, max_bytes=150)
+        assert ei.value.reason == reason
+    items = osc.decode_bundle(_bundle(good) + b"\0\0")  # stray bytes after the last element
+    assert isinstance(items[0], wire.Frame) and items[1].reason == "malformed"
+    # osc.decode (one message) names a bundle for what it is
+    with pytest.raises(wire.WireError) as ei:
+        osc.decode(_bundle(good))
+    assert "bundle" in ei.value.detail
+
+
 # ---- sessions ---------------------------------------------------------------------------------
 def _table(model, max_streams=4):
     counted = []

@@ -76,8 +76,14 @@ def test_wire_and_osc_decoders_raise_only_wire_errors(seed):
         [fuzzgen.osc_message("/lacuna/hello", [("s", "s"), ("s", ""), ("s", "a"), ("s", "b")]),
          fuzzgen.osc_message("/lacuna/frame/masked", [("s", "s"), ("i", 1), ("d", 0.0), ("b", b"\0" * 32),
                                                       ("b", b"\1" * 8)])]
-    n = {"zmq": [0, 0], "osc": [0, 0]}
-    for kind, valid, dec in (("zmq", valid_z, wire.decode), ("osc", valid_o, osc.decode)):
+    def bundle(*els: bytes) -> bytes:
+        return osc.BUNDLE_PREFIX + b"\0" * 7 + b"\1" + b"".join(len(e).to_bytes(4, "big") + e for e in els)
+
+    valid_b = [bundle(*r.sample(valid_o, r.randrange(1, 5))) for _ in range(20)] + \
+        [bundle(valid_o[0], bundle(valid_o[1], bundle(valid_o[2])))]
+    n = {"zmq": [0, 0], "osc": [0, 0], "osc bundle": [0, 0]}
+    for kind, valid, dec in (("zmq", valid_z, wire.decode), ("osc", valid_o, osc.decode),
+                             ("osc bundle", valid_b, osc.decode_bundle)):
         for _ in range(20_000):
             b = bytearray(r.choice(valid))
             op = r.randrange(4)
@@ -93,8 +99,14 @@ def test_wire_and_osc_decoders_raise_only_wire_errors(seed):
                 k = r.randrange(len(b))
                 b[k:k] = bytes(r.randrange(256) for _ in range(r.randrange(1, 16)))
             try:
-                dec(bytes(b), 4096)
-                n[kind][0] += 1
+                out = dec(bytes(b), 4096)
+                bad = False
+                if kind == "osc bundle":  # each element is a request or the WireError it raised, nothing else
+                    assert all(isinstance(m, (wire.WireError, wire.Frame, wire.Hello, wire.Control)) for m in out)
+                    errs = [m for m in out if isinstance(m, wire.WireError)]
+                    assert all(e.reason and e.detail for e in errs)
+                    bad = bool(errs)
+                n[kind][1 if bad else 0] += 1
             except wire.WireError as e:
                 assert e.reason and e.detail  # a stable code and a sentence
                 n[kind][1] += 1
