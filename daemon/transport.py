@@ -1,9 +1,10 @@
 """Transports: the daemon's sockets (ZeroMQ ROUTER/PULL/SUB/PUB, OSC over UDP) behind one poller.
 
-``receive(ready)`` drains what arrived (bounded per socket and tick) and hands the ZeroMQ
-messages of the turn, in arrival order, to ``on_batch([(bytes, origin, arrival time), ...])``
-and each OSC datagram to ``on_message(bytes, origin, arrival time)``; ``send(origin, message, publish)`` answers on the
-transport the message came from and, for filled frames, also publishes on PUB.  Between
+``receive(ready)`` drains what arrived (bounded per socket and tick) and hands the turn's
+messages (ZeroMQ, then OSC datagrams), each socket's in arrival order, to
+``on_batch([(bytes, origin, arrival time), ...])`` (by default ``on_message`` for each);
+``send(origin, message, publish)`` answers on the transport the message came from and, for
+filled frames, also publishes on PUB.  Between
 ``hold()`` and ``flush()`` ZeroMQ answers are queued and then sent together; answers to the
 frames of a ``frames`` bundle (origin ``("router", envelope, "bundle")``) are joined, per peer,
 into one ``replies`` message at the flush.  Sends never block: a peer over its high-water mark
@@ -155,8 +156,6 @@ class Transports:
                 else:
                     origin = ("pull", None)
                 batch.append((parts[-1], origin, arrived))
-        if batch:
-            self.on_batch(batch)
         if self.udp is not None and self.udp.fileno() in ready:
             for _ in range(DRAIN_MAX):
                 try:
@@ -170,7 +169,9 @@ class Transports:
                 if self.guard is not None and not self.guard.osc_allowed(addr):
                     self.metrics.reject("source_not_allowed")  # counted, never answered (no reflection)
                     continue
-                self.on_message(data, ("osc", addr), time.perf_counter())
+                batch.append((data, ("osc", addr), time.perf_counter()))
+        if batch:
+            self.on_batch(batch)
 
     def hold(self) -> None:
         """Queue ZeroMQ answers until :meth:`flush` (the daemon holds them for one loop turn):

@@ -546,6 +546,13 @@ def test_burst_sets_superseded_frames_aside_until_the_fills_are_out():
     items.append((wire.encode(wire.Frame("a", 12, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0))
     d._batch(items)
     assert d._superseded == []
+    # nor when an OSC datagram came in the same turn (a hello over OSC could replace the session)
+    d._serve()
+    d._answer_superseded()
+    items = [(wire.encode(wire.Frame("a", s, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0) for s in (20, 21, 22)]
+    items.append((_osc("/lacuna/hello", ("a", "s"), ("", "s"), *[(f"ch{i}", "s") for i in range(C)]), ("osc", ("127.0.0.1", 9)), 0.0))
+    d._batch(items)
+    assert d._superseded == [] and d.sessions.sessions["a"].pending is None  # (the hello reset the stream: 22 dropped, reset)
 
 
 def test_hold_of_a_group_as_arrays_equals_holding_stream_by_stream():
