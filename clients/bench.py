@@ -191,14 +191,17 @@ def _model_channels(info: dict[str, Any], endpoint: str, name: str) -> list[str]
 
 def format_table(runs: dict[str, dict[str, Any]]) -> str:
     head = (f"{'run':<6} {'model':<10} {'streams':>7} {'conns':>5} {'Hz':>5} {'p50':>7} {'p90':>7} {'p99':>7} {'p99.9':>7} {'max':>7}"
-            f" {'served':>8} {'degraded':>8} {'dropped':>8} {'cpu%':>6}")
+            f" {'served':>8} {'degraded':>8} {'dropped':>8} {'late%':>6} {'cpu%':>6}")
     lines = [head, "-" * len(head)]
     for k, r in runs.items():
         f = lambda v: "   -   " if v is None else f"{v:7.3f}"  # noqa: E731
         cpu = "  -" if r["cpu_percent"] is None else f"{r['cpu_percent']:6.1f}"
+        late = r.get("daemon_over_budget_pct")
+        late_s = f"{'-':>6}" if late is None else f"{late:6.1f}"
         lines.append(f"{k:<6} {str(r['model'])[:10]:<10} {r['streams']:>7} {str(r.get('connections', r['streams'])) + ('b' if r.get('bundle') else ''):>5} {r['rate_hz']:>5g} {f(r['p50_ms'])} {f(r['p90_ms'])}"
                      f" {f(r['p99_ms'])} {f(r['p999_ms'])} {f(r['max_ms'])} {r['served']:>8} {r['degraded']:>8}"
-                     f" {r['dropped']:>8} {cpu}")
-    lines.append("(round trips in ms over ZeroMQ DEALER->ROUTER on loopback; cpu% = daemon process, % of one core;"
+                     f" {r['dropped']:>8} {late_s} {cpu}")
+    lines.append("(round trips in ms over ZeroMQ DEALER->ROUTER on loopback; late% = served frames whose receipt-to-reply"
+                 " overran the daemon's budget; cpu% = daemon process, % of one core;"
                  " conns 'b' = one `frames` bundle per connection and tick)")
     return "\n".join(lines)

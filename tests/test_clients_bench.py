@@ -57,7 +57,12 @@ def test_bench_command_with_floor_writes_table_json_and_plot(tmp_path, capsys):
     assert out["runs"]["floor"]["model"] == "floor" and out["runs"]["floor"]["passthrough"] > 0
     assert all(r["counts_agree"] for r in out["runs"].values())
     assert (tmp_path / "b.png").stat().st_size > 0
-    assert "floor" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "floor" in text
+    # the share of served frames over the daemon's budget, in the JSON and as the late% column
+    assert all(0.0 <= r["daemon_over_budget_pct"] <= 100.0 for r in out["runs"].values())
+    head, row = [ln.split() for ln in text.splitlines() if ln.startswith(("run ", "model "))][:2]
+    assert row[head.index("late%")] == f"{out['runs']['model']['daemon_over_budget_pct']:.1f}"
 
 
 def test_cpu_seconds_reads_proc():
