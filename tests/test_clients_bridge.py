@@ -68,6 +68,15 @@ def run_bridge():
         b.close()
 
 
+def hold_daemon(tmp_path) -> DaemonProcess:
+    """A started daemon serving a hold-last-value model "hold" (7 +- 1 on every channel)."""
+    model = tmp_path / "hold.npz"
+    HoldModel(CH, np.full(len(CH), 7.0), np.full(len(CH), 1.0)).save(str(model))
+    d = DaemonProcess({"hold": str(model)}, workdir=str(tmp_path / "d"), daemon={"budget_ms": 200.0})
+    d.start()
+    return d
+
+
 def next_fill(down: socket.socket) -> dict:
     """Read datagrams until a fill bundle; returns its /lacuna/fill and /lacuna/filled contents."""
     while True:
@@ -95,10 +104,7 @@ def test_bridge_passes_frames_through_flagged_when_the_daemon_is_down(pipeline, 
 
 def test_bridge_fills_then_passes_through_while_daemon_is_away_then_fills_again(pipeline, run_bridge, tmp_path):
     down, cap = pipeline
-    model = tmp_path / "hold.npz"
-    HoldModel(CH, np.full(len(CH), 7.0), np.full(len(CH), 1.0)).save(str(model))
-    d = DaemonProcess({"hold": str(model)}, workdir=str(tmp_path / "d"), daemon={"budget_ms": 200.0})
-    d.start()
+    d = hold_daemon(tmp_path)
     try:
         b = run_bridge(d.endpoint, down.getsockname(), timeout_s=0.3, probe_s=0.2,
                        record=str(tmp_path / "{stream}.lrec"))
@@ -152,10 +158,7 @@ def test_bridge_takes_an_osc_bundle_of_performers(pipeline, run_bridge, tmp_path
     """A capture tool that sends each instant as one OSC bundle: every message in it is
     handled as if it had come alone; a malformed one gets its own error."""
     down, cap = pipeline
-    model = tmp_path / "hold.npz"
-    HoldModel(CH, np.full(len(CH), 7.0), np.full(len(CH), 1.0)).save(str(model))
-    d = DaemonProcess({"hold": str(model)}, workdir=str(tmp_path / "d"), daemon={"budget_ms": 200.0})
-    d.start()
+    d = hold_daemon(tmp_path)
     try:
         b = run_bridge(d.endpoint, down.getsockname(), timeout_s=2.0, probe_s=0.2)
         vals = np.array([1.0, np.nan, 2.0, 3.0, 4.0], np.float32)
