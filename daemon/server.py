@@ -4,9 +4,10 @@ One thread serves everything: ``poll(timeout)`` over the ZeroMQ sockets and the 
 drain what arrived (bounded), decode, hand frames to their sessions (conflating per stream),
 one batched scheduler step per model, answer, then answer the frames of the burst that a newer
 frame of their stream superseded (set aside undecoded, see ``_batch``), then housekeeping
-against deadlines (watchdog, idle expiry, metrics snapshot, signal flags).  Signal handlers only set flags.  A reload loads
-and checks the new models on a helper thread and swaps them between two ticks, so no frame is
-dropped or held up by the load; a file that fails keeps the old model and the log says why.
+against deadlines (watchdog, idle expiry, metrics snapshot, signal flags).  Signal handlers
+only set flags.  A reload loads and checks the new models on a helper thread and swaps them
+between two ticks, so no frame is dropped or held up by the load; a file that fails keeps the
+old model and the log says why.
 """
 from __future__ import annotations
 
@@ -216,44 +217,45 @@ class Daemon:
     def _handle(self, data: bytes, origin: Origin, arrived: float, counted: bool = False) -> None:
         if not counted:
             self.metrics.inc("messages_in")
-        maxb = self.cfg.max_message_bytes
-        bundle = origin[0] == "osc" and data.startswith(osc.BUNDLE_PREFIX)
-        try:
-            if bundle:  # several messages of one instant: each handled as if it had come alone, in order
-                items: list[Any] = osc.decode_bundle(data, maxb)
-                self.metrics.inc("osc_bundles_in")
-            else:
-                items = [osc.decode(data, maxb) if origin[0] == "osc" else wire.decode(data, maxb)]
-        except wire.WireError as e:
-            self._reject(origin, e.reason, e.detail, e.stream, e.seq)
-            return
-        except Exception as e:  # a decoder bug must cost one message, never the loop
-            self._internal("decode", e, origin, None, None)
-            return
-        for m in items:
-            if isinstance(m, wire.WireError):  # a malformed element of an OSC bundle costs only itself
-                self._reject(origin, m.reason, m.detail, m.stream, m.seq)
-            else:
-                self._dispatch(m, origin, arrived)
+        if origin[0] != "osc":
+            self._take(wire.decode, data, origin, arrived)
+        elif data.startswith(osc.BUNDLE_PREFIX):  # several messages of one instant
+            self._take(self._osc_bundle, data, origin, arrived)
+        else:
+            self._take(osc.decode, data, origin, arrived)
 
     def _handle_map(self, m: dict | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
         """:meth:`_handle` for a message already unpacked by :meth:`_batch` (or its unpack error;
         bytes: an OSC datagram, not unpacked), counted there."""
         if type(m) is bytes:
             self._handle(m, origin, arrived, counted=True)
-            return
-        if isinstance(m, wire.WireError):
+        elif isinstance(m, wire.WireError):
             self._reject(origin, m.reason, m.detail, m.stream, m.seq)
-            return
+        else:
+            self._take(_decode_map, m, origin, arrived)
+
+    def _osc_bundle(self, data: bytes, maxb: int) -> list[Any]:
+        items = osc.decode_bundle(data, maxb)
+        self.metrics.inc("osc_bundles_in")
+        return items
+
+    def _take(self, decode: Any, data: Any, origin: Origin, arrived: float) -> None:
+        """``decode(data, max_message_bytes)`` (a message, or an OSC bundle's list of them) and
+        dispatch; what cannot be decoded is answered with its error, and a malformed element of
+        a bundle costs only itself."""
         try:
-            msg = wire.decode_map(m)
+            got = decode(data, self.cfg.max_message_bytes)
         except wire.WireError as e:
             self._reject(origin, e.reason, e.detail, e.stream, e.seq)
             return
-        except Exception as e:
+        except Exception as e:  # a decoder bug must cost one message, never the loop
             self._internal("decode", e, origin, None, None)
             return
-        self._dispatch(msg, origin, arrived)
+        for m in got if type(got) is list else (got,):
+            if isinstance(m, wire.WireError):
+                self._reject(origin, m.reason, m.detail, m.stream, m.seq)
+            else:
+                self._dispatch(m, origin, arrived)
 
     def _internal(self, where: str, e: Exception, origin: Origin | None, sid: str | None, seq: int | None) -> None:
         self.metrics.inc("internal_errors")
@@ -327,16 +329,17 @@ class Daemon:
             sid = heads.get(i)
             if sid is None:
                 continue
-            chain = sorted(chains[sid])
+            order = sorted(chains[sid] + [i])  # the stream's frames of the burst, in arrival order
             s = self.sessions.sessions[sid]
             p = s.pending
             if p is not None and p.frame.seq == keys[i][1]:  # type: ignore[index]
-                # in arrival order, with None where the served frame came
+                # with None where the served frame came
                 self._superseded.append((s, s.last_seq, p, [None if d == i else (maps[d], items[d][1], items[d][2])
-                                                            for d in sorted(chain + [i])]))
+                                                            for d in order]))
             else:  # the newest frame was refused and changed nothing: the rest count as usual
-                for d in chain:
-                    self._handle_map(maps[d], items[d][1], items[d][2])
+                for d in order:
+                    if d != i:
+                        self._handle_map(maps[d], items[d][1], items[d][2])
 
     def _frame_answers(self, out: list) -> None:
         """A session's immediate answers to a frame: a ``conflated`` drop (of the frame it
@@ -655,6 +658,10 @@ class Daemon:
             self.http = None
         self.qos.release()
         self.notify.close()
+
+
+def _decode_map(m: dict, max_bytes: int) -> wire.Message:
+    return wire.decode_map(m)  # (already unpacked, within max_bytes)
 
 
 def _arrival(r: tuple) -> float:
