@@ -65,7 +65,7 @@ BUSY_POLL_MS = 50.0
 
 
 def run(files: dict[str, Path], out: Path, repeats: int, seconds: float, waits: list[str],
-        cpu_latency: int | None = None) -> list[dict]:
+        cpu_latency: int | None = None, realtime: int | None = None) -> list[dict]:
     rows = []
     for name, f in files.items():
         for streams, rate, conns, bundle in LOADS:
@@ -73,7 +73,7 @@ def run(files: dict[str, Path], out: Path, repeats: int, seconds: float, waits: 
                 reps = []
                 for r in range(repeats):
                     tag = f"{streams}x{rate:g}" + (f"c{conns}" if conns else "") + ("b" if bundle else "") + \
-                        (f"-q{cpu_latency}" if cpu_latency is not None else "")
+                        (f"-q{cpu_latency}" if cpu_latency is not None else "") + (f"-rt{realtime}" if realtime else "")
                     j = out / f"{name}-{tag}-{wait}-r{r}.json"
                     cmd = ["bench", "--streams", str(streams), "--rate", str(rate), "--seconds", str(seconds),
                            "--model", str(f), "--floor", "--json", str(j), "--plot", str(j.with_suffix(".png")), "-q"]
@@ -83,6 +83,8 @@ def run(files: dict[str, Path], out: Path, repeats: int, seconds: float, waits: 
                         cmd += ["--bundle"]
                     if cpu_latency is not None:
                         cmd += ["--cpu-latency", str(cpu_latency)]
+                    if realtime:
+                        cmd += ["--realtime", str(realtime)]
                     if wait == "busy":
                         cmd += ["--busy-poll", f"{BUSY_POLL_MS:g}"]
                     print(f"lacuna {' '.join(cmd)}", file=sys.stderr, flush=True)
@@ -91,7 +93,8 @@ def run(files: dict[str, Path], out: Path, repeats: int, seconds: float, waits: 
                     reps.append(json.loads(j.read_text()))
                 rows.append({**summarise(name, streams, rate, seconds, reps), "wait": wait,
                              "connections": conns or streams, "bundle": bundle, "cpu_latency_us": cpu_latency,
-                             "cpu_latency_held": all((r.get("cpu_latency") or {}).get("held") for r in reps)})
+                             "cpu_latency_held": all((r.get("cpu_latency") or {}).get("held") for r in reps),
+                             "realtime": realtime, "realtime_held": all((r.get("realtime") or {}).get("held") for r in reps)})
     return rows
 
 
@@ -132,6 +135,8 @@ def table(rows: list[dict], repeats: int, seconds: float) -> str:
                 (", bundled" if r.get("bundle") else "")
             if r.get("cpu_latency_us") is not None:
                 load += f", cpu_latency {r['cpu_latency_us']} µs" + ("" if r.get("cpu_latency_held") else " (REFUSED)")
+            if r.get("realtime"):
+                load += f", SCHED_RR {r['realtime']}" + ("" if r.get("realtime_held") else " (REFUSED)")
             L.append(f"| {label} | {load} | {r.get('wait', 'sleep')} | {f(m['p50_ms'])} | {f(m['p90_ms'])} | "
                      f"{f(m['p99_ms'])} ({m['p99_range'][0]:.2f}-{m['p99_range'][1]:.2f}) | {f(m['p999_ms'])} | "
                      f"{f(m['max_ms'])} | {m['served']} / {m['offered']} | {m['degraded']} | {m['dropped']} | "
@@ -161,6 +166,8 @@ def main() -> int:
                          "of a tick as one bundle, 64x120/1b)")
     ap.add_argument("--cpu-latency", type=int, default=None, metavar="US",
                     help="every daemon holds a PM QoS CPU latency request of US µs (lacuna bench --cpu-latency)")
+    ap.add_argument("--realtime", type=int, default=None, metavar="PRIO",
+                    help="every daemon's serving threads run SCHED_RR at PRIO (lacuna bench --realtime)")
     ap.add_argument("--waits", default="sleep,busy",
                     help=f"comma-separated: sleep (both sides sleep in poll), busy (--busy-poll {BUSY_POLL_MS:g}: both spin)")
     ap.add_argument("--no-write", action="store_true", help="print the section instead of writing docs/BENCHMARKS.md")
@@ -180,20 +187,22 @@ def main() -> int:
     waits = args.waits.split(",")
     if not set(waits) <= {"sleep", "busy"}:
         raise SystemExit(f"--waits takes sleep and/or busy (got {args.waits})")
-    rows = run(files, out, args.repeats, args.seconds, waits, args.cpu_latency)
+    rows = run(files, out, args.repeats, args.seconds, waits, args.cpu_latency, args.realtime)
     (out / "latency-summary.json").write_text(json.dumps(rows, indent=2))
     load = subprocess.run(["cat", "/proc/loadavg"], capture_output=True, text=True).stdout.split()[:3]
     text = "\n".join([
         f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime(t0))} with "
         f"`.venv/bin/python bench/latency.py --repeats {args.repeats} --seconds {args.seconds:g} "
         f"--models {args.models} --loads {args.loads} --waits {args.waits}"
-        + (f" --cpu-latency {args.cpu_latency}" if args.cpu_latency is not None else "") + "` "
+        + (f" --cpu-latency {args.cpu_latency}" if args.cpu_latency is not None else "")
+        + (f" --realtime {args.realtime}" if args.realtime else "") + "` "
         f"(each row: `lacuna bench --streams N --rate 120 --seconds {args.seconds:g} --model FILE --floor`, "
         f"with `--connections 1` where the load says 1 conn. (every stream down one DEALER, as one capture "
         f"system would send them; otherwise one DEALER per stream), `--bundle` where it says bundled (each "
         f"tick's frames of a connection in one `frames` message), "
         + (f"`--cpu-latency {args.cpu_latency}` (the daemon holds a PM QoS request: idle CPUs poll), "
            if args.cpu_latency is not None else "")
+        + (f"`--realtime {args.realtime}` (the daemon's serving threads run SCHED_RR), " if args.realtime else "")
         + f"a fresh daemon per repeat; medians over {args.repeats} repeats, p99 range in brackets; "
         f"served/offered/degraded/dropped summed over repeats). Round trip = client send to client receive, "
         f"ZeroMQ DEALER -> ROUTER on loopback, ms. Wait: `sleep` = daemon and client sleep in poll between "

@@ -57,7 +57,7 @@ def bench_take(channels: list[str], seed: int = 0) -> tuple[np.ndarray, np.ndarr
 
 
 def _daemon_counts(status: dict[str, Any], prefix: str) -> dict[str, int]:
-    out = {"frames_in": 0, "served": 0, "degraded": 0, "dropped": 0, "rejected": 0}
+    out = {"frames_in": 0, "served": 0, "degraded": 0, "dropped": 0, "rejected": 0, "over_budget": 0}
     for sid, s in (status.get("streams") or {}).items():
         if sid.startswith(prefix + "-"):
             out["frames_in"] += int(s.get("frames_in", 0))
@@ -65,6 +65,7 @@ def _daemon_counts(status: dict[str, Any], prefix: str) -> dict[str, int]:
             out["degraded"] += int(s.get("degraded", 0))
             out["dropped"] += int(s.get("dropped", 0))
             out["rejected"] += int(s.get("rejected", 0))
+            out["over_budget"] += int(s.get("over_budget", 0))
     return out
 
 
@@ -97,11 +98,15 @@ def run_one(endpoint: str, channels: list[str], frames: np.ndarray, observed: np
         "daemon_rss_growth_mb": None if rss0 is None or rss1 is None else (rss1 - rss0) / 2**20,
         "daemon_proc_ms_p50": float(np.median(res.proc_us) / 1000.0) if res.proc_us.size else None,
         "daemon_proc_ms_p99": float(np.percentile(res.proc_us, 99) / 1000.0) if res.proc_us.size else None,
-        # the share of served frames whose receipt-to-reply overran the daemon's per-frame budget
-        "daemon_over_budget_pct": (float(100.0 * np.mean(res.proc_us > 1000.0 * float(st["budget_ms"])))
-                                   if res.proc_us.size and st.get("budget_ms") else None),
+        # the share of served frames whose receipt-to-sent overran the daemon's per-frame budget
+        # (the daemon's own count: the proc_us in a fill stops at its encoding, before the send)
+        "daemon_over_budget_pct": float(100.0 * dc["over_budget"] / dc["served"]) if dc["served"] else None,
+        "daemon_overdue": int(res.drop_reasons.get("overdue", 0)),
+        # the same from each fill's proc_us (receipt to its encoding, before the tick's sends)
+        "daemon_proc_over_budget_pct": (float(100.0 * np.mean(res.proc_us > 1000.0 * float(st["budget_ms"])))
+                                        if res.proc_us.size and st.get("budget_ms") else None),
         "send_lateness_ms_p99": float(np.percentile(res.lateness_ms, 99)),
-        "daemon_counts": dc, "cpu_latency": st.get("cpu_latency"),
+        "daemon_counts": dc, "cpu_latency": st.get("cpu_latency"), "realtime": st.get("realtime"),
         "counts_agree": dc["served"] == res.served and dc["dropped"] == res.dropped and dc["degraded"] == res.degraded,
     }
     return row, res.rtt_ms
@@ -120,6 +125,8 @@ def run(args: Any) -> int:
             channels = list(meta["channels"])
             daemon = DaemonProcess({"bench": args.model, FLOOR_MODEL: {"builtin": "passthrough", "channels": channels}},
                                    "bench", daemon={"budget_ms": float(args.budget_ms),
+                                                    **({"overdue": args.overdue} if args.overdue else {}),
+                                                    **({"realtime_priority": args.realtime} if args.realtime else {}),
                                                     **({"busy_poll_ms": float(args.busy_poll)} if args.busy_poll else {}),
                                                     **({"cpu_latency_us": args.cpu_latency} if args.cpu_latency is not None else {})})
             if progress:
@@ -161,6 +168,7 @@ def run(args: Any) -> int:
     print(format_table(runs))
     out = {**runs["model"], "runs": runs, "take": src, "endpoint": endpoint,
            "started_daemon": bool(args.model), "budget_ms": args.budget_ms if args.model else None,
+           "overdue": (args.overdue or "drop") if args.model else None,
            "busy_poll_ms": args.busy_poll}
     if args.json_out:
         write_json(args.json_out, out)
@@ -191,7 +199,7 @@ def _model_channels(info: dict[str, Any], endpoint: str, name: str) -> list[str]
 
 def format_table(runs: dict[str, dict[str, Any]]) -> str:
     head = (f"{'run':<6} {'model':<10} {'streams':>7} {'conns':>5} {'Hz':>5} {'p50':>7} {'p90':>7} {'p99':>7} {'p99.9':>7} {'max':>7}"
-            f" {'served':>8} {'degraded':>8} {'dropped':>8} {'late%':>6} {'cpu%':>6}")
+            f" {'served':>8} {'degraded':>8} {'dropped':>8} {'overdue':>8} {'late%':>6} {'cpu%':>6}")
     lines = [head, "-" * len(head)]
     for k, r in runs.items():
         f = lambda v: "   -   " if v is None else f"{v:7.3f}"  # noqa: E731
@@ -200,8 +208,9 @@ def format_table(runs: dict[str, dict[str, Any]]) -> str:
         late_s = f"{'-':>6}" if late is None else f"{late:6.1f}"
         lines.append(f"{k:<6} {str(r['model'])[:10]:<10} {r['streams']:>7} {str(r.get('connections', r['streams'])) + ('b' if r.get('bundle') else ''):>5} {r['rate_hz']:>5g} {f(r['p50_ms'])} {f(r['p90_ms'])}"
                      f" {f(r['p99_ms'])} {f(r['p999_ms'])} {f(r['max_ms'])} {r['served']:>8} {r['degraded']:>8}"
-                     f" {r['dropped']:>8} {late_s} {cpu}")
-    lines.append("(round trips in ms over ZeroMQ DEALER->ROUTER on loopback; late% = served frames whose receipt-to-reply"
+                     f" {r['dropped']:>8} {r.get('daemon_overdue', 0):>8} {late_s} {cpu}")
+    lines.append("(round trips in ms over ZeroMQ DEALER->ROUTER on loopback; dropped includes overdue = frames the daemon"
+                 " dropped because it could not answer them within its budget; late% = served frames whose receipt-to-sent"
                  " overran the daemon's budget; cpu% = daemon process, % of one core;"
                  " conns 'b' = one `frames` bundle per connection and tick)")
     return "\n".join(lines)

@@ -76,6 +76,9 @@ def add_commands(cli) -> None:
     p.add_argument("--floor", action="store_true", help="also run the same load against a pass-through filler")
     p.add_argument("--floor-model", default="floor", help="with --connect --floor: the daemon's pass-through model name")
     p.add_argument("--budget-ms", type=float, default=4.0, help="with --model: the daemon's per-frame budget (default 4)")
+    p.add_argument("--overdue", choices=("drop", "serve"), default=None,
+                   help="with --model: what the daemon does with a frame it cannot answer within its budget "
+                        "(daemon.overdue; default drop)")
     p.add_argument("--busy-poll", type=float, default=0.0, metavar="MS",
                    help="spin instead of sleeping while waiting for answers (the client always; with --model the "
                         "daemon too, busy_poll_ms = MS), so neither side's kernel wake-up is in the round trip; "
@@ -86,6 +89,10 @@ def add_commands(cli) -> None:
     p.add_argument("--cpu-latency", type=int, default=None, metavar="US",
                    help="with --model: the daemon holds a PM QoS CPU latency request of US microseconds "
                         "(daemon.cpu_latency_us; 0 keeps the CPUs out of sleep states) while it runs")
+    p.add_argument("--realtime", type=int, default=None, metavar="PRIO",
+                   help="with --model: the daemon's serving threads run SCHED_RR at this priority, 1-99 "
+                        "(daemon.realtime_priority; needs CAP_SYS_NICE or RLIMIT_RTPRIO); the load generator "
+                        "stays ordinary")
     p.add_argument("--bundle", action="store_true",
                    help="each connection sends its streams' frames of a tick as one `frames` message (answers come "
                         "back as one `replies`), as a capture system tracking several performers has them")
@@ -214,6 +221,15 @@ def _bench(args: argparse.Namespace) -> int:
     if args.cpu_latency is not None and not args.model:
         raise LacunaError("--cpu-latency sets the config of the daemon --model starts; a daemon at --connect "
                           "takes it from its own config (daemon.cpu_latency_us)")
+    for flag, v in (("--realtime", args.realtime), ("--overdue", args.overdue)):
+        if v is not None and not args.model:
+            raise LacunaError(f"{flag} sets the config of the daemon --model starts; a daemon at --connect "
+                              f"takes it from its own config")
+    if args.realtime is not None and not 1 <= args.realtime <= 99:
+        raise LacunaError(f"--realtime must be a priority between 1 and 99 (got {args.realtime})")
+    if args.realtime is not None and args.busy_poll:
+        raise LacunaError("--realtime and --busy-poll cannot be used together: a spinning real-time thread starves "
+                          "the kernel's network processing on its core")
     if args.cpu_latency is not None and not 0 <= args.cpu_latency <= 1_000_000:
         raise LacunaError(f"--cpu-latency must be between 0 and 1000000 microseconds (got {args.cpu_latency})")
     return bench.run(args)

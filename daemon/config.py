@@ -30,6 +30,7 @@ from lacuna.errors import LacunaError
 
 BUILTINS = ("passthrough",)
 LOG_LEVELS = ("debug", "info", "warning", "error")
+OVERDUE = ("drop", "serve")
 
 
 class ConfigError(LacunaError, ValueError):
@@ -56,6 +57,8 @@ class Config:
     log_level: str = "info"
     busy_poll_ms: float = 0.0  # spin this long after the last message before sleeping in poll (0: never spin)
     cpu_latency_us: int | None = None  # PM QoS request held while running (daemon/pmqos.py); None: none
+    realtime_priority: int | None = None  # SCHED_RR priority for the serving threads (daemon/realtime.py); None: ordinary
+    overdue: str = "drop"  # a frame that cannot be answered within budget_ms of receipt: "drop" it or "serve" it late
     default_model: str = ""
     models: dict[str, ModelSpec] = field(default_factory=dict)
     stream_models: dict[str, str] = field(default_factory=dict)
@@ -70,8 +73,8 @@ class Config:
     security: Any = None  # daemon.security.SecuritySpec, set by security.apply_config
 
     def summary(self) -> dict[str, Any]:
-        return {"path": self.path, "budget_ms": self.budget_ms, "busy_poll_ms": self.busy_poll_ms,
-                "cpu_latency_us": self.cpu_latency_us,
+        return {"path": self.path, "budget_ms": self.budget_ms, "overdue": self.overdue, "busy_poll_ms": self.busy_poll_ms,
+                "cpu_latency_us": self.cpu_latency_us, "realtime_priority": self.realtime_priority,
                 "default_model": self.default_model,
                 "router": self.zmq_router, "pull": self.zmq_pull, "sub": self.zmq_sub, "pub": self.zmq_pub,
                 "osc_listen": _hp(self.osc_listen), "osc_send": _hp(self.osc_send),
@@ -94,6 +97,8 @@ _SCHEMA: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "log_level": (str, LOG_LEVELS),
         "busy_poll_ms": ((int, float), (0.0, 1000.0)),
         "cpu_latency_us": (int, (0, 1_000_000)),
+        "overdue": (str, OVERDUE),
+        "realtime_priority": (int, (1, 99)),
         "default_model": (str, None),
     },
     "zmq": {
@@ -160,9 +165,17 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
     cfg.budget_ms = float(d.get("budget_ms", cfg.budget_ms))
     cfg.idle_timeout_s = float(d.get("idle_timeout_s", cfg.idle_timeout_s))
     cfg.busy_poll_ms = float(d.get("busy_poll_ms", cfg.busy_poll_ms))
-    for k in ("max_streams", "max_message_bytes", "max_gap_frames", "max_batch", "log_level", "cpu_latency_us"):
+    for k in ("max_streams", "max_message_bytes", "max_gap_frames", "max_batch", "log_level", "cpu_latency_us", "overdue",
+              "realtime_priority"):
         if k in d:
             setattr(cfg, k, d[k])
+    if cfg.realtime_priority is not None and cfg.busy_poll_ms > 0:
+        # a real-time thread that spins keeps ordinary work off its core, the kernel's own network
+        # processing (ksoftirqd) and the capture software included: on the 2-core VM of
+        # docs/BENCHMARKS.md round trips then took tens of milliseconds and most frames overran
+        raise ConfigError(f"{where}: daemon.realtime_priority and daemon.busy_poll_ms > 0 cannot be used together "
+                          f"(a spinning real-time thread starves the kernel's network processing on its core); "
+                          f"choose one")
 
     models = raw.get("models", {})
     if not isinstance(models, dict) or not models:

@@ -122,6 +122,31 @@ class Scheduler:
             del self.costs[k]
         self.last_step.pop(id(model), None)
 
+    def hold_estimate(self, n: int) -> float:
+        """Seconds to hold ``n`` streams (the cheapest answer to a frame), with the safety margin."""
+        return self.hold_cost.estimate(n) if self.hold_cost.seen else SAFETY * HOLD_COST_S * n
+
+    def overdue(self, arrived: list[float], now: float) -> list[bool]:
+        """Which of a tick's frames (receipt times, in any order) cannot be answered within the
+        budget even if every stream were held: the tick answers oldest first, so the frame k-th
+        in that order is sent about hold(n) + (k + 1) * reply cost after ``now``.  Frames are
+        taken oldest first; one that misses its deadline at its place is marked and frees its
+        place for the next."""
+        n = len(arrived)
+        start = now + self.hold_estimate(n)
+        r = self.reply_cost
+        budget = self.budget_s
+        if min(arrived) + budget >= start + r * n:  # the usual case: the oldest makes it at the back
+            return [False] * n
+        out = [False] * n
+        kept = 0
+        for i in sorted(range(n), key=arrived.__getitem__):
+            if arrived[i] + budget >= start + r * (kept + 1):
+                kept += 1
+            else:
+                out[i] = True
+        return out
+
     # ---- planning ---------------------------------------------------------------------------
     def _gap(self, s: Session) -> int:
         p = s.pending

@@ -28,6 +28,7 @@ from daemon.metrics import Metrics, MetricsHTTP
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
 from daemon.pmqos import CpuLatency
+from daemon.realtime import Realtime, ordinary
 from daemon.scheduler import Scheduler, fill_messages
 from daemon.session import Origin, SessionError, SessionTable
 from daemon.transport import Transports
@@ -67,6 +68,7 @@ class Daemon:
         self.metrics = Metrics()
         self.notify = Notifier()
         self.qos = CpuLatency()
+        self.rt = Realtime()
         self.models: dict[str, Loaded] = {}
         self.sched = Scheduler(cfg.budget_ms, cfg.max_gap_frames, cfg.max_batch)
         self.sessions = SessionTable(self._resolve, cfg.max_streams, self._count)
@@ -86,7 +88,8 @@ class Daemon:
         # (session, its last answered seq before the burst, the served frame's Pending,
         #  [(unpacked map, origin, arrived) or None where the served frame came, ...])
         self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
-        self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` drops, sent after its fills
+        self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` (and `overdue`) drops, sent after its fills
+        self._drop_overdue = self.cfg.overdue == "drop"
 
     @property
     def _busy_s(self) -> float:
@@ -115,6 +118,7 @@ class Daemon:
         if self.cfg.metrics_http:
             self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom)
         self._request_cpu_latency()
+        self._request_realtime()  # (after every thread the daemon starts for good, so only these get it)
         self._prom = self.metrics.prometheus(self.status())
         self.log("info", "ready", always=True, pid=os.getpid(), config=self.cfg.path, endpoints=self.endpoints(),
                  models={n: m.info() for n, m in self.models.items()})
@@ -144,6 +148,22 @@ class Daemon:
             self.metrics.inc("cpu_latency_refused")
             self.log("warning", "cpu_latency_refused", requested_us=us, error=self.qos.error,
                      detail="serving without it; see systemd/lacuna.service for granting the device")
+
+    def _request_realtime(self) -> None:
+        prio = self.cfg.realtime_priority
+        if prio == self.rt.requested and (self.rt.held or prio is None):
+            return
+        n_io = self.net.ctx.get(zmq.IO_THREADS) if self.net is not None and self.net.ctx is not None else 0
+        if self.rt.request(prio, n_io):
+            self.log("info", "realtime", priority=prio, threads=self.rt.info()["threads"],
+                     detail="the serving thread and ZeroMQ's I/O threads run SCHED_RR ahead of ordinary work")
+            if self.cfg.busy_poll_ms > 0:
+                self.log("warning", "realtime_busy_poll", busy_poll_ms=self.cfg.busy_poll_ms,
+                         detail="a spinning real-time thread keeps its core from ordinary work while frames flow")
+        elif prio is not None:
+            self.metrics.inc("realtime_refused")
+            self.log("warning", "realtime_refused", priority=prio, error=self.rt.error,
+                     detail="serving at the ordinary priority; see systemd/lacuna.service for LimitRTPRIO")
 
     def endpoints(self) -> dict[str, Any]:
         out = self.net.endpoints() if self.net is not None else {}
@@ -443,15 +463,25 @@ class Daemon:
             self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
 
     def _serve(self) -> None:
-        groups: dict[tuple[int, int], tuple[Any, list]] = {}
-        for s in self.sessions.sessions.values():
-            if s.pending is not None:
-                # by width too: a pass-through "any channels" model serves streams of different
-                # widths, and one batch stacks frames of one width
-                groups.setdefault((id(s.model), s.mapping.n_model), (s.model, []))[1].append(s)
-        if not groups:
+        pend = [s for s in self.sessions.sessions.values() if s.pending is not None]
+        if not pend:
             return
         t0 = time.perf_counter()
+        if self._drop_overdue:
+            late = self.sched.overdue([s.pending.arrived for s in pend], t0)  # type: ignore[union-attr]
+            if True in late:
+                # (answered after the fills, as conflated frames are)
+                for s, x in zip(pend, late):
+                    if x:
+                        self._conflated.extend(self.sessions.overdue(s))
+                pend = [s for s, x in zip(pend, late) if not x]
+                if not pend:
+                    return
+        groups: dict[tuple[int, int], tuple[Any, list]] = {}
+        for s in pend:
+            # by width too: a pass-through "any channels" model serves streams of different
+            # widths, and one batch stacks frames of one width
+            groups.setdefault((id(s.model), s.mapping.n_model), (s.model, []))[1].append(s)
         results = self.sched.run(groups, t0)
         if len(results) > 1:
             # answered oldest first: the frame that arrived first is the nearest its budget
@@ -461,17 +491,28 @@ class Daemon:
         self.metrics.step_time(time.perf_counter() - t0)
         t1 = time.perf_counter()
         msgs = fill_messages(results, t1)  # reads s.pending and s.last_seq (for gap)
-        for (s, fill, status), msg in zip(results, msgs):
+        sent: list[tuple[Any, float]] = []
+        n, rc, budget = len(results), self.sched.reply_cost, self.sched.budget_s
+        for k, ((s, fill, status), msg) in enumerate(zip(results, msgs)):
             p = s.pending
-            s.last_seq = p.frame.seq
-            s.pending = None
             if isinstance(msg, Exception):  # a fill the wire cannot carry: answer with an error, keep serving
+                s.last_seq, s.pending = p.frame.seq, None
                 e = msg
                 self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
                 self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
                 continue
             now = time.perf_counter()
-            msg.proc_us = int((now - p.arrived) * 1e6)  # receipt to this reply's encoding (sent right after the tick)
+            if self._drop_overdue and now + rc * (n - k) - p.arrived > budget:
+                # the step ran longer than planned (most often the OS gave the CPU to someone
+                # else): by the time this fill would leave it would be over budget.  The filter
+                # has taken the frame; the answer is the drop the plan would have made.
+                self.metrics.inc("overdue_after_step")
+                self._conflated.extend(self.sessions.overdue(s))
+                continue
+            s.last_seq = p.frame.seq
+            s.pending = None
+            # receipt to this reply's encoding (it is sent with the tick's other replies, below)
+            msg.proc_us = int((now - p.arrived) * 1e6)
             s.counts["frames_out"] += 1
             if status == "degraded":
                 s.counts["degraded"] += 1
@@ -479,11 +520,25 @@ class Daemon:
                 # held (hold-last-value) vs stepped with fewer Gibbs iterations
                 self.metrics.inc("degraded_held" if fill.degraded else "degraded_iterations")
             self.metrics.inc("frames_out")
-            self.metrics.latency(now - p.arrived)
+            sent.append((s, p.arrived))
             self._send(p.origin, msg, publish=True)
+        if self.net is not None:
+            self.net.send_held()  # the fills leave now; the turn's drops after them
         if results:
-            per = (time.perf_counter() - t1) / len(results)
-            self.sched.reply_cost = 0.9 * self.sched.reply_cost + 0.1 * per
+            t2 = time.perf_counter()
+            # what a reply costs, encoding to sent (the overdue test above and the plan use it)
+            self.sched.reply_cost = 0.9 * self.sched.reply_cost + 0.1 * (t2 - t1) / len(results)
+            # receipt to sent: the latency in `status` and the over-budget count (an upper bound
+            # for each reply of the tick: all of them had left by t2)
+            lat = self.metrics.latency
+            over = 0
+            for s, arrived in sent:
+                lat(t2 - arrived)
+                if t2 - arrived > budget:
+                    s.counts["over_budget"] += 1
+                    over += 1
+            if over:
+                self.metrics.inc("over_budget", over)
 
     def _abandon_pending(self, why: str) -> None:
         """After a failed tick: answer every waiting frame (and every frame set aside as
@@ -530,7 +585,7 @@ class Daemon:
     def status(self) -> dict[str, Any]:
         return {
             "pid": os.getpid(), "uptime_s": round(time.time() - self.started, 3), "config": self.cfg.path,
-            "budget_ms": self.cfg.budget_ms, "default_model": self.cfg.default_model,
+            "budget_ms": self.cfg.budget_ms, "overdue": self.cfg.overdue, "default_model": self.cfg.default_model,
             "models": {n: m.info() for n, m in self.models.items()},
             "latency": self.metrics.latency_summary(), "step": self.metrics.step_summary(),
             "counters": dict(self.metrics.counters), "rejected": dict(self.metrics.rejected),
@@ -538,7 +593,7 @@ class Daemon:
             "expired": self.sessions.expired, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
             "security": self.net.guard.info() if self.net is not None and self.net.guard is not None else None,
-            "cpu_latency": self.qos.info(),
+            "cpu_latency": self.qos.info(), "realtime": self.rt.info(),
         }
 
     def _status_line(self) -> str:
@@ -559,6 +614,7 @@ class Daemon:
         path = self.cfg.path
 
         def work() -> None:
+            ordinary()  # (loading a model must not compete with serving frames)
             try:
                 new_cfg = config_mod.load(path) if path else self.cfg
             except config_mod.ConfigError as e:
@@ -593,10 +649,12 @@ class Daemon:
         if new_cfg is not None:
             self.cfg = new_cfg
             self.sched.budget_s = new_cfg.budget_ms / 1000.0
+            self._drop_overdue = new_cfg.overdue == "drop"
             self.sched.max_gap, self.sched.max_batch = new_cfg.max_gap_frames, new_cfg.max_batch
             self.sessions.max_streams = new_cfg.max_streams
             self.log = Log(new_cfg.log_level, self.log.stream)
             self._request_cpu_latency()
+            self._request_realtime()
             if self.net is not None and self.net.guard is not None:
                 skipped = self.net.guard.reload(new_cfg.security)  # re-reads the authorized keys
                 if skipped:
@@ -657,6 +715,7 @@ class Daemon:
             self.http.close()
             self.http = None
         self.qos.release()
+        self.rt.release()
         self.notify.close()
 
 

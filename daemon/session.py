@@ -23,7 +23,8 @@ from lacuna.filler import FillerState, Model
 Origin = tuple  # (transport name, address): ("router", envelope) | ("router", envelope, "bundle") | ("pull", None) | ("osc", (host, port))
 Out = list[tuple[Origin, wire.Message]]
 
-COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset", "rejected", "degraded", "held", "predicted", "restarts")
+COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset",
+            "dropped_overdue", "over_budget", "rejected", "degraded", "held", "predicted", "restarts")
 
 
 @dataclass
@@ -77,7 +78,7 @@ class Session:
     model: Model
     mapping: Mapping
     state: FillerState
-    last_seq: int | None = None  # last sequence number answered (filled, held)
+    last_seq: int | None = None  # last sequence number answered (filled, held, or dropped `overdue`)
     model_seq: int | None = None  # last sequence number the filler state consumed
     last_out: np.ndarray | None = None  # (n_model,) last completed frame, for hold-last-value
     pending: Pending | None = None
@@ -209,6 +210,17 @@ class SessionTable:
         s.counts["dropped_conflated"] += 1
         self.count("dropped_conflated", s.sid)
         return [(p.origin, wire.Drop(s.sid, p.frame.seq, "conflated"))]
+
+    def overdue(self, s: Session) -> Out:
+        """The frame waiting in ``s`` cannot be answered within the budget: ``overdue``.  It
+        counts as answered (a repeat of it is a duplicate); the filter state has not seen it,
+        so the stream's next frame predicts through it as through any gap."""
+        p, s.pending = s.pending, None
+        assert p is not None
+        s.last_seq = p.frame.seq
+        s.counts["dropped_overdue"] += 1
+        self.count("dropped_overdue", s.sid)
+        return [(p.origin, wire.Drop(s.sid, p.frame.seq, "overdue"))]
 
     # ---- frames -----------------------------------------------------------------------------
     def frame(self, f: wire.Frame, origin: Origin, arrived: float) -> Out:

@@ -180,6 +180,13 @@ class Transports:
         if self._held is None:
             self._held = []
 
+    def send_held(self) -> None:
+        """Send what :meth:`hold` queued so far and go on holding (a turn's fills go out before
+        its drops); outside a held turn, nothing to do."""
+        if self._held is not None:
+            self.flush()
+            self._held = []
+
     def flush(self) -> None:
         held, self._held = self._held, None
         if held:

@@ -1,9 +1,10 @@
 """Config validation, OSC decoding, sessions and the scheduler's planning, without sockets."""
 from __future__ import annotations
 
+import os
 import shutil
-import time
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,10 @@ def test_example_config_validates():
     ("[models.m]\nbuiltin = \"passthrough\"\n[streams.s1]\nmodel = \"other\"\n", "streams.s1.model 'other' is not under"),
     ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nmax_streams = true\n", "daemon.max_streams must be an integer"),
     ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nlog_level = \"loud\"\n", "daemon.log_level must be one of"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\noverdue = \"late\"\n", "daemon.overdue must be one of"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nrealtime_priority = 100\n", "daemon.realtime_priority must be between"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nrealtime_priority = 0\n", "daemon.realtime_priority must be between"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nrealtime_priority = 5\nbusy_poll_ms = 1\n", "cannot be used together"),
     ("models = [", "not valid TOML"),
 ])
 def test_raises_on_bad_config(tmp_path, text, needle):
@@ -407,7 +412,9 @@ class _Recording:
     here, in process, against in-order handling; tests/test_daemon_e2e.py has it over sockets)."""
 
     @staticmethod
-    def make(batch_min: int, budget_ms: float = 100.0):
+    def make(batch_min: int, budget_ms: float = 100.0, overdue: str = "serve"):
+        # (these tests give frames made-up receipt times: "serve" keeps the overdue check, which
+        # reads the clock, out of them; the overdue tests below pass "drop")
         from daemon import server
 
         class D(server.Daemon):
@@ -421,7 +428,7 @@ class _Recording:
                 finally:
                     server.BATCH_MIN = old
 
-        cfg = config.from_dict({"daemon": {"budget_ms": budget_ms, "max_streams": 8, "log_level": "error"},
+        cfg = config.from_dict({"daemon": {"budget_ms": budget_ms, "max_streams": 8, "log_level": "error", "overdue": overdue},
                                 "models": {"pt": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
         d = D(cfg, server.Log("error"))
         d.sent = []
@@ -603,3 +610,100 @@ def test_a_tick_answers_its_frames_oldest_first():
     d._serve()
     assert [m.stream for _, m in d.sent] == ["early", "mid", "late", "latest"]
     assert all(isinstance(m, wire.FillMsg) for _, m in d.sent)
+
+
+# ---- frames the daemon cannot answer within its budget (daemon.overdue) ------------------------
+def test_overdue_marks_only_the_frames_that_cannot_make_their_deadline():
+    """Oldest first, each frame at its place in the reply order: hold(n) + (place) x reply cost
+    after now; a frame marked frees its place for the next."""
+    sched = Scheduler(budget_ms=4.0, max_gap=5, max_batch=64)
+    sched.reply_cost = 100e-6
+    sched.hold_cost.observe(4, 4 * 10e-6)  # holding: 10 us a stream, x SAFETY
+    now = 100.0
+    assert sched.overdue([now - 1e-3, now, now - 2e-3], now) == [False] * 3  # plenty of time
+    # 4 frames: hold 50 us, then replies at +100, +200, ... us.  Ages 3.9 ms, 3.85 ms, 3.6 ms, 0:
+    ages = [3.9e-3, 3.85e-3, 3.6e-3, 0.0]
+    got = sched.overdue([now - a for a in ages], now)
+    # 3.9 + 0.05 + 0.1 > 4: marked; 3.85 + 0.05 + 0.1 = 4.0: in time at place 1; 3.6 + 0.05 + 0.2: in time
+    assert got == [True, False, False, False]
+
+
+def _overdue_daemon(overdue: str, budget_ms: float = 5.0):
+    d = _Recording.make(3, budget_ms=budget_ms, overdue=overdue)
+    d.sessions.hello(wire.Hello("a", ["ch0", "ch1", "ch2"]))
+    return d
+
+
+def _send_frame(d, seq: int, arrived: float) -> None:
+    d._batch([(wire.encode(wire.Frame("a", seq, seq / 120, np.full(3, float(seq), np.float32))), ("router", [b"p"]), arrived)])
+
+
+def test_a_frame_too_old_to_answer_in_budget_is_dropped_overdue_after_the_fills():
+    d = _overdue_daemon("drop")
+    _send_frame(d, 0, time.perf_counter())
+    d._serve()
+    assert [type(m).__name__ for _, m in d.sent] == ["FillMsg"]
+    d.sent.clear()
+    _send_frame(d, 1, time.perf_counter() - 0.006)  # read 6 ms ago: over the 5 ms budget already
+    d._serve()
+    assert d.sent == []  # nothing is sent before the turn's fills
+    d._answer_superseded()
+    assert [(type(m).__name__, m.seq, m.reason) for _, m in d.sent] == [("Drop", 1, "overdue")]
+    s = d.sessions.sessions["a"]
+    assert s.counts["dropped_overdue"] == 1 and s.info()["dropped"] == 1 and s.counts["frames_out"] == 1
+    assert d.metrics.counters["dropped_overdue"] == 1 and s.pending is None and s.last_seq == 1
+    # the frame counts as answered: sent again it is a duplicate; the next one is served
+    d.sent.clear()
+    _send_frame(d, 1, time.perf_counter())
+    _send_frame(d, 2, time.perf_counter())
+    d._serve()
+    assert [(type(m).__name__, m.seq) for _, m in d.sent] == [("Drop", 1), ("FillMsg", 2)]
+    assert d.sent[0][1].reason == "duplicate" and d.sent[1][1].status == "passthrough"
+    # with overdue = "serve" the same frame is filled, late, and counted over budget
+    d = _overdue_daemon("serve")
+    _send_frame(d, 0, time.perf_counter() - 0.006)
+    d._serve()
+    d._answer_superseded()
+    assert [type(m).__name__ for _, m in d.sent] == ["FillMsg"] and d.sent[0][1].proc_us > 6000
+    s = d.sessions.sessions["a"]
+    assert s.counts["dropped_overdue"] == 0 and s.counts["over_budget"] == 1 and d.metrics.counters["over_budget"] == 1
+
+
+def test_a_step_that_overruns_turns_its_fill_into_an_overdue_drop():
+    """The plan thought the step fitted (its cost estimate says so), the step then took three
+    budgets (as when the OS takes the CPU away): the fill would leave over budget, so the frame
+    is answered `overdue` instead; the filter has taken it."""
+    d = _overdue_daemon("drop", budget_ms=5.0)
+    model = d.models["pt"].model
+    step = model.step_batch
+
+    def slow(states, frames, observed):
+        time.sleep(0.015)
+        return step(states, frames, observed)
+
+    _send_frame(d, 0, time.perf_counter())
+    model.step_batch = slow
+    try:
+        d._serve()
+    finally:
+        del model.step_batch
+    d._answer_superseded()
+    assert [(type(m).__name__, m.seq, getattr(m, "reason", None)) for _, m in d.sent] == [("Drop", 0, "overdue")]
+    s = d.sessions.sessions["a"]
+    assert d.metrics.counters["overdue_after_step"] == 1 and s.counts["dropped_overdue"] == 1
+    assert s.counts["frames_out"] == 0 and s.last_seq == 0 and s.pending is None
+
+
+def test_realtime_request_without_zeromq_threads_changes_nothing_and_says_why(monkeypatch):
+    """(In this test process, which has no ZeroMQ I/O thread: the request must find every I/O
+    thread it was told of before it touches any thread.)"""
+    from daemon import realtime
+
+    monkeypatch.setattr(realtime, "IO_WAIT_S", 0.05)
+    before = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    rt = realtime.Realtime()
+    assert rt.request(3, n_io=2) is False
+    assert not rt.held and "found 0 of ZeroMQ's 2 I/O thread(s)" in rt.error
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
+    assert rt.info() == {"requested_priority": 3, "held": False, "threads": {}, "error": rt.error}
+    assert rt.request(None) is False and rt.error is None

@@ -264,8 +264,11 @@ def test_slow_consumers_make_the_daemon_drop_output_never_block(tmp_path, walk):
     model.save(str(tmp_path / "walk.npz"))
     # the flood goes to a pass-through model with wide frames (9 KB per fill), so the stuck
     # consumers' kernel buffers (MBs on loopback) fill up and ZeroMQ has to drop
+    # (overdue = "serve": a turn that reads thousands of flood messages can take longer than the
+    # budget, and the good stream's frames read in it would be dropped `overdue`; this test is
+    # about answers that cannot be sent, and wants every good frame filled)
     ep = write_config(tmp_path / "lacuna.toml", {"floor": {"builtin": "passthrough"}, "walk": {"file": "walk.npz"}},
-                      pull=True, osc=True, extra='[streams.good]\nmodel = "walk"\n')
+                      pull=True, osc=True, extra='[streams.good]\nmodel = "walk"\n', daemon={"overdue": "serve"})
     text = open(tmp_path / "lacuna.toml").read().replace("[zmq]\n", "[zmq]\nhwm = 50\n")
     open(tmp_path / "lacuna.toml", "w").write(text)
     d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
