@@ -105,6 +105,10 @@ class Scheduler:
         self.max_batch = max_batch
         self.costs: dict[tuple[int, int | None], CostModel] = {}
         self.reply_cost = REPLY_COST_S
+        # the same in two parts: building and encoding a reply, and sending it (a tick's replies
+        # are encoded one after another, then sent together, oldest first)
+        self.encode_cost = REPLY_COST_S / 3
+        self.send_cost = REPLY_COST_S * 2 / 3
         self.hold_cost = CostModel()
         self.last_step: dict[int, float] = {}  # id(model) -> perf_counter of its last real step
         self.probes = 0
@@ -126,22 +130,26 @@ class Scheduler:
         """Seconds to hold ``n`` streams (the cheapest answer to a frame), with the safety margin."""
         return self.hold_cost.estimate(n) if self.hold_cost.seen else SAFETY * HOLD_COST_S * n
 
+    def sent_at(self, now: float, to_encode: int, place: int) -> float:
+        """When a reply leaves: after the ``to_encode`` replies still to build (itself included)
+        and, once the tick's replies are sent together, after the ``place - 1`` sent before it."""
+        return now + to_encode * self.encode_cost + place * self.send_cost
+
     def overdue(self, arrived: list[float], now: float) -> list[bool]:
         """Which of a tick's frames (receipt times, in any order) cannot be answered within the
-        budget even if every stream were held: the tick answers oldest first, so the frame k-th
-        in that order is sent about hold(n) + (k + 1) * reply cost after ``now``.  Frames are
+        budget even if every stream were held: the tick answers oldest first, so the k-th frame
+        in that order leaves about hold(n) + n encodings + k sends after ``now``.  Frames are
         taken oldest first; one that misses its deadline at its place is marked and frees its
         place for the next."""
         n = len(arrived)
         start = now + self.hold_estimate(n)
-        r = self.reply_cost
         budget = self.budget_s
-        if min(arrived) + budget >= start + r * n:  # the usual case: the oldest makes it at the back
+        if min(arrived) + budget >= self.sent_at(start, n, n):  # the usual case: the oldest makes it at the back
             return [False] * n
         out = [False] * n
         kept = 0
         for i in sorted(range(n), key=arrived.__getitem__):
-            if arrived[i] + budget >= start + r * (kept + 1):
+            if arrived[i] + budget >= self.sent_at(start, n, kept + 1):
                 kept += 1
             else:
                 out[i] = True

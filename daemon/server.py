@@ -492,7 +492,7 @@ class Daemon:
         t1 = time.perf_counter()
         msgs = fill_messages(results, t1)  # reads s.pending and s.last_seq (for gap)
         sent: list[tuple[Any, float]] = []
-        n, rc, budget = len(results), self.sched.reply_cost, self.sched.budget_s
+        n, budget, sent_at = len(results), self.sched.budget_s, self.sched.sent_at
         for k, ((s, fill, status), msg) in enumerate(zip(results, msgs)):
             p = s.pending
             if isinstance(msg, Exception):  # a fill the wire cannot carry: answer with an error, keep serving
@@ -502,7 +502,7 @@ class Daemon:
                 self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
                 continue
             now = time.perf_counter()
-            if self._drop_overdue and now + rc * (n - k) - p.arrived > budget:
+            if self._drop_overdue and sent_at(now, n - k, len(sent) + 1) - p.arrived > budget:
                 # the step ran longer than planned (most often the OS gave the CPU to someone
                 # else): by the time this fill would leave it would be over budget.  The filter
                 # has taken the frame; the answer is the drop the plan would have made.
@@ -522,12 +522,18 @@ class Daemon:
             self.metrics.inc("frames_out")
             sent.append((s, p.arrived))
             self._send(p.origin, msg, publish=True)
+        te = time.perf_counter()
         if self.net is not None:
             self.net.send_held()  # the fills leave now; the turn's drops after them
         if results:
             t2 = time.perf_counter()
-            # what a reply costs, encoding to sent (the overdue test above and the plan use it)
-            self.sched.reply_cost = 0.9 * self.sched.reply_cost + 0.1 * (t2 - t1) / len(results)
+            # what a reply costs: building and encoding it, and sending it (the plan and the
+            # overdue checks use these)
+            sc = self.sched
+            sc.reply_cost = 0.9 * sc.reply_cost + 0.1 * (t2 - t1) / n
+            sc.encode_cost = 0.9 * sc.encode_cost + 0.1 * (te - t1) / n
+            if sent:
+                sc.send_cost = 0.9 * sc.send_cost + 0.1 * (t2 - te) / len(sent)
             # receipt to sent: the latency in `status` and the over-budget count (an upper bound
             # for each reply of the tick: all of them had left by t2)
             lat = self.metrics.latency

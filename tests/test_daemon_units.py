@@ -614,10 +614,10 @@ def test_a_tick_answers_its_frames_oldest_first():
 
 # ---- frames the daemon cannot answer within its budget (daemon.overdue) ------------------------
 def test_overdue_marks_only_the_frames_that_cannot_make_their_deadline():
-    """Oldest first, each frame at its place in the reply order: hold(n) + (place) x reply cost
-    after now; a frame marked frees its place for the next."""
+    """Oldest first, each frame at its place in the reply order: hold(n) + n encodings + (place)
+    sends after now; a frame marked frees its place for the next."""
     sched = Scheduler(budget_ms=4.0, max_gap=5, max_batch=64)
-    sched.reply_cost = 100e-6
+    sched.encode_cost, sched.send_cost = 0.0, 100e-6
     sched.hold_cost.observe(4, 4 * 10e-6)  # holding: 10 us a stream, x SAFETY
     now = 100.0
     assert sched.overdue([now - 1e-3, now, now - 2e-3], now) == [False] * 3  # plenty of time
@@ -626,6 +626,10 @@ def test_overdue_marks_only_the_frames_that_cannot_make_their_deadline():
     got = sched.overdue([now - a for a in ages], now)
     # 3.9 + 0.05 + 0.1 > 4: marked; 3.85 + 0.05 + 0.1 = 4.0: in time at place 1; 3.6 + 0.05 + 0.2: in time
     assert got == [True, False, False, False]
+    # encoding all four first puts 4 x 25 us before every send: 3.85 ms is then too old as well
+    sched.encode_cost = 25e-6
+    assert sched.overdue([now - a for a in ages], now) == [True, True, False, False]
+    assert sched.sent_at(now, 3, 2) == pytest.approx(now + 3 * 25e-6 + 2 * 100e-6)
 
 
 def _overdue_daemon(overdue: str, budget_ms: float = 5.0):
