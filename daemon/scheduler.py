@@ -126,9 +126,21 @@ class Scheduler:
             del self.costs[k]
         self.last_step.pop(id(model), None)
 
-    def hold_estimate(self, n: int) -> float:
-        """Seconds to hold ``n`` streams (the cheapest answer to a frame), with the safety margin."""
-        return self.hold_cost.estimate(n) if self.hold_cost.seen else SAFETY * HOLD_COST_S * n
+    @staticmethod
+    def _ema(old: float, seen: float) -> float:
+        # one send stretched by the OS must not make the next ticks drop everything: clip
+        return 0.9 * old + 0.1 * min(seen, OUTLIER * old)
+
+    def observe_replies(self, n: int, encode_s: float, total_s: float) -> None:
+        """A tick built and encoded ``n`` replies in ``encode_s`` and had them sent ``total_s``
+        after it began."""
+        self.reply_cost = self._ema(self.reply_cost, total_s / n)
+        self.encode_cost = self._ema(self.encode_cost, encode_s / n)
+
+    def observe_sends(self, n: int, seconds: float) -> None:
+        """``n`` answers (fills, drops, errors) went out in ``seconds``: every turn that answers
+        anything updates this, so an estimate inflated by one bad moment cannot outlive it."""
+        self.send_cost = self._ema(self.send_cost, seconds / n)
 
     def sent_at(self, now: float, to_encode: int, place: int) -> float:
         """When a reply leaves: after the ``to_encode`` replies still to build (itself included)
@@ -137,19 +149,19 @@ class Scheduler:
 
     def overdue(self, arrived: list[float], now: float) -> list[bool]:
         """Which of a tick's frames (receipt times, in any order) cannot be answered within the
-        budget even if every stream were held: the tick answers oldest first, so the k-th frame
-        in that order leaves about hold(n) + n encodings + k sends after ``now``.  Frames are
-        taken oldest first; one that misses its deadline at its place is marked and frees its
-        place for the next."""
+        budget even at no cost but sending: the tick answers oldest first, so the k-th frame in
+        that order leaves k sends after ``now`` at the soonest.  Frames are taken oldest first;
+        one that misses its deadline at its place is marked and frees its place for the next.
+        (Only the send cost, which every turn measures, counts here: an estimate that only
+        frames let through would refresh could otherwise keep every frame out.)"""
         n = len(arrived)
-        start = now + self.hold_estimate(n)
         budget = self.budget_s
-        if min(arrived) + budget >= self.sent_at(start, n, n):  # the usual case: the oldest makes it at the back
+        if min(arrived) + budget >= self.sent_at(now, 0, n):  # the usual case: the oldest makes it at the back
             return [False] * n
         out = [False] * n
         kept = 0
         for i in sorted(range(n), key=arrived.__getitem__):
-            if arrived[i] + budget >= self.sent_at(start, n, kept + 1):
+            if arrived[i] + budget >= self.sent_at(now, 0, kept + 1):
                 kept += 1
             else:
                 out[i] = True

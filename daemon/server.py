@@ -196,15 +196,14 @@ class Daemon:
                         net.receive(ready)  # type: ignore[union-attr]
                     self._serve()
                     if self._superseded or self._conflated:
-                        net.flush()  # type: ignore[union-attr]  # the fills first
-                        net.hold()  # type: ignore[union-attr]
+                        self._send_held()  # the fills first
                         self._answer_superseded()
                 except Exception as e:  # never let a bug end the service: log, count, go on
                     self.metrics.inc("internal_errors")
                     self.log("error", "internal_error", where="loop", error=f"{type(e).__name__}: {e}"[:300])
                     self._abandon_pending(f"{type(e).__name__} while serving")
                 finally:
-                    net.flush()  # type: ignore[union-attr]
+                    self._send_held(hold_on=False)
                 if self.flag_stop:
                     break
                 now = time.monotonic()
@@ -523,17 +522,11 @@ class Daemon:
             sent.append((s, p.arrived))
             self._send(p.origin, msg, publish=True)
         te = time.perf_counter()
-        if self.net is not None:
-            self.net.send_held()  # the fills leave now; the turn's drops after them
+        self._send_held()  # the fills leave now; the turn's drops after them
         if results:
             t2 = time.perf_counter()
-            # what a reply costs: building and encoding it, and sending it (the plan and the
-            # overdue checks use these)
-            sc = self.sched
-            sc.reply_cost = 0.9 * sc.reply_cost + 0.1 * (t2 - t1) / n
-            sc.encode_cost = 0.9 * sc.encode_cost + 0.1 * (te - t1) / n
-            if sent:
-                sc.send_cost = 0.9 * sc.send_cost + 0.1 * (t2 - te) / len(sent)
+            # what a reply costs (the plan and the overdue checks use it)
+            self.sched.observe_replies(n, te - t1, t2 - t1)
             # receipt to sent: the latency in `status` and the over-budget count (an upper bound
             # for each reply of the tick: all of them had left by t2)
             lat = self.metrics.latency
@@ -545,6 +538,16 @@ class Daemon:
                     over += 1
             if over:
                 self.metrics.inc("over_budget", over)
+
+    def _send_held(self, hold_on: bool = True) -> None:
+        """Send the answers held so far (and hold again, or not), timing it for the scheduler."""
+        net = self.net
+        if net is None:
+            return
+        t0 = time.perf_counter()
+        n = net.send_held() if hold_on else net.flush()
+        if n:
+            self.sched.observe_sends(n, time.perf_counter() - t0)
 
     def _abandon_pending(self, why: str) -> None:
         """After a failed tick: answer every waiting frame (and every frame set aside as

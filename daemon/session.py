@@ -213,11 +213,14 @@ class SessionTable:
 
     def overdue(self, s: Session) -> Out:
         """The frame waiting in ``s`` cannot be answered within the budget: ``overdue``.  It
-        counts as answered (a repeat of it is a duplicate); the filter state has not seen it,
-        so the stream's next frame predicts through it as through any gap."""
+        counts as answered (a repeat of it is a duplicate).  The filter skips it, as it skips a
+        held frame: predicting through it at the next frame would cost time the daemon is short
+        of, making the next frame overdue too."""
         p, s.pending = s.pending, None
         assert p is not None
         s.last_seq = p.frame.seq
+        if s.model_seq is not None and s.model_seq < p.frame.seq:
+            s.model_seq = p.frame.seq
         s.counts["dropped_overdue"] += 1
         self.count("dropped_overdue", s.sid)
         return [(p.origin, wire.Drop(s.sid, p.frame.seq, "overdue"))]

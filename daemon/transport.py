@@ -180,23 +180,32 @@ class Transports:
         if self._held is None:
             self._held = []
 
-    def send_held(self) -> None:
+    def send_held(self) -> int:
         """Send what :meth:`hold` queued so far and go on holding (a turn's fills go out before
-        its drops); outside a held turn, nothing to do."""
-        if self._held is not None:
-            self.flush()
-            self._held = []
+        its drops); outside a held turn, nothing to do.  Returns the answers sent."""
+        if self._held is None:
+            return 0
+        n = self.flush()
+        self._held = []
+        return n
 
-    def flush(self) -> None:
+    def flush(self) -> int:
+        """Send what is held and stop holding; returns the number of answers sent (a `replies`
+        message counts its answers)."""
         held, self._held = self._held, None
+        n = 0
         if held:
             for sock_, parts, kind in held:
                 self._zsend(sock_, parts, kind)
+            n = len(held)
         if self._bundles:
             bundles, self._bundles = self._bundles, {}
             for envelope, bodies in bundles.items():
                 for i in range(0, len(bodies), wire.MAX_BUNDLE):
-                    self._zsend(self.router, [*envelope, wire.join_replies(bodies[i:i + wire.MAX_BUNDLE])], "router")  # type: ignore[arg-type]
+                    chunk = bodies[i:i + wire.MAX_BUNDLE]
+                    self._zsend(self.router, [*envelope, wire.join_replies(chunk)], "router")  # type: ignore[arg-type]
+                    n += len(chunk)  # (answers, for what an answer costs to send)
+        return n
 
     def _zsend(self, sock_: zmq.Socket, parts: list[bytes], kind: str) -> None:
         try:

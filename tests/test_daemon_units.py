@@ -614,22 +614,34 @@ def test_a_tick_answers_its_frames_oldest_first():
 
 # ---- frames the daemon cannot answer within its budget (daemon.overdue) ------------------------
 def test_overdue_marks_only_the_frames_that_cannot_make_their_deadline():
-    """Oldest first, each frame at its place in the reply order: hold(n) + n encodings + (place)
-    sends after now; a frame marked frees its place for the next."""
+    """Oldest first, each frame at its place in the reply order, at no cost but the sends before
+    it; a frame marked frees its place for the next."""
     sched = Scheduler(budget_ms=4.0, max_gap=5, max_batch=64)
-    sched.encode_cost, sched.send_cost = 0.0, 100e-6
-    sched.hold_cost.observe(4, 4 * 10e-6)  # holding: 10 us a stream, x SAFETY
+    sched.encode_cost, sched.send_cost = 50e-6, 100e-6
     now = 100.0
     assert sched.overdue([now - 1e-3, now, now - 2e-3], now) == [False] * 3  # plenty of time
-    # 4 frames: hold 50 us, then replies at +100, +200, ... us.  Ages 3.9 ms, 3.85 ms, 3.6 ms, 0:
-    ages = [3.9e-3, 3.85e-3, 3.6e-3, 0.0]
-    got = sched.overdue([now - a for a in ages], now)
-    # 3.9 + 0.05 + 0.1 > 4: marked; 3.85 + 0.05 + 0.1 = 4.0: in time at place 1; 3.6 + 0.05 + 0.2: in time
-    assert got == [True, False, False, False]
-    # encoding all four first puts 4 x 25 us before every send: 3.85 ms is then too old as well
-    sched.encode_cost = 25e-6
+    ages = [3.95e-3, 3.85e-3, 3.6e-3, 0.0]
+    # 3.95 + 0.1 > 4: marked; 3.85 + 0.1 at place 1: in time; 3.6 + 0.2: in time (encoding is not counted)
+    assert sched.overdue([now - a for a in ages], now) == [True, False, False, False]
+    sched.send_cost = 200e-6  # 3.85 + 0.2 at place 1 is now too late as well
     assert sched.overdue([now - a for a in ages], now) == [True, True, False, False]
-    assert sched.sent_at(now, 3, 2) == pytest.approx(now + 3 * 25e-6 + 2 * 100e-6)
+    assert sched.sent_at(now, 3, 2) == pytest.approx(now + 3 * 50e-6 + 2 * 200e-6)
+
+
+def test_reply_cost_estimates_shrug_off_one_stretched_send():
+    """One send held up by the OS for 5 ms moves the estimate by a bounded step, and every turn
+    that sends anything refreshes it."""
+    sched = Scheduler(budget_ms=4.0, max_gap=5, max_batch=64)
+    sched.send_cost = 20e-6
+    sched.observe_sends(1, 5e-3)
+    assert sched.send_cost == pytest.approx(0.9 * 20e-6 + 0.1 * 80e-6)
+    for _ in range(60):
+        sched.observe_sends(64, 64 * 10e-6)
+    assert sched.send_cost == pytest.approx(10e-6, rel=0.05)
+    sched.encode_cost = sched.reply_cost = 10e-6
+    sched.observe_replies(64, 64 * 5e-6, 64 * 15e-6)
+    assert sched.encode_cost == pytest.approx(0.9 * 10e-6 + 0.1 * 5e-6)
+    assert sched.reply_cost == pytest.approx(0.9 * 10e-6 + 0.1 * 15e-6)
 
 
 def _overdue_daemon(overdue: str, budget_ms: float = 5.0):
