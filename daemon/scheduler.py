@@ -147,11 +147,13 @@ class Scheduler:
         and, once the tick's replies are sent together, after the ``place - 1`` sent before it."""
         return now + to_encode * self.encode_cost + place * self.send_cost
 
-    def overdue(self, arrived: list[float], now: float) -> list[bool]:
+    def overdue(self, arrived: list[float], now: float, late: list[int] | None = None) -> list[bool]:
         """Which of a tick's frames (receipt times, in any order) cannot be answered within the
         budget even at no cost but sending: the tick answers oldest first, so the k-th frame in
         that order leaves k sends after ``now`` at the soonest.  Frames are taken oldest first;
         one that misses its deadline at its place is marked and frees its place for the next.
+        Frames read at the same moment (a bundle's) go in order of ``late`` (frames in a row each
+        stream had dropped), most first, so the same streams do not lose every time.
         (Only the send cost, which every turn measures, counts here: an estimate that only
         frames let through would refresh could otherwise keep every frame out.)"""
         n = len(arrived)
@@ -160,7 +162,8 @@ class Scheduler:
             return [False] * n
         out = [False] * n
         kept = 0
-        for i in sorted(range(n), key=arrived.__getitem__):
+        late = late or [0] * n
+        for i in sorted(range(n), key=lambda i: (arrived[i], -late[i])):
             if arrived[i] + budget >= self.sent_at(now, 0, kept + 1):
                 kept += 1
             else:

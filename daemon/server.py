@@ -36,6 +36,7 @@ from daemon.transport import Transports
 BATCH_MIN = 3  # messages in a turn from which frames superseded within it are answered after the step
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
 HOUSEKEEPING_S = 0.5
+RELOAD_SWITCH_S = 0.0005  # sys.setswitchinterval while a reload thread runs (see _start_reload)
 REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, summarised
 DRAIN_LINGER_MS = 1000  # on SIGTERM, let answers already queued reach their peers
 LEVELS = {"debug": 10, "info": 20, "warning": 30, "error": 40}
@@ -69,6 +70,7 @@ class Daemon:
         self.notify = Notifier()
         self.qos = CpuLatency()
         self.rt = Realtime()
+        self._rt_tried = False
         self.models: dict[str, Loaded] = {}
         self.sched = Scheduler(cfg.budget_ms, cfg.max_gap_frames, cfg.max_batch)
         self.sessions = SessionTable(self._resolve, cfg.max_streams, self._count)
@@ -79,6 +81,7 @@ class Daemon:
         self.flag_stop = False
         self._reload_thread: threading.Thread | None = None
         self._reload_result: tuple[config_mod.Config | None, dict[str, Loaded], dict[str, str]] | None = None
+        self._switch = sys.getswitchinterval()  # restored when a reload finishes
         self._reload_waiters: list[Origin] = []
         self.last_reload: dict[str, Any] = {}
         self.started = time.time()
@@ -151,15 +154,13 @@ class Daemon:
 
     def _request_realtime(self) -> None:
         prio = self.cfg.realtime_priority
-        if prio == self.rt.requested and (self.rt.held or prio is None):
-            return
+        if prio == self.rt.requested and (self.rt.held or self._rt_tried or prio is None):
+            return  # (a refused request is tried again only when the config asks for another)
+        self._rt_tried = prio is not None
         n_io = self.net.ctx.get(zmq.IO_THREADS) if self.net is not None and self.net.ctx is not None else 0
         if self.rt.request(prio, n_io):
             self.log("info", "realtime", priority=prio, threads=self.rt.info()["threads"],
                      detail="the serving thread and ZeroMQ's I/O threads run SCHED_RR ahead of ordinary work")
-            if self.cfg.busy_poll_ms > 0:
-                self.log("warning", "realtime_busy_poll", busy_poll_ms=self.cfg.busy_poll_ms,
-                         detail="a spinning real-time thread keeps its core from ordinary work while frames flow")
         elif prio is not None:
             self.metrics.inc("realtime_refused")
             self.log("warning", "realtime_refused", priority=prio, error=self.rt.error,
@@ -196,7 +197,7 @@ class Daemon:
                         net.receive(ready)  # type: ignore[union-attr]
                     self._serve()
                     if self._superseded or self._conflated:
-                        self._send_held()  # the fills first
+                        self._send_held()  # what came since the fills (they are out already)
                         self._answer_superseded()
                 except Exception as e:  # never let a bug end the service: log, count, go on
                     self.metrics.inc("internal_errors")
@@ -467,7 +468,8 @@ class Daemon:
             return
         t0 = time.perf_counter()
         if self._drop_overdue:
-            late = self.sched.overdue([s.pending.arrived for s in pend], t0)  # type: ignore[union-attr]
+            late = self.sched.overdue([s.pending.arrived for s in pend], t0,  # type: ignore[union-attr]
+                                      [s.late_streak for s in pend])
             if True in late:
                 # (answered after the fills, as conflated frames are)
                 for s, x in zip(pend, late):
@@ -490,6 +492,7 @@ class Daemon:
         self.metrics.step_time(time.perf_counter() - t0)
         t1 = time.perf_counter()
         msgs = fill_messages(results, t1)  # reads s.pending and s.last_seq (for gap)
+        t1e = time.perf_counter()
         sent: list[tuple[Any, float]] = []
         n, budget, sent_at = len(results), self.sched.budget_s, self.sched.sent_at
         for k, ((s, fill, status), msg) in enumerate(zip(results, msgs)):
@@ -501,7 +504,9 @@ class Daemon:
                 self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
                 continue
             now = time.perf_counter()
-            if self._drop_overdue and sent_at(now, n - k, len(sent) + 1) - p.arrived > budget:
+            # (a bundle's answers leave together, in one `replies`, after the tick's other answers)
+            place = n if len(p.origin) == 3 else len(sent) + 1
+            if self._drop_overdue and sent_at(now, n - k, place) - p.arrived > budget:
                 # the step ran longer than planned (most often the OS gave the CPU to someone
                 # else): by the time this fill would leave it would be over budget.  The filter
                 # has taken the frame; the answer is the drop the plan would have made.
@@ -510,6 +515,7 @@ class Daemon:
                 continue
             s.last_seq = p.frame.seq
             s.pending = None
+            s.late_streak = 0
             # receipt to this reply's encoding (it is sent with the tick's other replies, below)
             msg.proc_us = int((now - p.arrived) * 1e6)
             s.counts["frames_out"] += 1
@@ -522,11 +528,11 @@ class Daemon:
             sent.append((s, p.arrived))
             self._send(p.origin, msg, publish=True)
         te = time.perf_counter()
-        self._send_held()  # the fills leave now; the turn's drops after them
+        self._send_held(len(sent))  # the fills leave now; the turn's drops after them
         if results:
             t2 = time.perf_counter()
             # what a reply costs (the plan and the overdue checks use it)
-            self.sched.observe_replies(n, te - t1, t2 - t1)
+            self.sched.observe_replies(n, te - t1e, t2 - t1)
             # receipt to sent: the latency in `status` and the over-budget count (an upper bound
             # for each reply of the tick: all of them had left by t2)
             lat = self.metrics.latency
@@ -539,13 +545,17 @@ class Daemon:
             if over:
                 self.metrics.inc("over_budget", over)
 
-    def _send_held(self, hold_on: bool = True) -> None:
-        """Send the answers held so far (and hold again, or not), timing it for the scheduler."""
+    def _send_held(self, answers: int | None = None, hold_on: bool = True) -> None:
+        """Send the answers held so far (and hold again, or not), timing it for the scheduler:
+        per answer (``answers``: how many of them are the caller's to count; a fill also goes
+        to PUB, so it is more than one message), else per message sent."""
         net = self.net
         if net is None:
             return
         t0 = time.perf_counter()
         n = net.send_held() if hold_on else net.flush()
+        if answers:
+            n = answers
         if n:
             self.sched.observe_sends(n, time.perf_counter() - t0)
 
@@ -639,12 +649,18 @@ class Daemon:
                 return
             self._reload_result = (new_cfg, table, errors)
 
+        # the reload thread holds the GIL while it loads and checks models; the serving thread,
+        # wanting it, waits up to the switch interval (5 ms by default, over a 4 ms budget): ask
+        # for a hand-over ten times as often while the reload runs
+        self._switch = sys.getswitchinterval()
+        sys.setswitchinterval(RELOAD_SWITCH_S)
         self._reload_thread = threading.Thread(target=work, name="reload", daemon=True)
         self._reload_thread.start()
 
     def _finish_reload(self) -> None:
         new_cfg, table, errors = self._reload_result  # type: ignore[misc]
         self._reload_result = None
+        sys.setswitchinterval(self._switch)
         if new_cfg is not None:
             moved = [k for k in ("zmq_router", "zmq_pull", "zmq_sub", "zmq_pub", "osc_listen", "metrics_http")
                      if getattr(new_cfg, k) != getattr(self.cfg, k)]
@@ -717,6 +733,7 @@ class Daemon:
                  send_dropped=c.get("send_dropped", 0), send_errors=c.get("send_errors", 0))
 
     def close(self) -> None:
+        self.rt.release()  # (before the ZeroMQ threads end: their ids must not be reused by then)
         if self.net is not None:
             self.net.close(DRAIN_LINGER_MS if self.flag_stop else 0)
             self.net = None
@@ -724,7 +741,6 @@ class Daemon:
             self.http.close()
             self.http = None
         self.qos.release()
-        self.rt.release()
         self.notify.close()
 
 
@@ -732,8 +748,9 @@ def _decode_map(m: dict, max_bytes: int) -> wire.Message:
     return wire.decode_map(m)  # (already unpacked, within max_bytes)
 
 
-def _arrival(r: tuple) -> float:
-    return r[0].pending.arrived
+def _arrival(r: tuple) -> tuple[float, int]:
+    # (frames read together, a bundle's: the streams that were dropped `overdue` most go first)
+    return r[0].pending.arrived, -r[0].late_streak
 
 
 def serve(path: str) -> int:

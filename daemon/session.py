@@ -84,6 +84,7 @@ class Session:
     pending: Pending | None = None
     last_active: float = field(default_factory=time.monotonic)
     held_streak: int = 0
+    late_streak: int = 0  # frames in a row answered `overdue`: breaks ties in who goes first
     counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
 
     def restart(self) -> None:
@@ -219,6 +220,7 @@ class SessionTable:
         p, s.pending = s.pending, None
         assert p is not None
         s.last_seq = p.frame.seq
+        s.late_streak += 1
         if s.model_seq is not None and s.model_seq < p.frame.seq:
             s.model_seq = p.frame.seq
         s.counts["dropped_overdue"] += 1

@@ -387,7 +387,7 @@ def test_broken_config_on_sighup_keeps_the_old_config_serving(tmp_path, walk):
     breakers = [
         ("UTF-16", lambda: cfg.write_bytes(good_text.encode("utf-16")), "not UTF-8"),
         ("not TOML", lambda: cfg.write_text(good_text + "\n[daemon\n"), "not valid TOML"),
-        ("bad value", lambda: cfg.write_text(good_text.replace("budget_ms = 50.0", "budget_ms = -1")), "budget_ms"),
+        ("bad value", lambda: cfg.write_text(good_text.replace("budget_ms = 250.0", "budget_ms = -1")), "budget_ms"),
         ("exposed without keys", lambda: cfg.write_text(good_text.replace("[zmq]", "[osc]\nlisten = \"0.0.0.0:9\"\n[zmq]")),
          "osc_allow"),
         ("deleted", lambda: cfg.unlink(), "cannot read"),
