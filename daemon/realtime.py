@@ -29,7 +29,6 @@ import time
 from typing import Any
 
 POLICY = os.SCHED_RR
-MAX_PRIORITY = 99
 IO_THREAD_PREFIX = "ZMQbg/IO"
 IO_WAIT_S = 2.0  # for ZeroMQ's I/O threads to show up by name
 

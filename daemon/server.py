@@ -70,7 +70,6 @@ class Daemon:
         self.notify = Notifier()
         self.qos = CpuLatency()
         self.rt = Realtime()
-        self._rt_tried = False
         self.models: dict[str, Loaded] = {}
         self.sched = Scheduler(cfg.budget_ms, cfg.max_gap_frames, cfg.max_batch)
         self.sessions = SessionTable(self._resolve, cfg.max_streams, self._count)
@@ -91,7 +90,7 @@ class Daemon:
         # (session, its last answered seq before the burst, the served frame's Pending,
         #  [(unpacked map, origin, arrived) or None where the served frame came, ...])
         self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
-        self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` (and `overdue`) drops, sent after its fills
+        self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` and `overdue` drops, sent after its fills
         self._drop_overdue = self.cfg.overdue == "drop"
 
     @property
@@ -154,9 +153,8 @@ class Daemon:
 
     def _request_realtime(self) -> None:
         prio = self.cfg.realtime_priority
-        if prio == self.rt.requested and (self.rt.held or self._rt_tried or prio is None):
-            return  # (a refused request is tried again only when the config asks for another)
-        self._rt_tried = prio is not None
+        if prio == self.rt.requested:
+            return  # (held, or refused: tried again only when the config asks for another priority)
         n_io = self.net.ctx.get(zmq.IO_THREADS) if self.net is not None and self.net.ctx is not None else 0
         if self.rt.request(prio, n_io):
             self.log("info", "realtime", priority=prio, threads=self.rt.info()["threads"],
@@ -505,8 +503,7 @@ class Daemon:
                 continue
             now = time.perf_counter()
             # (a bundle's answers leave together, in one `replies`, after the tick's other answers)
-            place = n if len(p.origin) == 3 else len(sent) + 1
-            if self._drop_overdue and sent_at(now, n - k, place) - p.arrived > budget:
+            if self._drop_overdue and sent_at(now, n - k, n if len(p.origin) == 3 else len(sent) + 1) - p.arrived > budget:
                 # the step ran longer than planned (most often the OS gave the CPU to someone
                 # else): by the time this fill would leave it would be over budget.  The filter
                 # has taken the frame; the answer is the drop the plan would have made.
