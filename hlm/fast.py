@@ -20,6 +20,8 @@ import math
 import numpy as np
 
 from lacuna.jit import enabled, jit as _jit  # noqa: F401  (enabled: re-exported for callers)
+from mocap import fastrepr
+from mocap.fastrepr import encode1, finish1
 
 
 @_jit
@@ -224,3 +226,71 @@ def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, row
         post[...] = post1
     state["t"] += 1
     return out, sd, [{"style": style[i].tolist(), "phase": float(phase[i])} for i in range(n)]
+
+
+# ---- one stream, the whole step in one call -------------------------------------------------------
+# A lone stream (the usual live case: one performer, a frame every 8.3 ms) pays the glue around the
+# compiled code more than the code: after the daemon has waited for a frame, three compiled calls
+# with their argument lists and the arrays between them cost several times the filter itself
+# (docs/BENCHMARKS.md, "one HLM stream's step").  ``_step_slot`` runs encoder, filter and decoder
+# on a state pool's row in one call, the tables packed once per model.
+
+
+@_jit
+def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, rt, post, t, D, W, G, GW, cyc, ht,
+               live, live_stats, out, sd, style):  # pragma: no cover - compiled
+    """fastrepr.encode1 -> _step -> fastrepr.finish1 for pool row r: the arithmetic of
+    ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Writes the
+    completed frame to out, its std to sd, the style posterior to style; returns the phase."""
+    center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF = rt
+    prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin = ht
+    C = frame.shape[0]
+    x = np.empty(C)
+    for c in range(C):
+        x[c] = frame[c] if observed[c] else np.nan
+    z = np.empty(nF)
+    zobs = np.empty(nF, np.bool_)
+    encode1(x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], center, dr, df, dang, any_angle,
+            relative, rot, pos, rootf, fsrc, normalize, mean, std, z, zobs)
+    q = r if cyc else 0
+    zf = np.empty(nF)
+    zsd = np.empty(nF)
+    p = post[r].reshape(post.shape[1] * post.shape[2])
+    phase = _step(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
+                  D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style)
+    t[r] += 1
+    prev_yaw[r] = finish1(zf, zsd, x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], center, const,
+                          dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, out, sd)
+    started[r] = True
+    return phase
+
+
+def slot_tables(tab, rep) -> tuple:
+    """(representation tables, filter tables, zero stand-ins for the stream-cycle statistics of a
+    filter without them) as ``_step_slot`` takes them."""
+    t = fastrepr.tables(rep)
+    rt = (t["center"], t["const"], t["dr"], t["df"], t["dang"], t["any_angle"], t["relative"], t["rot"], t["pos"],
+          t["rootf"], t["fsrc"], t["rsrc"], t["normalize"], t["mean"], t["std"], int(rep.n_features))
+    ht = (tab.prior_flat, tab.d_pop, int(tab.shape[1]), tab.em.fused_t, tab.mu, tab.bin0, tab.bin1, tab.bin_a,
+          float(tab.kappa), float(tab.kappa_global), int(tab.n_bins), tab.lam_rows, tab.var_q, tab.pack, tab.cos,
+          tab.sin)
+    z = np.zeros((1, 1, int(rep.n_features)))
+    return rt, ht, z
+
+
+def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarray,
+              live: float = 1e-10, live_stats: float = 1e-4) -> tuple[np.ndarray, np.ndarray, dict]:
+    """One frame of the stream in pool row r (a ``lacuna.feature_model.StatePool`` of an HLM):
+    frame (C,) float64, observed (C,) bool.  Updates the row in place; returns (completed (C,),
+    std (C,), extras).  ``tables``: ``slot_tables``'s."""
+    rt, ht, zero = tables
+    rp, cp = pool.repr, pool.core
+    C = frame.shape[0]
+    out = np.empty(C)
+    sd = np.empty(C)
+    style = np.empty(ht[0].shape[0] // ht[2])
+    cyc = "D" in cp
+    D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
+    phase = _step_slot(r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rt,
+                       cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style)
+    return out, sd, {"style": style.tolist(), "phase": phase}

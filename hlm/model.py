@@ -97,6 +97,17 @@ class HLMModel(FeatureModel):
     def core_init(self, n: int) -> dict[str, np.ndarray]:
         return online.init_state(self.tables, n)
 
+    def step_one(self, slot: int, frame: np.ndarray, observed: np.ndarray) -> Fill | None:
+        # encoder, compiled filter and decoder in one call (hlm.fast.step_slot), where the compiled
+        # step serves this filter at all
+        if not fast.usable(self.tables):
+            return None
+        tabs = self.__dict__.get("_slot_tables")
+        if tabs is None:
+            tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, self.representation)
+        done, std, extras = fast.step_slot(tabs, self.pool, slot, frame, observed, online.LIVE, LIVE_STATS)
+        return Fill(done, std, ~observed, extras)
+
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
                   rows: np.ndarray | None = None) -> CoreOut:
         if fast.usable(self.tables):

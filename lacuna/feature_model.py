@@ -149,6 +149,12 @@ class FeatureModel(Model):
         rs = ReprState.of(self.representation, *(pool.repr[a][lo:hi] for a in REPR_ATTRS))
         return rs, {k: v[lo:hi] for k, v in pool.core.items()}
 
+    def step_one(self, slot: int, frame: np.ndarray, observed: np.ndarray) -> Fill | None:
+        """Optional: one stream's step (pool row ``slot``; frame (C,) float64, observed (C,) bool)
+        in one compiled call, the same arithmetic as ``step_arrays`` on the row's views.  None:
+        this core has none here (``step_arrays`` serves)."""
+        return None
+
     def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray) -> list[Fill]:
         mine = [s for s in states if isinstance(s, FeatureStream) and s.model is self]
         if len(mine) != len(states):
@@ -157,7 +163,11 @@ class FeatureModel(Model):
         observed = np.asarray(observed, dtype=bool)
         n = len(mine)
         if n == 1:
-            # one stream (the usual live case): its slot is its own contiguous block
+            # one stream (the usual live case): the core's whole-step call when it has one, else
+            # its slot is its own contiguous block
+            one = self.step_one(mine[0].slot, frames[0], observed[0])
+            if one is not None:
+                return [one]
             lo = mine[0].slot
             rs, cs = self._views(lo, lo + 1)
             done, std, extras = self.step_arrays(rs, cs, np.where(observed, frames, np.nan), observed)

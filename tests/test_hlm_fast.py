@@ -99,6 +99,36 @@ def test_compiled_batch_equals_numpy_batch(walk, monkeypatch, pick):
             assert abs(pa - pb) < 1e-9 or abs(abs(pa - pb) - 1.0) < 1e-9
 
 
+@pytest.mark.parametrize("options", [dict(), dict(kappa=0.0, kappa_global=0.0)], ids=["default", "faithful"])
+def test_one_call_step_equals_three_calls_on_any_pool_row(walk, monkeypatch, options):
+    """A lone stream through the seam (``step_batch`` of one) runs the whole step in one compiled
+    call (``hlm.fast.step_slot``); a stream stepped by ``stream.step`` runs the encoder, filter
+    and decoder as three.  Side by side, on rows 5 and 6 of a pool that grew (its arrays were
+    reallocated under the streams), fed the same frames: the same bits, every frame."""
+    model, frames, obs = walk
+    m = model.with_options(**options)
+    calls = []
+    orig = fast.step_slot
+    monkeypatch.setattr(fast, "step_slot", lambda *a, **k: calls.append(a[2]) or orig(*a, **k))
+    others = [m.stream() for _ in range(5)]             # rows 0-4; the pool grows from 4 to 8
+    one, three = m.stream(), m.stream()
+    assert (one.slot, three.slot) == (5, 6) and m.pool.capacity == 8
+    for t in range(frames.shape[0]):
+        f = np.where(obs[t], frames[t], np.nan)
+        a = m.step_batch([one], f[None], obs[t][None])[0]
+        b = three.step(f, obs[t])
+        np.testing.assert_array_equal(a.frame, b.frame)
+        np.testing.assert_array_equal(a.std, b.std)
+        np.testing.assert_array_equal(a.filled, b.filled)
+        assert a.extras["style"] == b.extras["style"] and a.extras["phase"] == b.extras["phase"]
+        if t == 100:  # a pool that grows mid-take moves every row's arrays: the next call must see the new ones
+            others += [m.stream() for _ in range(3)]
+            assert m.pool.capacity == 16
+    assert calls == [5] * frames.shape[0]
+    for o in others:  # the rows around them were never touched
+        assert int(m.pool.core["t"][o.slot]) == 0
+
+
 def test_filters_the_compiled_step_cannot_serve_take_the_numpy_path(walk):
     model, _, _ = walk
     assert not fast.usable(model.with_options(style_switch=1e-3).tables)
