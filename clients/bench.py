@@ -107,6 +107,7 @@ def run_one(endpoint: str, channels: list[str], frames: np.ndarray, observed: np
                                         if res.proc_us.size and st.get("budget_ms") else None),
         "send_lateness_ms_p99": float(np.percentile(res.lateness_ms, 99)),
         "daemon_counts": dc, "cpu_latency": st.get("cpu_latency"), "realtime": st.get("realtime"),
+        "prewarm": st.get("prewarm"),
         "counts_agree": dc["served"] == res.served and dc["dropped"] == res.dropped and dc["degraded"] == res.degraded,
     }
     return row, res.rtt_ms
@@ -128,6 +129,7 @@ def run(args: Any) -> int:
                                                     **({"overdue": args.overdue} if args.overdue else {}),
                                                     **({"realtime_priority": args.realtime} if args.realtime else {}),
                                                     **({"busy_poll_ms": float(args.busy_poll)} if args.busy_poll else {}),
+                                                    **({"prewarm_ms": float(args.prewarm)} if args.prewarm is not None else {}),
                                                     **({"cpu_latency_us": args.cpu_latency} if args.cpu_latency is not None else {})})
             if progress:
                 print(f"starting the daemon on {daemon.endpoint} with {args.model} ...", file=sys.stderr, flush=True)

@@ -93,6 +93,9 @@ def add_commands(cli) -> None:
                    help="with --model: the daemon's serving threads run SCHED_RR at this priority, 1-99 "
                         "(daemon.realtime_priority; needs CAP_SYS_NICE or RLIMIT_RTPRIO); the load generator "
                         "stays ordinary")
+    p.add_argument("--prewarm", type=float, default=None, metavar="MS",
+                   help="with --model: the daemon rehearses the last frame MS ms before the next is due, so the "
+                        "frame finds its path warm (daemon.prewarm_ms; 0: off; default: the daemon's, 0.5)")
     p.add_argument("--bundle", action="store_true",
                    help="each connection sends its streams' frames of a tick as one `frames` message (answers come "
                         "back as one `replies`), as a capture system tracking several performers has them")
@@ -221,7 +224,7 @@ def _bench(args: argparse.Namespace) -> int:
     if args.cpu_latency is not None and not args.model:
         raise LacunaError("--cpu-latency sets the config of the daemon --model starts; a daemon at --connect "
                           "takes it from its own config (daemon.cpu_latency_us)")
-    for flag, v in (("--realtime", args.realtime), ("--overdue", args.overdue)):
+    for flag, v in (("--realtime", args.realtime), ("--overdue", args.overdue), ("--prewarm", args.prewarm)):
         if v is not None and not args.model:
             raise LacunaError(f"{flag} sets the config of the daemon --model starts; a daemon at --connect "
                               f"takes it from its own config")
@@ -230,6 +233,8 @@ def _bench(args: argparse.Namespace) -> int:
     if args.realtime is not None and args.busy_poll:
         raise LacunaError("--realtime and --busy-poll cannot be used together: a spinning real-time thread starves "
                           "the kernel's network processing on its core")
+    if args.prewarm is not None and not 0 <= args.prewarm <= 100:
+        raise LacunaError(f"--prewarm must be between 0 and 100 ms (got {args.prewarm})")
     if args.cpu_latency is not None and not 0 <= args.cpu_latency <= 1_000_000:
         raise LacunaError(f"--cpu-latency must be between 0 and 1000000 microseconds (got {args.cpu_latency})")
     return bench.run(args)

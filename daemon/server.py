@@ -29,6 +29,7 @@ from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
 from daemon.pmqos import CpuLatency
 from daemon.realtime import Realtime, ordinary
+from daemon.prewarm import Prewarm
 from daemon.scheduler import Scheduler, fill_messages
 from daemon.session import Origin, SessionError, SessionTable
 from daemon.transport import Transports
@@ -92,6 +93,7 @@ class Daemon:
         self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
         self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` and `overdue` drops, sent after its fills
         self._drop_overdue = self.cfg.overdue == "drop"
+        self.prewarm = Prewarm(cfg.prewarm_ms)
 
     @property
     def _busy_s(self) -> float:
@@ -138,6 +140,7 @@ class Daemon:
                 n = self.sessions.rebind(name, ld.model)
                 self.log("info", "model_swapped", model=name, file=ld.spec.file, streams=n)
         self.models = table
+        self.prewarm.forget_models()
 
     def _request_cpu_latency(self) -> None:
         us = self.cfg.cpu_latency_us
@@ -186,6 +189,15 @@ class Daemon:
                 wd = self.notify.watchdog_due(time.monotonic())
                 if wd is not None:
                     timeout = min(timeout, max(0, int(wd * 1000)))
+                pw = self.prewarm
+                if timeout and pw.due is not None:
+                    # the next frame is due soon: warm the path it takes (daemon/prewarm.py); the
+                    # poll's timeout is whole milliseconds, so this runs lead to lead + 1 ms ahead
+                    left = pw.due - time.perf_counter()
+                    if left < 0.001:
+                        pw.rehearse(self.sessions.sessions, self.sched, self.net._encode)  # type: ignore[union-attr]
+                    else:
+                        timeout = min(timeout, int(left * 1000))
                 ready = self._spin(timeout) if timeout and self._busy_s else self.net.poll(timeout)  # type: ignore[union-attr]
                 net = self.net
                 net.hold()  # type: ignore[union-attr]  # this turn's answers go out together, after its work
@@ -523,9 +535,12 @@ class Daemon:
                 self.metrics.inc("degraded_held" if fill.degraded else "degraded_iterations")
             self.metrics.inc("frames_out")
             sent.append((s, p.arrived))
+            last = (s, p.frame, p.arrived)
             self._send(p.origin, msg, publish=True)
         te = time.perf_counter()
         self._send_held(len(sent))  # the fills leave now; the turn's drops after them
+        if sent and self.prewarm.on:
+            self.prewarm.served(*last, self.sched)
         if results:
             t2 = time.perf_counter()
             # what a reply costs (the plan and the overdue checks use it)
@@ -609,7 +624,7 @@ class Daemon:
             "expired": self.sessions.expired, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
             "security": self.net.guard.info() if self.net is not None and self.net.guard is not None else None,
-            "cpu_latency": self.qos.info(), "realtime": self.rt.info(),
+            "cpu_latency": self.qos.info(), "realtime": self.rt.info(), "prewarm": self.prewarm.info(),
         }
 
     def _status_line(self) -> str:
@@ -672,6 +687,7 @@ class Daemon:
             self.cfg = new_cfg
             self.sched.budget_s = new_cfg.budget_ms / 1000.0
             self._drop_overdue = new_cfg.overdue == "drop"
+            self.prewarm.lead_s = new_cfg.prewarm_ms / 1000.0
             self.sched.max_gap, self.sched.max_batch = new_cfg.max_gap_frames, new_cfg.max_batch
             self.sessions.max_streams = new_cfg.max_streams
             self.log = Log(new_cfg.log_level, self.log.stream)

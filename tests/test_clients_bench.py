@@ -48,9 +48,10 @@ def test_bench_command_with_floor_writes_table_json_and_plot(tmp_path, capsys):
     g = synth.gait(2.0, seed=3)
     HoldModel.fit([g.frames], g.channels).save(str(tmp_path / "hold.npz"))
     rc = main(["bench", "--streams", "2", "--rate", "60", "--seconds", "1", "--model", str(tmp_path / "hold.npz"),
-               "--floor", "--json", str(tmp_path / "b.json"), "--plot", str(tmp_path / "b.png"), "-q"])
+               "--floor", "--prewarm", "2", "--json", str(tmp_path / "b.json"), "--plot", str(tmp_path / "b.png"), "-q"])
     assert rc == 0
     out = json.loads((tmp_path / "b.json").read_text())
+    assert out["prewarm"]["lead_ms"] == 2.0 and out["prewarm"]["errors"] == 0  # --prewarm reached the daemon
     for k in ("p50_ms", "p90_ms", "p99_ms", "p999_ms", "max_ms", "served", "degraded", "dropped", "cpu_percent"):
         assert k in out, k
     assert set(out["runs"]) == {"model", "floor"}
@@ -95,6 +96,9 @@ def test_bench_connect_drives_a_running_daemon_and_its_floor_model(tmp_path, cap
         # a daemon without the floor model: a clear error naming the fix
         assert main(["bench", "--connect", d.endpoint, "--floor", "--floor-model", "nope", "--seconds", "0.1", "-q"]) == 2
         assert 'builtin = "passthrough"' in capsys.readouterr().err
+        # the daemon's own config decides its prewarm: the flag is for a daemon bench starts
+        assert main(["bench", "--connect", d.endpoint, "--prewarm", "1", "--seconds", "0.1", "-q"]) == 2
+        assert "--prewarm sets the config of the daemon --model starts" in capsys.readouterr().err
     finally:
         d.stop()
 

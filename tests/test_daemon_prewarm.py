@@ -1,0 +1,248 @@
+"""daemon.prewarm: rehearsing the last frame before the next is due changes nothing a stream sees.
+
+In process: a real HLM (trained in seconds on three subject-35 walks) behind the real Daemon
+object, its answers recorded instead of sent; one daemon rehearses before every frame, the other
+never, and their fills must be the same bytes.  Over sockets: a daemon process paced at 120 Hz
+rehearses before nearly every frame and its fills equal the model's own stream."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from daemon import config, prewarm, server, wire
+
+PERIOD = 1.0 / 120.0
+
+
+@pytest.fixture(scope="module")
+def hlm_walk(data, tmp_path_factory):
+    from hlm.methods import train_model
+    from mocap.datasets import load_trial
+
+    train = [load_trial(t) for t in ("35_01", "35_06", "35_07")]
+    channels = list(train[0].channels)
+    model = train_model([m.frames for m in train], channels, n_iter=3, restarts=1, styles=2)
+    path = tmp_path_factory.mktemp("prewarm") / "hlm.npz"
+    model.save(str(path))
+    test = load_trial("35_08").frames[:120].astype(np.float32)
+    miss = np.array([c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand") for c in channels])
+    test[:, miss] = np.nan
+    return str(path), channels, test
+
+
+class _Recording(server.Daemon):
+    def _send(self, origin, msg, publish=False):
+        self.sent.append(msg)
+
+
+def _daemon(model_file: str, prewarm_ms: float) -> _Recording:
+    cfg = config.from_dict({"daemon": {"budget_ms": 1000.0, "log_level": "error", "overdue": "serve",
+                                       "prewarm_ms": prewarm_ms},
+                            "models": {"hlm": {"file": model_file}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
+    d = _Recording(cfg, server.Log("error"))
+    d.sent = []
+    from daemon.models import load_all
+
+    table, errors = load_all(cfg)
+    assert not errors
+    d._install(table)
+    return d
+
+
+def _modest_cost(d: _Recording, sid: str) -> None:
+    """The model's step cost estimate, as a quiet machine measures it (a loaded test machine's
+    warm-up may have measured one over MAX_STEP_S, and then no rehearsal is planned: tested below)."""
+    cm = d.sched.cost(d.sessions.sessions[sid].model, None)
+    cm.s, cm.seen = [0.0] * 5, False
+    cm.observe(1, 100e-6)
+
+
+def _serve(d: _Recording, sid: str, seq: int, values: np.ndarray, arrived: float) -> wire.FillMsg:
+    d.sent.clear()
+    d._batch([(wire.encode(wire.Frame(sid, seq, seq * PERIOD, values)), ("router", [b"p"]), arrived)])
+    d._serve()
+    (m,) = d.sent
+    assert isinstance(m, wire.FillMsg)
+    return m
+
+
+def _snapshot(d: _Recording, sid: str):
+    s = d.sessions.sessions[sid]
+    pool = s.model.pool
+    row = {k: v[s.state.slot].copy() for k, v in (*pool.core.items(), *pool.repr.items())}
+    costs = {k: list(c.s) for k, c in d.sched.costs.items()}
+    return row, costs, dict(s.counts), s.last_seq, s.model_seq, s.last_out.copy(), dict(d.metrics.counters)
+
+
+def _same(a, b) -> bool:
+    row_a, *rest_a = a
+    row_b, *rest_b = b
+    return (row_a.keys() == row_b.keys() and all(np.array_equal(row_a[k], row_b[k]) for k in row_a)
+            and all(np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y for x, y in zip(rest_a, rest_b)))
+
+
+def test_rehearsing_before_every_frame_changes_no_fill_and_no_state(hlm_walk):
+    path, channels, test = hlm_walk
+    warm, plain = _daemon(path, 0.5), _daemon(path, 0.0)
+    for d in (warm, plain):
+        d.sessions.hello(wire.Hello("walk", channels))
+        _modest_cost(d, "walk")
+    t0 = time.perf_counter()
+    for t in range(test.shape[0]):
+        arrived = t0 + t * PERIOD  # a capture clock's receipt times (the turns themselves run back to back)
+        if t >= 4:
+            # a frame is due: the warm daemon has planned its rehearsal, and the rehearsal leaves
+            # the stream's filter row, its counters, the scheduler's costs and the metrics as they were
+            due = warm.prewarm.due
+            assert due is not None and arrived - PERIOD < due < arrived
+            before, n_sent = _snapshot(warm, "walk"), len(warm.sent)
+            warm.prewarm.rehearse(warm.sessions.sessions, warm.sched, wire.encode)
+            assert warm.prewarm.due is None and len(warm.sent) == n_sent  # nothing was sent
+            assert _same(before, _snapshot(warm, "walk"))
+        a, b = _serve(warm, "walk", t, test[t], arrived), _serve(plain, "walk", t, test[t], arrived)
+        assert a.angles.tobytes() == b.angles.tobytes() and a.std.tobytes() == b.std.tobytes()
+        assert a.style.tobytes() == b.style.tobytes() and a.phase == b.phase and a.status == b.status == "ok"
+        assert a.filled.any()  # the arm is filled: the fills depend on the filter's state
+    assert warm.prewarm.count == test.shape[0] - 4 and warm.prewarm.errors == 0
+    assert plain.prewarm.count == 0 and plain.prewarm.due is None
+    info = warm.status()["prewarm"]
+    assert info["rehearsals"] == warm.prewarm.count and abs(info["period_ms"] - 1000 * PERIOD) < 0.01
+    # a rehearsal really steps the model (on its shadow state): the shadow has consumed frames
+    ((model, shadow),) = warm.prewarm._shadows.values()
+    assert int(model.pool.core["t"][shadow.slot]) == warm.prewarm.count
+
+
+def test_a_rehearsal_is_planned_only_for_a_regular_stream_fast_enough_to_gain(hlm_walk):
+    path, channels, test = hlm_walk
+    d = _daemon(path, 0.5)
+    d.sessions.hello(wire.Hello("walk", channels))
+    _modest_cost(d, "walk")
+    t0 = time.perf_counter()
+    for t in range(3):  # two gaps: not enough to call it a period
+        _serve(d, "walk", t, test[t], t0 + t * PERIOD)
+        assert d.prewarm.due is None
+    _serve(d, "walk", 3, test[3], t0 + 3 * PERIOD)
+    s = d.sessions.sessions["walk"]
+    step = d.sched.cost(s.model, None).estimate(1)
+    assert d.prewarm.due == pytest.approx(t0 + 4 * PERIOD - 0.0005 - step, abs=1e-9)
+    # frames of a burst (closer than MIN_GAP_S) do not count as the period
+    _serve(d, "walk", 4, test[4], t0 + 3 * PERIOD + 0.0002)
+    assert d.prewarm.period() == pytest.approx(PERIOD, abs=1e-9)
+    # a stream slower than MAX_PERIOD_S is not rehearsed for
+    slow = prewarm.Prewarm(0.5)
+    for k in range(5):
+        slow.served(s, wire.Frame("walk", k, 0.0, test[0]), t0 + k * 0.2, d.sched)
+    assert slow.period() == pytest.approx(0.2) and slow.due is None
+    # nor for a model whose step is estimated over MAX_STEP_S (a rehearsal would still be running
+    # when the frame lands)
+    cm = d.sched.cost(s.model, None)
+    for _ in range(200):
+        cm.observe(1, 0.01)
+    _serve(d, "walk", 5, test[5], t0 + 5 * PERIOD)
+    assert d.prewarm.due is None
+
+
+def test_a_stream_gone_since_is_not_rehearsed_and_a_failing_rehearsal_costs_no_frame(hlm_walk, monkeypatch):
+    path, channels, test = hlm_walk
+    d = _daemon(path, 0.5)
+    d.sessions.hello(wire.Hello("walk", channels))
+    _modest_cost(d, "walk")
+    t0 = time.perf_counter()
+    for t in range(5):
+        _serve(d, "walk", t, test[t], t0 + t * PERIOD)
+    assert d.prewarm.due is not None
+    d.sessions.reset("walk")
+    d.prewarm.rehearse(d.sessions.sessions, d.sched, wire.encode)
+    assert d.prewarm.count == 0 and d.prewarm.errors == 0 and d.prewarm.due is None
+    # a model that fails in the rehearsal: counted, the shadow dropped, and the next frame is served
+    d.sessions.hello(wire.Hello("walk", channels))
+    for t in range(5):
+        _serve(d, "walk", t, test[t], t0 + (5 + t) * PERIOD)
+    model = d.sessions.sessions["walk"].model
+    real = type(model).step_batch
+
+    def step_batch(self, states, frames, observed):
+        if any(x is shadow for x in states for _, shadow in d.prewarm._shadows.values()):
+            raise RuntimeError("shadow step failed")
+        return real(self, states, frames, observed)
+
+    monkeypatch.setattr(type(model), "step_batch", step_batch)
+    d.prewarm.rehearse(d.sessions.sessions, d.sched, wire.encode)
+    assert d.prewarm.errors == 1 and "shadow step failed" in d.prewarm.last_error and not d.prewarm._shadows
+    m = _serve(d, "walk", 5, test[5], t0 + 10 * PERIOD)
+    assert m.status == "ok" and m.seq == 5
+
+
+def test_a_reload_drops_the_shadows_and_takes_the_new_lead(hlm_walk):
+    path, channels, test = hlm_walk
+    d = _daemon(path, 0.5)
+    d.sessions.hello(wire.Hello("walk", channels))
+    t0 = time.perf_counter()
+    for t in range(5):
+        _serve(d, "walk", t, test[t], t0 + t * PERIOD)
+    d.prewarm.rehearse(d.sessions.sessions, d.sched, wire.encode)
+    assert d.prewarm._shadows
+    from daemon.models import load_all
+
+    table, errors = load_all(d.cfg)  # a fresh load of the file, as a SIGHUP makes: new model objects
+    assert not errors
+    d._install(table)
+    assert not d.prewarm._shadows and d.prewarm.due is None
+
+
+def test_a_daemon_paced_at_120_hz_rehearses_before_its_frames_and_fills_as_the_model_does(hlm_walk, tmp_path):
+    """The daemon as a process, a DEALER sending the walk at 120 Hz on loopback: it rehearses
+    between frames (status says how often, and the period it found), its fills are the model's
+    own causal stream's; with prewarm_ms = 0 it never rehearses."""
+    import zmq
+
+    from daemon import loadgen
+    from daemon.server import control
+    from lacuna.modelfile import load_model
+
+    path, channels, test = hlm_walk
+    ctx = zmq.Context()
+    procs = []
+    try:
+        for lead in (None, 0.0):
+            cfg = tmp_path / f"lacuna-{lead}.toml"
+            cfg.write_text("[daemon]\nbudget_ms = 250.0\nlog_level = \"warning\"\n"
+                           + ("" if lead is None else f"prewarm_ms = {lead}\n")
+                           + f"[models.hlm]\nfile = \"{path}\"\n[zmq]\nrouter = \"tcp://127.0.0.1:*\"\n")
+            d = loadgen.DaemonProcess(str(cfg))
+            procs.append(d)
+            d.start()
+            s = ctx.socket(zmq.DEALER)
+            s.setsockopt(zmq.LINGER, 0)
+            s.connect(d.endpoints["router"])
+            s.send(wire.encode(wire.Hello("walk", channels)))
+            assert s.poll(30000) and isinstance(wire.decode(s.recv()), wire.HelloAck)
+            ref = load_model(path).stream()
+            t0 = time.perf_counter() + 0.05
+            for t in range(test.shape[0]):
+                while time.perf_counter() < t0 + t * PERIOD:
+                    time.sleep(0.0002)
+                s.send(wire.encode(wire.Frame("walk", t, t * PERIOD, test[t])))
+                assert s.poll(30000), "no answer from the daemon"
+                m = wire.decode(s.recv())
+                assert isinstance(m, wire.FillMsg) and m.status == "ok", m
+                r = ref.step(test[t].astype(np.float64), ~np.isnan(test[t]))
+                assert m.angles.tobytes() == np.where(np.isnan(test[t]), r.frame.astype(np.float32), test[t]).tobytes()
+                assert m.std.tobytes() == r.std.astype(np.float32).tobytes()
+            s.close(0)
+            info = control(d.endpoints["router"], "status").result["prewarm"]
+            if lead is None:  # the default: on
+                assert info["lead_ms"] == config.PREWARM_MS and info["errors"] == 0
+                # (a frame that came early, or a stall of the test machine, can cost a rehearsal)
+                assert info["rehearsals"] >= test.shape[0] // 2, info
+                assert 0.7 * 1000 * PERIOD < info["period_ms"] < 1.5 * 1000 * PERIOD, info
+            else:
+                assert info["lead_ms"] == 0.0 and info["rehearsals"] == 0, info
+    finally:
+        for d in procs:
+            if d.proc is not None and d.proc.poll() is None:
+                d.proc.kill()
+                d.proc.wait(10)
+        ctx.term()
