@@ -12,9 +12,10 @@ nobody).  The real frame then finds that path warm.
 
 Nothing a stream sees changes: the shadow has its own state, its step is not counted in the
 scheduler's cost estimates, and nothing is sent.  A rehearsal runs only when no frame is waiting,
-at most once per frame served, when the stream's period is regular and at most
-``MAX_PERIOD_S``, and when the model's step is estimated to fit in ``MAX_STEP_S``.  It costs one
-more step per period (a few percent of a core for one HLM stream at 120 Hz).
+at most once per frame served, when the stream's period is regular and between
+``MIN_PERIOD_S`` and ``MAX_PERIOD_S``, and when the model's step is estimated to fit in
+``MAX_STEP_S``.  It costs one more step per period (a few percent of a core for one HLM stream
+at 120 Hz).
 """
 from __future__ import annotations
 
@@ -27,6 +28,9 @@ from daemon.session import Pending, Session
 from lacuna.filler import FillerState, Model
 
 MAX_PERIOD_S = 0.1    # streams slower than 10 Hz are not rehearsed for (their frames are few)
+MIN_PERIOD_S = 0.003  # nor frames closer than this: 1-2 ms after a frame the path is still about as
+                      # warm as right after it (bench/cold_decay.py), and a daemon that busy needs no
+                      # more work (at 4x overload the turns came 2 ms apart)
 MIN_GAP_S = 0.0015    # turns closer than this are one burst, not the stream's period
 MAX_STEP_S = 0.001    # a model whose step is estimated above this is not rehearsed (a rehearsal
                       # running when the frame lands delays it by what is left of it)
@@ -65,7 +69,7 @@ class Prewarm:
         self._last = (s, frame)
         per = self.period()
         self.due = None
-        if per is None or per > MAX_PERIOD_S:
+        if per is None or not MIN_PERIOD_S <= per <= MAX_PERIOD_S:
             return
         cm = sched.cost(s.model, levels_of(s.model)[0])
         step = cm.estimate(1) if cm.seen else 0.0

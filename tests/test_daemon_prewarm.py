@@ -135,6 +135,11 @@ def test_a_rehearsal_is_planned_only_for_a_regular_stream_fast_enough_to_gain(hl
     for k in range(5):
         slow.served(s, wire.Frame("walk", k, 0.0, test[0]), t0 + k * 0.2, d.sched)
     assert slow.period() == pytest.approx(0.2) and slow.due is None
+    # nor for one faster than MIN_PERIOD_S (its own frames keep the path warm: 4x overload of 120 Hz)
+    fast_ = prewarm.Prewarm(0.5)
+    for k in range(5):
+        fast_.served(s, wire.Frame("walk", k, 0.0, test[0]), t0 + k * 0.002, d.sched)
+    assert fast_.period() == pytest.approx(0.002) and fast_.due is None
     # nor for a model whose step is estimated over MAX_STEP_S (a rehearsal would still be running
     # when the frame lands)
     cm = d.sched.cost(s.model, None)
