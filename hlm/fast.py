@@ -232,7 +232,7 @@ def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, row
 # A lone stream (the usual live case: one performer, a frame every 8.3 ms) pays the glue around the
 # compiled code more than the code: after the daemon has waited for a frame, three compiled calls
 # with their argument lists and the arrays between them cost several times the filter itself
-# (docs/BENCHMARKS.md, "one HLM stream's step").  ``_step_slot`` runs encoder, filter and decoder
+# (docs/BENCHMARKS.md, "Run of 2026-11-23 02:40-03:30 UTC").  ``_step_slot`` runs encoder, filter and decoder
 # on a state pool's row in one call, the tables packed once per model.
 
 
