@@ -1,6 +1,7 @@
 """Config validation, OSC decoding, sessions and the scheduler's planning, without sockets."""
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -85,6 +86,38 @@ def test_systemd_unit_verifies(tmp_path):
                        timeout=60)
     problems = [ln for ln in (r.stdout + r.stderr).splitlines() if "lacuna.service" in ln]
     assert r.returncode == 0 and not problems, r.stdout + r.stderr
+
+
+def test_systemd_unit_verifies_with_its_latency_dropin(tmp_path):
+    """systemd/lacuna.service.d/latency.conf (SCHED_RR and the compiled step) parses cleanly on the
+    unit, is really applied (the exposure report sees real-time, W^X and @resources allowed), and
+    leaves the unit's exposure at or under 2.0 of 10."""
+    exe = shutil.which("systemd-analyze")
+    if exe is None:
+        pytest.skip("systemd-analyze is not installed")
+    lacuna = shutil.which("lacuna") or str(Path(__import__("sys").executable).parent / "lacuna")
+    unit = (REPO / "systemd" / "lacuna.service").read_text().replace("/usr/local/bin/lacuna", lacuna)
+    (tmp_path / "lacuna.service").write_text(unit)
+    (tmp_path / "lacuna.service.d").mkdir()
+    shutil.copy(REPO / "systemd" / "lacuna.service.d" / "latency.conf", tmp_path / "lacuna.service.d")
+    env = {**os.environ, "SYSTEMD_UNIT_PATH": f"{tmp_path}:"}  # drop-ins are found beside the unit
+    r = subprocess.run([exe, "verify", "--man=no", str(tmp_path / "lacuna.service")], capture_output=True, text=True,
+                       timeout=60, env=env)
+    problems = [ln for ln in (r.stdout + r.stderr).splitlines() if "lacuna.service" in ln]
+    assert r.returncode == 0 and not problems, r.stdout + r.stderr
+
+    (tmp_path / "plain").mkdir()  # the unit alone, in a directory without the drop-in
+    (tmp_path / "plain" / "lacuna.service").write_text(unit)
+
+    def relaxed(d: Path) -> set[str]:
+        r = subprocess.run([exe, "security", "--offline=true", "--threshold=20", "--json=short",
+                            str(d / "lacuna.service")], capture_output=True, text=True, timeout=60,
+                           env={**os.environ, "SYSTEMD_UNIT_PATH": f"{d}:"})
+        assert r.returncode == 0, r.stdout[-500:] + r.stderr  # exposure <= 2.0
+        return {x["json_field"] for x in json.loads(r.stdout) if x["set"] is False}
+
+    gained = relaxed(tmp_path) - relaxed(tmp_path / "plain")
+    assert gained == {"RestrictRealtime", "MemoryDenyWriteExecute", "SystemCallFilter_resources"}, gained
 
 
 # ---- OSC decode -------------------------------------------------------------------------------
