@@ -7,7 +7,7 @@
 # receipt-to-encoding p50 / p99, for the model and the pass-through floor of the same runs.
 #
 #     bash bench/prewarm_ab.sh bench/out/hlm.npz 4 bench/out/prewarm-ab "0 0.25 0.5 1"
-# (written after the 2026-11-23 A/B in docs/BENCHMARKS.md, which ran the same loop; not yet run as this file)
+# (run as this file 2026-11-23 08:31-08:41 UTC: docs/BENCHMARKS.md, bench/results/prewarm_ab_2026-11-23_0831.json)
 set -euo pipefail
 MODEL=$(realpath "${1:?model file}")
 REPEATS=${2:-4}
