@@ -29,7 +29,7 @@ from lacuna.filler import FillerState, Model
 
 MAX_PERIOD_S = 0.1    # streams slower than 10 Hz are not rehearsed for (their frames are few)
 MIN_PERIOD_S = 0.003  # nor frames closer than this: 1-2 ms after a frame the path is still about as
-                      # warm as right after it (bench/cold_decay.py), and a daemon that busy needs no
+                      # warm as right after it (bench/cold_decay.py), and a daemon so busy needs no
                       # more work (at 4x overload the turns came 2 ms apart)
 MIN_GAP_S = 0.0015    # turns closer than this are one burst, not the stream's period
 MAX_STEP_S = 0.001    # a model whose step is estimated above this is not rehearsed (a rehearsal

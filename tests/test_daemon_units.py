@@ -73,38 +73,42 @@ def test_missing_config_file_names_it(tmp_path):
         config.load(str(tmp_path / "nope.toml"))
 
 
-def test_systemd_unit_verifies(tmp_path):
+def _systemd_analyze() -> str:
     exe = shutil.which("systemd-analyze")
     if exe is None:
         pytest.skip("systemd-analyze is not installed")
-    unit = (REPO / "systemd" / "lacuna.service").read_text()
-    # verify needs ExecStart's binary to exist: point it at this venv's lacuna for the check
+    return exe
+
+
+def _unit_text() -> str:
+    """systemd/lacuna.service with ExecStart on this venv's lacuna (verify needs the binary to exist)."""
     lacuna = shutil.which("lacuna") or str(Path(__import__("sys").executable).parent / "lacuna")
-    unit = unit.replace("/usr/local/bin/lacuna", lacuna)
-    (tmp_path / "lacuna.service").write_text(unit)
-    r = subprocess.run([exe, "verify", "--man=no", str(tmp_path / "lacuna.service")], capture_output=True, text=True,
-                       timeout=60)
+    return (REPO / "systemd" / "lacuna.service").read_text().replace("/usr/local/bin/lacuna", lacuna)
+
+
+def _assert_verifies(exe: str, unit: Path, env: dict[str, str] | None = None) -> None:
+    r = subprocess.run([exe, "verify", "--man=no", str(unit)], capture_output=True, text=True, timeout=60, env=env)
     problems = [ln for ln in (r.stdout + r.stderr).splitlines() if "lacuna.service" in ln]
     assert r.returncode == 0 and not problems, r.stdout + r.stderr
+
+
+def test_systemd_unit_verifies(tmp_path):
+    exe = _systemd_analyze()
+    (tmp_path / "lacuna.service").write_text(_unit_text())
+    _assert_verifies(exe, tmp_path / "lacuna.service")
 
 
 def test_systemd_unit_verifies_with_its_latency_dropin(tmp_path):
     """systemd/lacuna.service.d/latency.conf (SCHED_RR and the compiled step) parses cleanly on the
     unit, is really applied (the exposure report sees real-time, W^X and @resources allowed), and
     leaves the unit's exposure at or under 2.0 of 10."""
-    exe = shutil.which("systemd-analyze")
-    if exe is None:
-        pytest.skip("systemd-analyze is not installed")
-    lacuna = shutil.which("lacuna") or str(Path(__import__("sys").executable).parent / "lacuna")
-    unit = (REPO / "systemd" / "lacuna.service").read_text().replace("/usr/local/bin/lacuna", lacuna)
+    exe = _systemd_analyze()
+    unit = _unit_text()
     (tmp_path / "lacuna.service").write_text(unit)
     (tmp_path / "lacuna.service.d").mkdir()
     shutil.copy(REPO / "systemd" / "lacuna.service.d" / "latency.conf", tmp_path / "lacuna.service.d")
-    env = {**os.environ, "SYSTEMD_UNIT_PATH": f"{tmp_path}:"}  # drop-ins are found beside the unit
-    r = subprocess.run([exe, "verify", "--man=no", str(tmp_path / "lacuna.service")], capture_output=True, text=True,
-                       timeout=60, env=env)
-    problems = [ln for ln in (r.stdout + r.stderr).splitlines() if "lacuna.service" in ln]
-    assert r.returncode == 0 and not problems, r.stdout + r.stderr
+    # drop-ins are found beside the unit
+    _assert_verifies(exe, tmp_path / "lacuna.service", {**os.environ, "SYSTEMD_UNIT_PATH": f"{tmp_path}:"})
 
     (tmp_path / "plain").mkdir()  # the unit alone, in a directory without the drop-in
     (tmp_path / "plain" / "lacuna.service").write_text(unit)
