@@ -146,6 +146,8 @@ class Protocol:
         from mocap.io import read_motion
 
         p = str(path)
+        if not Path(p).is_file():
+            raise DataError(f"{p}: no such file")
         m = read_motion(p, asf=asf)
         missing = [c for c in channels if c not in m.channels]
         if missing:
