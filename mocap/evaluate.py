@@ -137,7 +137,7 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
             given = np.where(case.observed, case.truth, np.nan)
             filled, std = spec.run(model, given, case.observed.copy())
             std = np.zeros_like(filled) if std is None else np.asarray(std, np.float64)
-            per_case.append((case, metrics.values(case, filled, std, GAP_GROUPS), proto.score(case, filled)))
+            per_case.append((case, metrics.values(case, filled, std, case.info.get("groups", GAP_GROUPS)), proto.score(case, filled)))
             if fills_dir:
                 d = Path(fills_dir)
                 d.mkdir(parents=True, exist_ok=True)

@@ -165,7 +165,7 @@ def values(case: Any, filled: np.ndarray, std: np.ndarray | None, groups: dict[s
     onset = sel & (since == 0) & (start > 0)
     # root position error over frames where the root translation is erased (and was seen before)
     pos = {c: i for i, c in enumerate(case.channels)}
-    rt = [pos[c] for c in ROOT_TRANSLATION if c in pos]
+    rt = [pos[c] for c in case.info.get("root_translation", ROOT_TRANSLATION) if c in pos]
     scale = case.info.get("cm_per_unit")
     unit = "cm" if scale else "units"
     if rt:

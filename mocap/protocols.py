@@ -33,21 +33,18 @@ from typing import Any, Callable
 import numpy as np
 
 from lacuna.errors import DataError
-from mocap import datasets, splits
+from mocap import datasets, skelmap, splits
 from mocap.metrics import cm_per_unit
 from mocap.motion import Motion
 from mocap.representation import is_angle, resample, wrap180
 
-LEG_BONES = ("lfemur", "ltibia", "lfoot", "ltoes", "rfemur", "rtibia", "rfoot", "rtoes")
-RIGHT_LEG = ("rfemur", "rtibia", "rfoot", "rtoes")
-JOINT_GROUPS = {
-    "left-arm": ("lclavicle", "lhumerus", "lradius", "lwrist", "lhand", "lfingers", "lthumb"),
-    "right-arm": ("rclavicle", "rhumerus", "rradius", "rwrist", "rhand", "rfingers", "rthumb"),
-    "left-leg": ("lfemur", "ltibia", "lfoot", "ltoes"),
-    "right-leg": ("rfemur", "rtibia", "rfoot", "rtoes"),
-    "head-neck": ("lowerneck", "upperneck", "head"),
-    "torso": ("lowerback", "upperback", "thorax"),
-}
+# Joint groups come from the skeleton maps (mocap/skeletons/*.toml); these are CMU ASF's, for
+# callers that name bones of the protocols' own data.
+_CMU = skelmap.load("cmu-asf")
+JOINT_GROUPS = {g: tuple(b for b, i in _CMU.bones.items() if i.part == g and b != "lhipjoint" and b != "rhipjoint")
+                for g in skelmap.GROUPS}
+LEG_BONES = JOINT_GROUPS["left-leg"] + JOINT_GROUPS["right-leg"]
+RIGHT_LEG = JOINT_GROUPS["right-leg"]
 # the gaps protocol also drops the root (pelvis markers occluded: its rotation and translation)
 GAP_GROUPS = {**JOINT_GROUPS, "root": ("root",)}
 GAP_BINS = ((0.1, 0.25), (0.25, 0.5), (0.5, 1.0), (1.0, 2.0))
@@ -75,6 +72,25 @@ def _training_set(names: list[str]) -> TrainingSet:
 
 def bone(ch: str) -> str:
     return ch.split(".", 1)[0]
+
+
+def _cm_per_unit(m: Motion, b: skelmap.Binding) -> float | None:
+    """cm per file length unit: the ASF's, else the skeleton map's (CMU BVH) or mocap.fk's guess."""
+    u = cm_per_unit(m.skeleton)
+    if u is None and m.skeleton is not None:
+        from mocap.fk import Kinematics
+
+        u = 100.0 * (b.map.length_unit or Kinematics.from_motion(m).length_unit)
+    return u
+
+
+def _skeleton_info(b: skelmap.Binding) -> dict[str, Any]:
+    """A case's joint groups (group -> the take's bone names) and root translation channels."""
+    spec = b.root_spec()
+    out: dict[str, Any] = {"groups": {g: tuple(b.bones(g)) for g in GAP_GROUPS}, "skeleton": b.map.name}
+    if spec:
+        out["root_translation"] = tuple(spec["pos"])
+    return out
 
 
 @dataclass
@@ -130,6 +146,11 @@ class Protocol:
     name = "?"
     description = ""
     options: dict[str, Any] = {}
+    skeleton: str | None = None  # --skeleton NAME|FILE for test files (else recognised by bone names)
+
+    def binding(self, m: Motion) -> skelmap.Binding:
+        """The skeleton map applied to a take's channels (its joint groups and root)."""
+        return skelmap.Binding.of(m.channels, self.skeleton, m.source)
 
     def training_set(self) -> TrainingSet:
         raise NotImplementedError
@@ -145,9 +166,16 @@ class Protocol:
     def _load_file(self, path: str, asf: str | None, fps: float, channels: list[str]) -> Motion:
         from mocap.io import read_motion
 
+        from mocap.tpose import skip_tpose
+
         p = str(path)
-        m = read_motion(p, asf=asf)
+        m = skip_tpose(read_motion(p, asf=asf))
         missing = [c for c in channels if c not in m.channels]
+        if missing and self.binding(m).map.name != _CMU.name:
+            # another skeleton (a BVH take): its own channels, erased through its map; the model
+            # must have been trained on that skeleton
+            frames = m.frames if abs(m.fps - fps) <= 1e-6 else resample(m.frames, m.fps, fps, m.channels)
+            return Motion(frames, list(m.channels), fps, m.skeleton, p, dict(m.meta))
         if missing:
             raise DataError(f"{p}: lacks channels the protocol needs, e.g. {missing[:3]}")
         frames = m.frames[:, m.index(channels)]
@@ -193,19 +221,22 @@ class Pan2009(Protocol):
         out = []
         for m in motions:
             T, C = m.frames.shape
-            keep = np.array([bone(c) in LEG_BONES for c in m.channels])
+            b = self.binding(m)
+            keep = b.mask("legs", "pan2009")
+            b.mask(["root", "upper-body"], "pan2009")  # something to erase
             obs = np.ones((T, C), bool)
             obs[T // 2 :, ~keep] = False
             rot = np.array([is_angle(c) for c in m.channels]) & ~keep
             out.append(Case(Path(m.source).stem, "all-but-legs", m.frames, obs, m.channels, m.fps, rot,
-                            {"first_erased": T // 2, "cm_per_unit": cm_per_unit(m.skeleton)}))
+                            {"first_erased": T // 2, "cm_per_unit": _cm_per_unit(m, b), **_skeleton_info(b)}))
         return out
 
     def score(self, case: Case, filled: np.ndarray) -> list[dict[str, Any]]:
         err = wrapped_error(case, filled)
         t0 = case.info["first_erased"]
         e = err[t0:, case.scored]
-        trans = np.array([c in ("root.tx", "root.ty", "root.tz") for c in case.channels])
+        trans = np.array([c in case.info.get("root_translation", ("root.tx", "root.ty", "root.tz"))
+                          for c in case.channels])
         et = err[t0:, trans]
         return [
             _row(case, "mse_deg2", np.mean(e**2)),
@@ -259,16 +290,15 @@ class Taylor2007(Protocol):
         va = np.mean(wrap180(allf - circular_mean_deg(allf))**2, 0)
         return np.where(ang, va, v)
 
-    def patterns(self, channels: list[str]) -> dict[str, np.ndarray]:
-        var = self.train_variance()
+    def patterns(self, channels: list[str], var: np.ndarray | None = None, source: str = "") -> dict[str, np.ndarray]:
+        """Erasure masks over ``channels``: the right leg, and the upper body (torso, head and
+        neck, arms: CMU ASF's channels from lowerback on) less its constant channels."""
+        var = self.train_variance() if var is None else var
         const = var < 1e-10
-        order = [bone(c) for c in channels]
-        first_upper = order.index("lowerback")
-        upper = np.zeros(len(channels), bool)
-        upper[first_upper:] = True
+        b = skelmap.Binding.of(channels, self.skeleton, source)
         return {
-            "right-leg": np.array([bone(c) in RIGHT_LEG for c in channels]),
-            "upper-body": upper & ~const,
+            "right-leg": b.mask("right-leg", "taylor2007"),
+            "upper-body": b.mask("upper-body", "taylor2007") & ~const,
         }
 
     def cases(self, test_files: str | list[str] | None = None, asf: str | None = None) -> list[Case]:
@@ -277,23 +307,27 @@ class Taylor2007(Protocol):
         ch = taylor_channels()
         files = _as_list(test_files)
         if files:
-            tests = [(Path(f).stem, m.frames, cm_per_unit(m.skeleton))
+            tests = [(Path(f).stem, m, _cm_per_unit(m, self.binding(m)))
                      for f, m in zip(files, self._load_files(files, asf, 30.0, ch))]
         else:
             mat = _taylor_mat()
             seqs = _split_by_labels(np.asarray(mat["Ytest"], dtype=np.float64), mat["lblstest"])
             # Taylor's arrays are subject 35's AMC channels: that ASF's length unit
             unit = cm_per_unit(read_asf(Path(datasets.data_dir(required=True)) / "cmu" / "35" / "35.asf"))
-            tests = [(n, f, unit) for n, f in zip(self.TEST_NAMES, seqs)]
+            tests = [(n, Motion(f, ch, 30.0), unit) for n, f in zip(self.TEST_NAMES, seqs)]
         var = self.train_variance()
         out = []
-        for name, frames, unit in tests:
+        for name, m, unit in tests:
+            frames, mch = m.frames, m.channels
+            # another skeleton's take: scaled by its own variance (the training set is CMU ASF's)
+            v = var if mch == ch else np.var(frames, 0)
             T = frames.shape[0]
-            for pname, mask in self.patterns(ch).items():
+            for pname, mask in self.patterns(mch, v, m.source).items():
                 obs = np.ones(frames.shape, bool)
                 obs[T // 2 :, mask] = False
-                out.append(Case(name, pname, frames, obs, ch, 30.0, mask,
-                                {"first_erased": T // 2, "var": var, "cm_per_unit": unit}))
+                out.append(Case(name, pname, frames, obs, mch, m.fps, mask,
+                                {"first_erased": T // 2, "var": v, "cm_per_unit": unit,
+                                 **_skeleton_info(skelmap.Binding.of(mch, self.skeleton, m.source))}))
         return out
 
     def score(self, case: Case, filled: np.ndarray) -> list[dict[str, Any]]:
@@ -334,8 +368,10 @@ class Gaps(Protocol):
         obs = np.ones((T, len(channels)), bool)
         bursts = []
         lo, hi = GAP_BINS[0][0], GAP_BINS[-1][1]
-        for g, bones in GAP_GROUPS.items():
-            cols = np.array([bone(c) in bones for c in channels])
+        sk = skelmap.Binding.of(channels, self.skeleton, name)
+        sk.mask(list(GAP_GROUPS), "gaps")  # a skeleton with none of the groups would erase nothing
+        for g in GAP_GROUPS:
+            cols = sk.mask(g, require=False)
             t = fps * (self.CLEAN_LEAD + rng.exponential(1.0 / self.RATE_PER_GROUP))
             while t < T:
                 dur = np.exp(rng.uniform(np.log(lo), np.log(hi)))
@@ -354,8 +390,10 @@ class Gaps(Protocol):
             name = Path(m.source).stem
             obs, bursts = self.occlusion(name, m.n_frames, m.channels, m.fps)
             scored = np.array([is_angle(c) for c in m.channels])
+            b = self.binding(m)
             out.append(Case(name, "gaps", m.frames, obs, m.channels, m.fps, scored,
-                            {"bursts": bursts, "seed": self.seed, "cm_per_unit": cm_per_unit(m.skeleton)}))
+                            {"bursts": bursts, "seed": self.seed, "cm_per_unit": _cm_per_unit(m, b),
+                             **_skeleton_info(b)}))
         return out
 
 
