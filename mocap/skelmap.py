@@ -12,6 +12,7 @@ A skeleton map is a small TOML file (the shipped ones are ``mocap/skeletons/*.to
     bone = "Hips"                    # the root bone; its channels are BONE.tx/.ty/.tz, .rx/.ry/.rz
     translation = ["tx", "ty", "tz"] # the root's translation dofs along x, y, z
     order = "zxy"                    # R = Rz Rx Ry, used when a file does not declare its own
+    rest = [90, 0, 0]                # optional: root rotation x, y, z (degrees) standing upright
     [bones]
     LeftArm = { part = "left-arm", side = "left", parent = "LeftShoulder", order = "zxy" }
     [[patterns]]                     # optional: names that follow a rule (full-match regex)
@@ -23,7 +24,7 @@ Parts are ``root`` (never erased by a drop pattern) and the six joint groups of 
 A file's bone names are matched exactly, then without a ``prefix:`` or ``prefix_`` in front
 (``mixamorig:LeftArm``, ``Skeleton_LThigh``), case-insensitively.  ``recognise`` picks the
 map that knows the most of a take's bones (then the one most of whose bones the take has) and
-raises SkeletonError when none knows its root and most of its bones.
+raises SkeletonError when none knows most (MIN_KNOWN) of its bones.
 """
 from __future__ import annotations
 
@@ -71,6 +72,7 @@ class SkeletonMap:
     translation: tuple[str, str, str]
     root_order: str
     bones: dict[str, BoneInfo]
+    root_rest: tuple[float, float, float] | None = None
     patterns: list[tuple[re.Pattern[str], BoneInfo]] = field(default_factory=list)
     length_unit: float | None = None
     source: str = ""
@@ -96,14 +98,16 @@ class SkeletonMap:
                     return info
         return None
 
-    def score(self, bones: Sequence[str]) -> tuple[float, float]:
-        """(fraction of ``bones`` this map knows, fraction of the map's named bones present)."""
+    def score(self, bones: Sequence[str]) -> tuple[float, float, int]:
+        """(fraction of ``bones`` this map knows, fraction of the map's named bones present,
+        number of them): the best map knows most of the take, then has least the take lacks,
+        then names the most of it (a map that lists Spine3 beats one whose pattern allows it)."""
         bones = list(dict.fromkeys(bones))
         if not bones:
-            return 0.0, 0.0
+            return 0.0, 0.0, 0
         known = sum(self.lookup(b) is not None for b in bones)
         named = {self.canonical(b) for b in bones} - {None}
-        return known / len(bones), len(named) / max(1, len(self.bones))
+        return known / len(bones), len(named) / max(1, len(self.bones)), len(named)
 
 
 def _candidates(bone: str) -> list[str]:
@@ -173,9 +177,13 @@ def parse_map(text: str, source: str = "<map>") -> SkeletonMap:
     lu = d.get("length_unit")
     if lu is not None and not (isinstance(lu, (int, float)) and lu > 0):
         raise SkeletonError(f"{source}: length_unit must be a positive number of metres (got {lu!r})")
+    rest = root.get("rest")
+    if rest is not None and (len(rest) != 3 or not all(isinstance(v, (int, float)) for v in rest)):
+        raise SkeletonError(f"{source}: [root] rest is the root's x, y, z rotation (degrees) standing upright")
     return SkeletonMap(str(need("name")), str(d.get("description", "")), fmt, up, rb, tr,  # type: ignore[arg-type]
-                       _check_order(root.get("order", "zyx"), f"{source}: [root]"), bones, patterns,
-                       None if lu is None else float(lu), source)
+                       _check_order(root.get("order", "zyx"), f"{source}: [root]"), bones,
+                       None if rest is None else tuple(float(v) for v in rest),  # type: ignore[arg-type]
+                       patterns, None if lu is None else float(lu), source)
 
 
 _CACHE: dict[str, SkeletonMap] = {}
@@ -216,11 +224,9 @@ def bones_of(channels: Sequence[str]) -> list[str]:
 def recognise(bones: Sequence[str], source: str = "") -> SkeletonMap:
     """The shipped map that fits these bone names best; SkeletonError when none does."""
     bones = list(bones)
-    best: tuple[tuple[float, float], SkeletonMap] | None = None
+    best: tuple[tuple[float, float, int], SkeletonMap] | None = None
     for name in available():
         m = load(name)
-        if not any(m.canonical(b) == m.root_bone for b in bones):
-            continue
         s = m.score(bones)
         if s[0] >= MIN_KNOWN and (best is None or s > best[0]):
             best = (s, m)
@@ -315,7 +321,10 @@ class Binding:
         pos = [f"{r}.{d}" for d in self.map.translation]
         if any(c not in self.channels for c in rot + pos):
             return None
-        return {"rot": rot, "order": self._root_order(skeleton), "pos": pos, "up": self.map.up}
+        spec: dict[str, Any] = {"rot": rot, "order": self._root_order(skeleton), "pos": pos, "up": self.map.up}
+        if self.map.root_rest and any(self.map.root_rest):
+            spec["rest"] = list(self.map.root_rest)
+        return spec
 
     def _root_order(self, skeleton: Any) -> str:
         from mocap.asf import Skeleton
