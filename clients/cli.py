@@ -62,7 +62,12 @@ def add_commands(cli) -> None:
     p.add_argument("--stream", default="replay", help="stream id (default replay)")
     p.add_argument("--json", dest="json_out", metavar="OUT")
     p.add_argument("--plot", metavar="OUT.png", help="truth vs fill on the most-erased channels")
+    p.add_argument("--positions", action="store_true",
+                   help="with --out FILE.csv: write joint positions (metres, forward kinematics) instead of angles")
     p.add_argument("--quiet", "-q", action="store_true")
+    from mocap import skelmap
+
+    skelmap.add_argument(p)
     p.set_defaults(func=_replay)
 
     p = cli.command("bench", help="latency of the daemon under N streams at R Hz (p50..max, drops, CPU)")
@@ -165,7 +170,7 @@ def _replay(args: argparse.Namespace) -> int:
     if args.serve and args.connect:
         raise LacunaError("give --connect ADDR or --serve MODEL.npz, not both")
     motion, captured = read_take(args.file, args.asf)
-    keep, bursts = drop_mask(args.drop, motion, args.seed)
+    keep, bursts = drop_mask(args.drop, motion, args.seed, args.skeleton)
     known = np.isfinite(motion.frames) if captured is None else captured & np.isfinite(motion.frames)
     observed = keep & known
     p = Path(args.file)

@@ -103,14 +103,18 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
              test_file: str | list[str] | None = None, asf: str | None = None,
              options: dict[str, Any] | None = None, progress: bool = True, seed: int = 0, *,
              seeds: Iterable[int] | None = None, split: str | None = None, train_split: bool = False,
-             model: Any = None, fills_dir: str | None = None, keep: bool = True) -> dict[str, Any]:
-    """Train (or load, or take ``model``) once, fill every case of every seed, score and aggregate."""
+             model: Any = None, fills_dir: str | None = None, keep: bool = True,
+             skeleton: str | None = None) -> dict[str, Any]:
+    """Train (or load, or take ``model``) once, fill every case of every seed, score and aggregate.
+    ``skeleton``: the skeleton map of the test files (name or file; default recognised)."""
     seeds = [int(s) for s in seeds] if seeds is not None else [int(seed)]
     if not seeds:
         raise ValueError("no seeds given")
     if protocol_name != "gaps" and seeds != [0]:
         raise ValueError(f"{protocol_name} erases the same values every time: seeds apply to the gaps protocol only")
     protocols = [make_protocol(protocol_name, s, split, train_split) for s in seeds]
+    for p in protocols:
+        p.skeleton = skeleton
     spec = registry.get_method(method)
     t0 = time.perf_counter()
     train_seconds = None

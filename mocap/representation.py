@@ -242,9 +242,10 @@ class Representation:
         """For each feature, the raw channels it is computed from at the current frame."""
         pos = {c: i for i, c in enumerate(self.channels)}
         out = []
-        rot, tr = self.root_channels()
-        up = "xyz".index((self.root or {}).get("up", "y"))
-        ground = [pos[c] for i, c in enumerate(tr) if i != up]
+        if self.root_mode == "relative":
+            rot, tr = self.root_channels()
+            up = "xyz".index((self.root or {}).get("up", "y"))
+            ground = [pos[c] for i, c in enumerate(tr) if i != up]
         for f in self.features:
             if self.root_mode == "relative" and f in ROOT_FEATURES:
                 out.append({"root.dside": ground, "root.dfwd": ground,

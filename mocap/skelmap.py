@@ -345,3 +345,10 @@ class Binding:
         if len(seen) == 3:
             return seen[::-1] if self.map.format == "asf" else seen
         return self.map.root_order
+
+
+def add_argument(parser: Any) -> None:
+    """``--skeleton NAME|FILE`` on a command that reads motion files."""
+    parser.add_argument("--skeleton", metavar="NAME|FILE",
+                        help="skeleton map of the motion files: a shipped name (" + ", ".join(available()) +
+                        ") or a .toml map file (default: recognised from the bone names)")
