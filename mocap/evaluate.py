@@ -116,6 +116,8 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
     for p in protocols:
         p.skeleton = skeleton
     spec = registry.get_method(method)
+    # the cases first: a bad --test file fails before minutes of training
+    case_lists = [proto.cases(test_files=test_file, asf=asf) for proto in protocols]
     t0 = time.perf_counter()
     train_seconds = None
     if model is None and model_path:
@@ -128,8 +130,7 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
 
     per_case: list[tuple[Case, metrics.Values, list[dict[str, Any]]]] = []
     cases_all, fills_all, stds_all = [], [], []
-    for proto in protocols:
-        cases = proto.cases(test_files=test_file, asf=asf)
+    for proto, cases in zip(protocols, case_lists):
         if list(model.channels) != list(cases[0].channels):
             raise ValueError(f"model channels ({len(model.channels)}) do not match the protocol's ({len(cases[0].channels)})")
         patterns_per_take = max(sum(c.test == k.test for c in cases) for k in cases)

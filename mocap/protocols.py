@@ -165,10 +165,11 @@ class Protocol:
     # shared helper
     def _load_file(self, path: str, asf: str | None, fps: float, channels: list[str]) -> Motion:
         from mocap.io import read_motion
-
         from mocap.tpose import skip_tpose
 
         p = str(path)
+        if not Path(p).is_file():
+            raise DataError(f"{p}: no such file")
         m = skip_tpose(read_motion(p, asf=asf))
         missing = [c for c in channels if c not in m.channels]
         if missing and self.binding(m).map.name != _CMU.name:
