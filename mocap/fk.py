@@ -21,7 +21,7 @@ Conventions (column vectors, ``R @ v``):
 
 Length units: ASF files say theirs (``:units length 0.45`` means one unit is 1/0.45 inch,
 0.0254 / 0.45 = 0.05644 m, CMU's documentation).  BVH files do not; pass ``length_unit``
-(metres per file unit), else the skeleton map's (``mocap.skeletons``), else the unit among
+(metres per file unit), else the skeleton map's (``mocap/skeletons/*.toml``), else the unit among
 mm, cm, inch, CMU's 1/0.45 inch and m that makes the rest skeleton nearest 1.7 m tall.
 """
 from __future__ import annotations
@@ -125,14 +125,18 @@ class Kinematics:
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
-    def from_motion(cls, motion: Motion, length_unit: float | None = None, up_axis: str | None = None) -> "Kinematics":
-        """FK for ``motion.frames`` (its channels, its skeleton).  ValueError for a CSV motion."""
+    def from_motion(cls, motion: Motion, length_unit: float | None = None, up_axis: str | None = None,
+                    skeleton: Any = None) -> "Kinematics":
+        """FK for ``motion.frames`` (its channels, its skeleton).  ValueError for a CSV motion.
+        ``skeleton``: the skeleton map (name, file or map) whose length unit and up axis a BVH
+        file takes when not given (default: recognised from the bone names)."""
         return cls.from_skeleton(motion.skeleton, motion.channels, length_unit, up_axis,
-                                 source=motion.source, frames=motion.frames)
+                                 source=motion.source, frames=motion.frames, skeleton_map=skeleton)
 
     @classmethod
     def from_skeleton(cls, skeleton: Any, channels: Sequence[str] | None = None, length_unit: float | None = None,
-                      up_axis: str | None = None, source: str = "", frames: np.ndarray | None = None) -> "Kinematics":
+                      up_axis: str | None = None, source: str = "", frames: np.ndarray | None = None,
+                      skeleton_map: Any = None) -> "Kinematics":
         """FK for an ``mocap.asf.Skeleton`` or ``mocap.bvh.Hierarchy`` over ``channels`` (default:
         the skeleton's own).  Channels the skeleton has but ``channels`` lacks are taken as 0."""
         from mocap.asf import Skeleton
@@ -141,7 +145,20 @@ class Kinematics:
         if isinstance(skeleton, Skeleton):
             return _from_asf(skeleton, list(channels or skeleton.channels), length_unit, up_axis)
         if isinstance(skeleton, Hierarchy):
-            return _from_bvh(skeleton, list(channels or skeleton.channels), length_unit, up_axis, frames)
+            ch = list(channels or skeleton.channels)
+            if length_unit is None or up_axis is None:
+                from mocap import skelmap
+
+                try:
+                    m = skelmap.resolve(skeleton_map, ch, source)
+                except skelmap.SkeletonError:
+                    if skeleton_map is not None:
+                        raise
+                    m = None  # no map knows these bones: guess the unit and the up axis
+                if m is not None and m.format == "bvh":
+                    length_unit = length_unit if length_unit is not None else m.length_unit
+                    up_axis = up_axis or m.up
+            return _from_bvh(skeleton, ch, length_unit, up_axis, frames)
         raise ValueError(f"{source or 'this motion'} has no skeleton (a CSV file?): forward kinematics needs "
                          "an ASF/AMC or BVH skeleton (pass --asf for a CSV of ASF channels)")
 

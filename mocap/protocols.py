@@ -84,12 +84,17 @@ def _cm_per_unit(m: Motion, b: skelmap.Binding) -> float | None:
     return u
 
 
-def _skeleton_info(b: skelmap.Binding) -> dict[str, Any]:
-    """A case's joint groups (group -> the take's bone names) and root translation channels."""
+def _skeleton_info(b: skelmap.Binding, skeleton: Any = None) -> dict[str, Any]:
+    """A case's joint groups (group -> the take's bone names), root translation channels, and
+    forward kinematics (``fk``, for the joint-position error) when the take has a skeleton."""
+    from mocap.fk import Kinematics
+
     spec = b.root_spec()
     out: dict[str, Any] = {"groups": {g: tuple(b.bones(g)) for g in GAP_GROUPS}, "skeleton": b.map.name}
     if spec:
         out["root_translation"] = tuple(spec["pos"])
+    if skeleton is not None:
+        out["fk"] = Kinematics.from_skeleton(skeleton, b.channels, skeleton_map=b.map)
     return out
 
 
@@ -229,7 +234,7 @@ class Pan2009(Protocol):
             obs[T // 2 :, ~keep] = False
             rot = np.array([is_angle(c) for c in m.channels]) & ~keep
             out.append(Case(Path(m.source).stem, "all-but-legs", m.frames, obs, m.channels, m.fps, rot,
-                            {"first_erased": T // 2, "cm_per_unit": _cm_per_unit(m, b), **_skeleton_info(b)}))
+                            {"first_erased": T // 2, "cm_per_unit": _cm_per_unit(m, b), **_skeleton_info(b, m.skeleton)}))
         return out
 
     def score(self, case: Case, filled: np.ndarray) -> list[dict[str, Any]]:
@@ -262,10 +267,15 @@ def _split_by_labels(Y: np.ndarray, lbls: np.ndarray) -> list[np.ndarray]:
     return [Y[idx == k] for k in range(lbls.shape[1]) if (idx == k).any()]
 
 
-def taylor_channels() -> list[str]:
+def taylor_skeleton() -> Any:
+    """Subject 35's ASF: Taylor's arrays are its AMC channels."""
     from mocap.asf import read_asf
 
-    return read_asf(Path(datasets.data_dir(required=True)) / "cmu" / "35" / "35.asf").channels
+    return read_asf(Path(datasets.data_dir(required=True)) / "cmu" / "35" / "35.asf")
+
+
+def taylor_channels() -> list[str]:
+    return taylor_skeleton().channels
 
 
 class Taylor2007(Protocol):
@@ -322,13 +332,14 @@ class Taylor2007(Protocol):
             frames, mch = m.frames, m.channels
             # another skeleton's take: scaled by its own variance (the training set is CMU ASF's)
             v = var if mch == ch else np.var(frames, 0)
+            skel = m.skeleton if m.skeleton is not None else taylor_skeleton()
             T = frames.shape[0]
             for pname, mask in self.patterns(mch, v, m.source).items():
                 obs = np.ones(frames.shape, bool)
                 obs[T // 2 :, mask] = False
                 out.append(Case(name, pname, frames, obs, mch, m.fps, mask,
                                 {"first_erased": T // 2, "var": v, "cm_per_unit": unit,
-                                 **_skeleton_info(skelmap.Binding.of(mch, self.skeleton, m.source))}))
+                                 **_skeleton_info(skelmap.Binding.of(mch, self.skeleton, m.source), skel)}))
         return out
 
     def score(self, case: Case, filled: np.ndarray) -> list[dict[str, Any]]:
@@ -394,7 +405,7 @@ class Gaps(Protocol):
             b = self.binding(m)
             out.append(Case(name, "gaps", m.frames, obs, m.channels, m.fps, scored,
                             {"bursts": bursts, "seed": self.seed, "cm_per_unit": _cm_per_unit(m, b),
-                             **_skeleton_info(b)}))
+                             **_skeleton_info(b, m.skeleton)}))
         return out
 
 
