@@ -132,7 +132,9 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
     cases_all, fills_all, stds_all = [], [], []
     for proto, cases in zip(protocols, case_lists):
         if list(model.channels) != list(cases[0].channels):
-            raise ValueError(f"model channels ({len(model.channels)}) do not match the protocol's ({len(cases[0].channels)})")
+            raise ValueError(f"model channels ({len(model.channels)}) do not match the protocol's ({len(cases[0].channels)})"
+                             + ("; the protocols train on CMU ASF takes: for takes of another skeleton train a model "
+                                "on that skeleton (lacuna train hlm TAKE.bvh ...) and pass --model" if test_file else ""))
         patterns_per_take = max(sum(c.test == k.test for c in cases) for k in cases)
         for i, case in enumerate(cases):
             if progress:

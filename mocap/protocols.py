@@ -36,7 +36,7 @@ from lacuna.errors import DataError
 from mocap import datasets, skelmap, splits
 from mocap.metrics import cm_per_unit
 from mocap.motion import Motion
-from mocap.representation import is_angle, resample, wrap180
+from mocap.representation import CONST_TOL, is_angle, resample, wrap180
 
 # Joint groups come from the skeleton maps (mocap/skeletons/*.toml); these are CMU ASF's, for
 # callers that name bones of the protocols' own data.
@@ -303,12 +303,13 @@ class Taylor2007(Protocol):
 
     def patterns(self, channels: list[str], var: np.ndarray | None = None, source: str = "") -> dict[str, np.ndarray]:
         """Erasure masks over ``channels``: the right leg, and the upper body (torso, head and
-        neck, arms: CMU ASF's channels from lowerback on) less its constant channels."""
+        neck, arms: CMU ASF's channels from lowerback on), less constant channels."""
         var = self.train_variance() if var is None else var
         const = var < 1e-10
         b = skelmap.Binding.of(channels, self.skeleton, source)
         return {
-            "right-leg": b.mask("right-leg", "taylor2007"),
+            # constant channels are left out of both (CMU BVH's RHipJoint; CMU ASF's right leg has none)
+            "right-leg": b.mask("right-leg", "taylor2007") & ~const,
             "upper-body": b.mask("upper-body", "taylor2007") & ~const,
         }
 
@@ -331,7 +332,8 @@ class Taylor2007(Protocol):
         for name, m, unit in tests:
             frames, mch = m.frames, m.channels
             # another skeleton's take: scaled by its own variance (the training set is CMU ASF's)
-            v = var if mch == ch else np.var(frames, 0)
+            # (a channel moving less than CONST_TOL, 0.01 degree, counts as constant: left out)
+            v = var if mch == ch else np.where(np.std(frames, 0) < CONST_TOL, 0.0, np.var(frames, 0))
             skel = m.skeleton if m.skeleton is not None else taylor_skeleton()
             T = frames.shape[0]
             for pname, mask in self.patterns(mch, v, m.source).items():
