@@ -122,6 +122,7 @@ class Kinematics:
                 dep[j, [c for c, _ in rot[j] if c >= 0]] = True
             dep[j, [c for c, _ in trans[j]]] = True
         self.depends = dep
+        self._fast: tuple | None = None  # mocap.fastfk tables, built on the first compiled call
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
@@ -195,9 +196,24 @@ class Kinematics:
         return P
 
     def position(self, frame: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """(C,) one frame -> (J, 3) metres."""
+        """(C,) one frame -> (J, 3) metres; into ``out`` (J, 3) when given.  Compiled
+        (mocap.fastfk) where lacuna.jit allows, else ``positions`` of a batch of one."""
+        f = np.asarray(frame, dtype=np.float64).reshape(-1)
+        if f.shape[0] != len(self.channels):
+            raise ValueError(f"a frame has {len(self.channels)} values (got {f.shape[0]})")
+        from lacuna import jit
+
+        if jit.enabled():
+            from mocap import fastfk
+
+            if self._fast is None:
+                self._fast = fastfk.tables(self)
+                self._scratch = np.empty((len(self.joints), 3, 3))
+            o = np.empty((len(self.joints), 3)) if out is None else out
+            fastfk.position1(f, *self._fast, self.length_unit, self._scratch, o)
+            return o
         o = None if out is None else out.reshape(1, *out.shape)
-        return self.positions(np.asarray(frame, dtype=np.float64).reshape(1, -1), o)[0]
+        return self.positions(f.reshape(1, -1), o)[0]
 
     def rest_positions(self) -> np.ndarray:
         """(J, 3) metres with every channel 0."""
