@@ -212,8 +212,10 @@ class Kinematics:
             o = np.empty((len(self.joints), 3)) if out is None else out
             fastfk.position1(f, *self._fast, self.length_unit, self._scratch, o)
             return o
-        o = None if out is None else out.reshape(1, *out.shape)
-        return self.positions(f.reshape(1, -1), o)[0]
+        if out is None:
+            return self.positions(f.reshape(1, -1))[0]
+        self.positions(f.reshape(1, -1), out.reshape(1, *out.shape))
+        return out
 
     def rest_positions(self) -> np.ndarray:
         """(J, 3) metres with every channel 0."""
