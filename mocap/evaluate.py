@@ -62,13 +62,17 @@ def make_protocol(name: str, seed: int = 0, split: str | None = None, train_spli
     return get_protocol(name)
 
 
-def train(protocol: Protocol, method: str, options: dict[str, Any] | None = None, progress: bool = True) -> Any:
-    """Train ``method`` on the protocol's training set with its options and the method's defaults."""
+def train(protocol: Protocol, method: str, options: dict[str, Any] | None = None, progress: bool = True,
+          train_files: list[str] | None = None, asf: str | None = None) -> Any:
+    """Train ``method`` on the protocol's training set (or on ``train_files``, takes of any
+    skeleton: ``Protocol.files_training_set``) with its options and the method's defaults."""
     spec = registry.get_method(method)
     if progress:
-        _progress(f"training {method} on the {protocol.name} training set ...")
+        what = f"{len(train_files)} files" if train_files else f"the {protocol.name} training set"
+        _progress(f"training {method} on {what} ...")
     opts = {**protocol.options, **spec.defaults, **(options or {})}
-    return spec.train(protocol.training_set(), **opts)
+    ts = protocol.files_training_set(train_files, asf) if train_files else protocol.training_set()
+    return spec.train(ts, **opts)
 
 
 def activity_of(take: str) -> str:
@@ -104,9 +108,11 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
              options: dict[str, Any] | None = None, progress: bool = True, seed: int = 0, *,
              seeds: Iterable[int] | None = None, split: str | None = None, train_split: bool = False,
              model: Any = None, fills_dir: str | None = None, keep: bool = True,
-             skeleton: str | None = None) -> dict[str, Any]:
+             skeleton: str | None = None, train_files: list[str] | None = None) -> dict[str, Any]:
     """Train (or load, or take ``model``) once, fill every case of every seed, score and aggregate.
-    ``skeleton``: the skeleton map of the test files (name or file; default recognised)."""
+    ``skeleton``: the skeleton map of the test files (name or file; default recognised).
+    ``train_files``: train on these takes instead of the protocol's training set (BVH takes for
+    BVH test files)."""
     seeds = [int(s) for s in seeds] if seeds is not None else [int(seed)]
     if not seeds:
         raise ValueError("no seeds given")
@@ -123,9 +129,14 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
     if model is None and model_path:
         model = modelfile.load_model(model_path)
     elif model is None:
-        model = train(protocols[0], method, options, progress)
+        model = train(protocols[0], method, options, progress, train_files, asf)
         train_seconds = time.perf_counter() - t0
-    trained_on = list(protocols[0].training_set().names) if not model_path else []
+    if model_path:
+        trained_on: list[str] = []
+    elif train_files:
+        trained_on = [Path(f).stem for f in train_files]
+    else:
+        trained_on = list(protocols[0].training_set().names)
     seen = set(trained_on)
 
     per_case: list[tuple[Case, metrics.Values, list[dict[str, Any]]]] = []

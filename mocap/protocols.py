@@ -192,6 +192,28 @@ class Protocol:
     def _load_files(self, test_files, asf: str | None, fps: float, channels: list[str]) -> list[Motion]:
         return [self._load_file(f, asf, fps, channels) for f in _as_list(test_files)]
 
+    def files_training_set(self, files: list[str], asf: str | None = None) -> TrainingSet:
+        """A training set of the given takes (any one skeleton; a leading T-pose skipped), at the
+        protocol's frame rate, labelled by activity where ``splits`` knows the take."""
+        from mocap.io import read_motion
+        from mocap.tpose import skip_tpose
+
+        fps = float(self.options.get("fps", 120.0))
+        seqs, names, ch = [], [], None
+        for f in _as_list(files):
+            if not Path(f).is_file():
+                raise DataError(f"{f}: no such file")
+            m = skip_tpose(read_motion(f, asf=asf))
+            if ch is None:
+                ch = m.channels
+            elif m.channels != ch:
+                raise DataError(f"{f}: channels differ from {files[0]}'s: train on takes of one skeleton")
+            seqs.append(m.frames if abs(m.fps - fps) <= 1e-6 else resample(m.frames, m.fps, fps, m.channels))
+            names.append(Path(f).stem)
+        if ch is None:
+            raise DataError("no training files given")
+        return TrainingSet(seqs, list(ch), fps, names, [splits.ACTIVITY.get(n, "walk") for n in names])
+
 
 # ---- pan2009 ------------------------------------------------------------------------------------
 class Pan2009(Protocol):
