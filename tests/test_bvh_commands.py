@@ -130,3 +130,22 @@ def test_replay_positions_csv_is_forward_kinematics(data, tmp_path):
                                atol=1e-9, rtol=0)
     # and the Hips stand about a metre above CMU's floor (z up, 1/0.45-inch units)
     assert 0.7 < np.median(P.frames[:, 2]) < 1.2
+
+
+@pytest.mark.realdata
+def test_eval_trains_on_bvh_files_and_scores_bvh_takes_with_a_protocol(data, tmp_path, capsys):
+    """The gaps protocol on CMU's BVH: hold and nn trained on 08_02.bvh, scored on 07_01.bvh."""
+    out = {}
+    for method in ("hold", "nn"):
+        js = tmp_path / f"{method}.json"
+        assert main(["eval", "--protocol", "gaps", "--method", method, "--train", str(data / "bvh" / "08_02.bvh"),
+                     "--test", str(data / "bvh" / "07_01.bvh"), "--json", str(js), "-q"]) == 0
+        res = json.loads(js.read_text())
+        assert res["trained_on"] == ["08_02"]
+        out[method] = {r["metric"]: r for r in res["results"] if r["test"] == "07_01"}
+    for method, rows in out.items():
+        assert rows["rms_deg"]["n"] > 1000 and 0 < rows["joint_pos_mean_cm"]["value"] < 30, method
+        assert rows["rms_deg[group left-arm]"]["n"] > 0 and rows["rms_deg[group torso]"]["n"] > 0
+    # the same erasure for both: the same values scored
+    assert out["hold"]["rms_deg"]["n"] == out["nn"]["rms_deg"]["n"]
+    capsys.readouterr()
