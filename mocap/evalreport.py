@@ -1,7 +1,7 @@
 """The printed table and the figure of an ``mocap.evaluate.evaluate`` result.
 
 The table has one block per erasure pattern: metrics down, then the aggregates (walk, turn,
-run, nonloco, all) and the takes across; ``n/a`` where a figure does not apply (calibration of a
+run, nonloco, all) and the takes across (the per-group bins are in the JSON only); ``n/a`` where a figure does not apply (calibration of a
 method that reports no std).  The figure shows, for a few cases, the erased channels that move
 most: truth, the fill and its 2-std band around the channel's longest gap.
 """
@@ -56,6 +56,7 @@ def format_table(result: dict[str, Any]) -> str:
             cell[(key[0], key[1], r["metric"])] = r["value"]
             if r["metric"] not in metrics:
                 metrics.append(r["metric"])
+        metrics = [m for m in metrics if not m.startswith("rms_deg[group ") or "," not in m]  # group x bin: --json
         pooled = {r["metric"] for r in block if r["test"] == "all"}
         metrics = [m for m in metrics if m not in pooled] + [m for m in metrics if m in pooled]  # protocol's own first
         names = [a if t == "all" else t for t, a in shown]

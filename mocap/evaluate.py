@@ -17,6 +17,8 @@ for pan2009 None (the paper's 07_01) or "validation"/"test" (that split's walks,
 any validation or test take); ``train_split=True`` makes pan2009 train on that reduced set for
 ``test_file`` too.  ``test_file`` is a path or a list of paths (one model scores every file).
 ``seeds`` (gaps only) lists occlusion seeds; figures pool the values of every seed.
+``trained_on`` names the takes a given ``model`` saw (default: the protocol's training set; for a
+``model_path``, the file's ``training.data``), so rows of those takes are flagged ``in_training``.
 ``fills_dir`` writes one ``<stem>[-<pattern>][-seed<k>].npz`` per case (see ``write_fill``).
 
 Result: ``{"protocol", "method", "causal", "model", "train_seconds", "split", "seeds",
@@ -108,7 +110,8 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
              options: dict[str, Any] | None = None, progress: bool = True, seed: int = 0, *,
              seeds: Iterable[int] | None = None, split: str | None = None, train_split: bool = False,
              model: Any = None, fills_dir: str | None = None, keep: bool = True,
-             skeleton: str | None = None, train_files: list[str] | None = None) -> dict[str, Any]:
+             trained_on: list[str] | None = None, skeleton: str | None = None,
+             train_files: list[str] | None = None) -> dict[str, Any]:
     """Train (or load, or take ``model``) once, fill every case of every seed, score and aggregate.
     ``skeleton``: the skeleton map of the test files (name or file; default recognised).
     ``train_files``: train on these takes instead of the protocol's training set (BVH takes for
@@ -131,12 +134,14 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
     elif model is None:
         model = train(protocols[0], method, options, progress, train_files, asf)
         train_seconds = time.perf_counter() - t0
-    if model_path:
-        trained_on: list[str] = []
-    elif train_files:
-        trained_on = [Path(f).stem for f in train_files]
-    else:
-        trained_on = list(protocols[0].training_set().names)
+    if trained_on is None:
+        if model_path:  # what the file says it was trained on (HLM and CRBM files say; others: unknown)
+            meta, _ = modelfile.load_arrays(model_path)
+            trained_on = list((meta.get("training") or {}).get("data") or [])
+        elif train_files:
+            trained_on = [Path(f).stem for f in train_files]
+        else:
+            trained_on = list(protocols[0].training_set().names)
     seen = set(trained_on)
 
     per_case: list[tuple[Case, metrics.Values, list[dict[str, Any]]]] = []

@@ -211,25 +211,37 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x))))
 
 
-def summarise(v: Values) -> list[tuple[str, float | None, int]]:
-    """(metric, value, n) for pooled values; bins with no values are left out."""
+def _binned(v: Values, keep: np.ndarray, tag: str) -> list[tuple[str, float | None, int]]:
+    """RMS by gap length and by time since onset over the values ``keep`` selects."""
+    out: list[tuple[str, float | None, int]] = []
+    for lo, hi in LENGTH_BINS:
+        m = keep & (v.length >= lo) & (v.length < hi)
+        if m.any():
+            out.append((f"rms_deg[{tag}len {bin_label(lo, hi)}]", _rms(v.err[m]), int(m.sum())))
+    m = keep & v.first
+    if m.any():
+        out.append((f"rms_deg[{tag}since first]", _rms(v.err[m]), int(m.sum())))
+    for lo, hi in SINCE_BINS:
+        m = keep & (v.since >= lo) & (v.since < hi) & ~v.first
+        if m.any():
+            out.append((f"rms_deg[{tag}since {bin_label(lo, hi)}]", _rms(v.err[m]), int(m.sum())))
+    return out
+
+
+def summarise(v: Values, by_group_bins: bool = True) -> list[tuple[str, float | None, int]]:
+    """(metric, value, n) for pooled values; bins with no values are left out.  With
+    ``by_group_bins`` the length and onset bins are also given per joint group
+    (``rms_deg[group G, len A-Bs]``, ``rms_deg[group G, since ...]``)."""
     out: list[tuple[str, float | None, int]] = []
     n = v.err.size
     if n:
         out.append(("rms_deg", _rms(v.err), n))
-    for lo, hi in LENGTH_BINS:
-        m = (v.length >= lo) & (v.length < hi)
-        if m.any():
-            out.append((f"rms_deg[len {bin_label(lo, hi)}]", _rms(v.err[m]), int(m.sum())))
-    if v.first.any():
-        out.append(("rms_deg[since first]", _rms(v.err[v.first]), int(v.first.sum())))
-    for lo, hi in SINCE_BINS:
-        m = (v.since >= lo) & (v.since < hi) & ~v.first
-        if m.any():
-            out.append((f"rms_deg[since {bin_label(lo, hi)}]", _rms(v.err[m]), int(m.sum())))
+    out += _binned(v, np.ones(n, bool), "")
     for g in sorted(set(v.group.tolist())):
         m = v.group == g
         out.append((f"rms_deg[group {g}]", _rms(v.err[m]), int(m.sum())))
+        if by_group_bins:
+            out += _binned(v, m, f"group {g}, ")
     if v.onset_err.size:
         e, s = float(np.median(v.onset_err)), float(np.median(v.onset_step))
         k = int(v.onset_err.size)

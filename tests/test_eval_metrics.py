@@ -167,3 +167,20 @@ def test_pooling_is_over_values_not_a_mean_of_figures():
     pooled = metrics.summarise(metrics.Values.concat([va, vb]))
     assert _fig(pooled, "rms_deg") == pytest.approx(np.sqrt((30 * 1 + 10 * 16) / 40))
     assert _fig(pooled, "rms_deg") != pytest.approx((1.0 + 4.0) / 2)
+
+
+def test_bins_are_also_given_per_joint_group():
+    a, fa = _ramp_case(1.0)  # left leg, 30 values off by 1
+    T = 20
+    truth = np.zeros((T, 2))
+    obs = np.ones((T, 2), bool)
+    obs[5:15, 1] = False  # 10 values of the head off by 4, a 0.1 s gap
+    b = _case(truth, obs, ["lfemur.rx", "head.rx"])
+    fb = np.where(obs, truth, 4.0)
+    s = metrics.summarise(metrics.Values.concat([metrics.values(a, fa, None, GAP_GROUPS),
+                                                  metrics.values(b, fb, None, GAP_GROUPS)]))
+    assert _fig(s, "rms_deg[group head-neck, len 0.1-0.25s]") == pytest.approx(4.0)
+    assert _fig(s, "rms_deg[group left-leg, len 0.25-0.5s]") == pytest.approx(1.0)
+    assert _fig(s, "rms_deg[group head-neck, since first]") == pytest.approx(4.0)
+    assert not [m for m, _, _ in s if m.startswith("rms_deg[group head-neck, len 0.25")]
+    assert "rms_deg[group left-leg, len 0.1-0.25s]" not in [m for m, _, _ in s]
