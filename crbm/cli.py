@@ -98,6 +98,12 @@ def _run_train(args: argparse.Namespace) -> int:
                         n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, bias_rate=args.bias_rate,
                         names=names, fps=fps, skeleton=args.skeleton,
                         progress=not args.quiet)
+    if not args.protocol:
+        from mocap.fk import skeleton_record
+
+        rec = skeleton_record(ms[0])  # for FK wherever the model goes (mocap.fk.from_record)
+        if rec:
+            model.meta.setdefault("training", {})["skeleton"] = rec
     model.save(args.output)
     tr = model.meta["training"]
     print(f"wrote {args.output}: {tr['epochs']} epochs in {tr['seconds']:.1f} s, "

@@ -93,6 +93,11 @@ def _run_train(args: argparse.Namespace) -> int:
                         kappa_global=args.kappa_global, style_switch=args.style_switch,
                         lag=args.lag, skeleton=args.skeleton)
     model.meta["training"]["fps"] = fps
+    from mocap.fk import skeleton_record
+
+    rec = skeleton_record(motions[0])  # for FK wherever the model goes (mocap.fk.from_record)
+    if rec:
+        model.meta["training"]["skeleton"] = rec
     model.save(args.output)
     psi = np.array(model.meta["training"]["psi"])
     print(f"hlm: trained in {time.perf_counter() - t0:.1f} s, bound {model.meta['training']['bounds'][-1]:.8g}; "

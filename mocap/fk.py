@@ -341,3 +341,33 @@ def guess_up_axis(kin: Kinematics, frames: np.ndarray, n: int = 32) -> str:
     sel = F[np.linspace(0, len(F) - 1, min(n, len(F))).astype(int)]
     ext = np.median(_extent(kin.positions(sel)), 0)
     return _AXES[int(np.argmax(ext))]
+
+
+def skeleton_record(motion: Motion) -> dict[str, Any] | None:
+    """The motion's skeleton as JSON-ready text (``{"format": "bvh"|"asf", "text": ...}``), for a
+    model file to carry, so whoever serves or shows the model can run FK; None without one."""
+    from mocap.asf import Skeleton
+    from mocap.bvh import Hierarchy, format_bvh
+
+    sk = motion.skeleton
+    if isinstance(sk, Hierarchy):
+        empty = Motion(np.zeros((0, len(sk.channels))), list(sk.channels), motion.fps, sk, motion.source)
+        return {"format": "bvh", "text": format_bvh(empty)}
+    if isinstance(sk, Skeleton) and sk.text:
+        return {"format": "asf", "text": sk.text}
+    return None
+
+
+def from_record(record: dict[str, Any], channels: Sequence[str] | None = None, **kw: Any) -> Kinematics:
+    """Kinematics of a ``skeleton_record`` (a model file's ``meta["training"]["skeleton"]``)."""
+    from mocap.asf import parse_asf
+    from mocap.bvh import parse_bvh
+
+    fmt = record.get("format")
+    if fmt == "bvh":
+        sk = parse_bvh(record["text"], "<model skeleton>").skeleton
+    elif fmt == "asf":
+        sk = parse_asf(record["text"], "<model skeleton>")
+    else:
+        raise ValueError(f"skeleton record format {fmt!r} is not bvh or asf")
+    return Kinematics.from_skeleton(sk, list(channels) if channels is not None else None, **kw)

@@ -149,3 +149,22 @@ def test_eval_trains_on_bvh_files_and_scores_bvh_takes_with_a_protocol(data, tmp
     # the same erasure for both: the same values scored
     assert out["hold"]["rms_deg"]["n"] == out["nn"]["rms_deg"]["n"]
     capsys.readouterr()
+
+
+def test_a_model_trained_from_files_carries_its_skeleton_for_fk(tmp_path, capsys):
+    from lacuna.modelfile import load_model
+    from mocap.fk import Kinematics, from_record
+
+    take = tmp_path / "vicon.bvh"
+    take.write_text(bvh_text(NAMINGS["vicon-shogun"](), 480))
+    m = read_motion(take)
+    for cmd in (["train", "hlm", str(take), "-o", str(tmp_path / "h.npz"), *TINY_HLM],
+                ["train", "crbm", str(take), "-o", str(tmp_path / "c.npz"), "--epochs", "3", "--hidden", "10",
+                 "--fps", "120", "-q"]):
+        assert main(cmd) == 0
+        model = load_model(cmd[cmd.index("-o") + 1])
+        kin = from_record(model.meta["training"]["skeleton"], model.channels)
+        want = Kinematics.from_motion(m)
+        assert kin.joints == want.joints and kin.length_unit == want.length_unit
+        np.testing.assert_allclose(kin.positions(m.frames[:5]), want.positions(m.frames[:5]), atol=1e-12)
+    capsys.readouterr()
