@@ -89,6 +89,10 @@ def test_crbm_with_a_heading_relative_root_on_a_mixamo_take(tmp_path, capsys):
                  "--out", str(tmp_path / "f.bvh"), "--json", str(js), "-q"]) == 0
     r = json.loads(js.read_text())
     assert r["accuracy"]["erased_values"] > 0 and r["joint_positions"]["n"] > 0
+    gen = tmp_path / "gen.bvh"
+    assert main(["generate", "crbm", str(model), "--seed-frames", str(take), "--frames", "20", "-o", str(gen)]) == 0
+    g = read_motion(gen)
+    assert g.channels == read_motion(take).channels and g.n_frames == 4 + 20 and np.isfinite(g.frames).all()
     capsys.readouterr()
 
 
