@@ -463,6 +463,10 @@ def _root_spec(channels: Sequence[str], skeleton: Any) -> dict[str, Any] | None:
             raise
         return None  # no map fits: the CMU ASF convention, whose channels fit() then requires
     spec = b.root_spec()
+    if spec is None and b.map.root_bone != "root":
+        r = b.root_bone or b.map.root_bone
+        raise ValueError(f"root_mode 'relative' needs the root's rotation and translation channels "
+                         f"({r}.rx, .ry, .rz, .tx, .ty, .tz; skeleton {b.map.name})")
     return None if spec is None or spec == skelmap.DEFAULT_ROOT else spec
 
 
