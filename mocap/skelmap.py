@@ -28,7 +28,6 @@ raises SkeletonError when none knows most (MIN_KNOWN) of its bones.
 """
 from __future__ import annotations
 
-import os
 import re
 import tomllib
 from dataclasses import dataclass, field
