@@ -30,6 +30,12 @@ def add_commands(cli) -> None:
     p.add_argument("--option", "-O", action="append", default=[], metavar="KEY=VALUE",
                    help="training option passed to the method (JSON value), e.g. -O styles=4")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+    p.add_argument("--train", action="append", metavar="FILE", dest="train_files",
+                   help="train the method on this take (repeatable) instead of the protocol's training set: "
+                   "takes of another skeleton (BVH) for --test files of that skeleton")
+    from mocap import skelmap
+
+    skelmap.add_argument(p)
     p.set_defaults(func=_run_eval)
 
     lm = cli.command("methods", help="list the fill methods lacuna knows")
@@ -72,7 +78,8 @@ def _run_eval(args: argparse.Namespace) -> int:
     seeds = parse_seeds(args.seeds, args.seed)
     res = ev.evaluate(args.protocol, args.method, args.model, args.test, args.asf,
                       _parse_options(args.option), progress=not args.quiet, seeds=seeds,
-                      split=args.split, train_split=args.train_split, fills_dir=args.fills)
+                      split=args.split, train_split=args.train_split, fills_dir=args.fills,
+                      skeleton=args.skeleton, train_files=args.train_files)
     print(ev.format_table(res))
     if args.fills:
         print(f"fills: {args.fills}")

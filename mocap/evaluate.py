@@ -64,13 +64,17 @@ def make_protocol(name: str, seed: int = 0, split: str | None = None, train_spli
     return get_protocol(name)
 
 
-def train(protocol: Protocol, method: str, options: dict[str, Any] | None = None, progress: bool = True) -> Any:
-    """Train ``method`` on the protocol's training set with its options and the method's defaults."""
+def train(protocol: Protocol, method: str, options: dict[str, Any] | None = None, progress: bool = True,
+          train_files: list[str] | None = None, asf: str | None = None) -> Any:
+    """Train ``method`` on the protocol's training set (or on ``train_files``, takes of any
+    skeleton: ``Protocol.files_training_set``) with its options and the method's defaults."""
     spec = registry.get_method(method)
     if progress:
-        _progress(f"training {method} on the {protocol.name} training set ...")
+        what = f"{len(train_files)} files" if train_files else f"the {protocol.name} training set"
+        _progress(f"training {method} on {what} ...")
     opts = {**protocol.options, **spec.defaults, **(options or {})}
-    return spec.train(protocol.training_set(), **opts)
+    ts = protocol.files_training_set(train_files, asf) if train_files else protocol.training_set()
+    return spec.train(ts, **opts)
 
 
 def activity_of(take: str) -> str:
@@ -106,14 +110,20 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
              options: dict[str, Any] | None = None, progress: bool = True, seed: int = 0, *,
              seeds: Iterable[int] | None = None, split: str | None = None, train_split: bool = False,
              model: Any = None, fills_dir: str | None = None, keep: bool = True,
-             trained_on: list[str] | None = None) -> dict[str, Any]:
-    """Train (or load, or take ``model``) once, fill every case of every seed, score and aggregate."""
+             trained_on: list[str] | None = None, skeleton: str | None = None,
+             train_files: list[str] | None = None) -> dict[str, Any]:
+    """Train (or load, or take ``model``) once, fill every case of every seed, score and aggregate.
+    ``skeleton``: the skeleton map of the test files (name or file; default recognised).
+    ``train_files``: train on these takes instead of the protocol's training set (BVH takes for
+    BVH test files)."""
     seeds = [int(s) for s in seeds] if seeds is not None else [int(seed)]
     if not seeds:
         raise ValueError("no seeds given")
     if protocol_name != "gaps" and seeds != [0]:
         raise ValueError(f"{protocol_name} erases the same values every time: seeds apply to the gaps protocol only")
     protocols = [make_protocol(protocol_name, s, split, train_split) for s in seeds]
+    for p in protocols:
+        p.skeleton = skeleton
     spec = registry.get_method(method)
     # the cases first: a bad --test file fails before minutes of training
     case_lists = [proto.cases(test_files=test_file, asf=asf) for proto in protocols]
@@ -122,12 +132,14 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
     if model is None and model_path:
         model = modelfile.load_model(model_path)
     elif model is None:
-        model = train(protocols[0], method, options, progress)
+        model = train(protocols[0], method, options, progress, train_files, asf)
         train_seconds = time.perf_counter() - t0
     if trained_on is None:
         if model_path:  # what the file says it was trained on (HLM and CRBM files say; others: unknown)
             meta, _ = modelfile.load_arrays(model_path)
             trained_on = list((meta.get("training") or {}).get("data") or [])
+        elif train_files:
+            trained_on = [Path(f).stem for f in train_files]
         else:
             trained_on = list(protocols[0].training_set().names)
     seen = set(trained_on)
@@ -136,7 +148,9 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
     cases_all, fills_all, stds_all = [], [], []
     for proto, cases in zip(protocols, case_lists):
         if list(model.channels) != list(cases[0].channels):
-            raise ValueError(f"model channels ({len(model.channels)}) do not match the protocol's ({len(cases[0].channels)})")
+            raise ValueError(f"model channels ({len(model.channels)}) do not match the protocol's ({len(cases[0].channels)})"
+                             + ("; the protocols train on CMU ASF takes: for takes of another skeleton train a model "
+                                "on that skeleton (lacuna train hlm TAKE.bvh ...) and pass --model" if test_file else ""))
         patterns_per_take = max(sum(c.test == k.test for c in cases) for k in cases)
         for i, case in enumerate(cases):
             if progress:
@@ -146,7 +160,7 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
             given = np.where(case.observed, case.truth, np.nan)
             filled, std = spec.run(model, given, case.observed.copy())
             std = np.zeros_like(filled) if std is None else np.asarray(std, np.float64)
-            per_case.append((case, metrics.values(case, filled, std, GAP_GROUPS), proto.score(case, filled)))
+            per_case.append((case, metrics.values(case, filled, std, case.info.get("groups", GAP_GROUPS)), proto.score(case, filled)))
             if fills_dir:
                 d = Path(fills_dir)
                 d.mkdir(parents=True, exist_ok=True)

@@ -38,6 +38,10 @@ root_pos_rms_cm / root_pos_max_cm / hold_root_pos_rms_cm  over frames where any 
                (1 unit = 1/0.45 inch = 5.644 cm for L = 0.45; CMU's FAQ: multiply by
                (1/0.45) * 2.54 / 100 for metres).  Without an ASF (BVH, CSV) the figures are in the
                file's own units and named ``root_pos_rms_units`` etc.
+joint_pos_mean_cm / joint_pos_p95_cm  marker-like error: forward kinematics (mocap.fk) of truth
+               and fill, the 3-D distance of every joint on every frame where its position depends
+               on an erased value (a filled angle of it or up its chain, or the root translation),
+               in cm; mean and 95th percentile.  Needs the case's skeleton (``info["fk"]``).
 """
 from __future__ import annotations
 
@@ -117,6 +121,8 @@ class Values:
     root_hold_err: np.ndarray
     root_unit: str = "cm"
     extra: dict[str, Any] = field(default_factory=dict)
+    # per (frame, joint) moved by an erased value: 3-D joint-position error, cm (mocap.fkerror)
+    joint_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @staticmethod
     def concat(tables: list["Values"]) -> "Values":
@@ -127,7 +133,7 @@ class Values:
             raise ValueError(f"cannot pool root errors in different units ({sorted(units)})")
         kw = {f: np.concatenate([getattr(t, f) for t in tables]) for f in
               ("err", "std", "since", "first", "length", "group", "hold_err", "onset_err", "onset_step",
-               "root_err", "root_hold_err")}
+               "root_err", "root_hold_err", "joint_err")}
         return Values(**kw, root_unit=units.pop() if units else tables[0].root_unit)
 
 
@@ -165,7 +171,7 @@ def values(case: Any, filled: np.ndarray, std: np.ndarray | None, groups: dict[s
     onset = sel & (since == 0) & (start > 0)
     # root position error over frames where the root translation is erased (and was seen before)
     pos = {c: i for i, c in enumerate(case.channels)}
-    rt = [pos[c] for c in ROOT_TRANSLATION if c in pos]
+    rt = [pos[c] for c in case.info.get("root_translation", ROOT_TRANSLATION) if c in pos]
     scale = case.info.get("cm_per_unit")
     unit = "cm" if scale else "units"
     if rt:
@@ -188,7 +194,17 @@ def values(case: Any, filled: np.ndarray, std: np.ndarray | None, groups: dict[s
         group=np.broadcast_to(gname[None, :], (T, C))[sel], hold_err=hold_err[sel],
         onset_err=np.abs(err[onset]), onset_step=np.abs(wrap180(truth - prev)[onset]),
         root_err=root_err, root_hold_err=root_hold, root_unit=unit,
+        joint_err=_joint_err(case, filled, missing),
     )
+
+
+def _joint_err(case: Any, filled: np.ndarray, missing: np.ndarray) -> np.ndarray:
+    kin = case.info.get("fk")  # the case's mocap.fk.Kinematics, when its skeleton is known
+    if kin is None:
+        return np.zeros(0)
+    from mocap.fkerror import joint_errors_cm
+
+    return joint_errors_cm(kin, case.truth, filled, missing)
 
 
 def _rms(x: np.ndarray) -> float:
@@ -247,4 +263,8 @@ def summarise(v: Values, by_group_bins: bool = True) -> list[tuple[str, float | 
         u, k = v.root_unit, int(v.root_err.size)
         out += [(f"root_pos_rms_{u}", _rms(v.root_err), k), (f"root_pos_max_{u}", float(v.root_err.max()), k),
                 (f"hold_root_pos_rms_{u}", _rms(v.root_hold_err), k)]
+    if v.joint_err.size:
+        k = int(v.joint_err.size)
+        out += [("joint_pos_mean_cm", float(v.joint_err.mean()), k),
+                ("joint_pos_p95_cm", float(np.percentile(v.joint_err, 95)), k)]
     return out
