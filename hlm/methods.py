@@ -37,6 +37,7 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "root_mode": "raw",
     "normalize": False,
+    "root_tau": 0.0,        # frames: damping of the root's motion over a root gap (relative mode)
     "eta": 0.1,
     "lam_s": 0.1,
     "zbar_frac": 0.01,
@@ -51,6 +52,9 @@ DEFAULTS: dict[str, Any] = {
     "style_switch": 0.0,
 }
 FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0}
+# the faithful methods' training defaults: the paper's representation (raw root angles and
+# positions, not normalised) and C = 4, whatever ``hlm``'s defaults become
+FAITHFUL_TRAIN = {"root_mode": "raw", "normalize": False, "root_tau": 0.0, "styles": 4}
 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
@@ -58,7 +62,8 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
     """Fit the representation and the HLM on raw sequences [(n_k, n_channels)] -> HLMModel."""
     o = {**DEFAULTS, **{k: v for k, v in options.items() if k in DEFAULTS and v is not None}}
     t0 = time.perf_counter()
-    rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]))
+    rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]),
+                             root_tau=float(o["root_tau"]))
     feats = [rep.transform(s) for s in sequences]
     res = fit(feats, int(o["styles"]), int(o["cycle_frames"]), n_restarts=int(o["restarts"]), seed=int(o["seed"]),
               n_iter=int(o["n_iter"]), n_var=int(o["n_var"]), progress=progress,
@@ -96,7 +101,7 @@ def _fill_lag(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
 
 
 def _train_faithful(training_set, **options: Any) -> HLMModel:
-    return _train(training_set, **{**options, **FAITHFUL})
+    return _train(training_set, **{**FAITHFUL_TRAIN, **options, **FAITHFUL})
 
 
 def _faithful_online(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
