@@ -43,7 +43,7 @@ from mocap.protocols import GAP_BINS, Gaps, LEG_BONES, bone
 from mocap.representation import ROOT_POS, is_angle, wrap180
 
 CM_PER_UNIT = 2.54 / 0.45
-INFER_KEYS = ("kappa", "width", "kappa_global", "style_switch", "adapt_rate", "root_tau")
+INFER_KEYS = ("kappa", "width", "kappa_global", "style_switch", "adapt_rate", "root_tau", "root_power")
 LOCO = ("walk", "turn", "run")
 
 

@@ -242,7 +242,7 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
     """fastrepr.encode1 -> _step -> fastrepr.finish1 for pool row r: the arithmetic of
     ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Writes the
     completed frame to out, its std to sd, the style posterior to style; returns the phase."""
-    center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF, root_tau = rt
+    center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF, root_tau, root_power = rt
     prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin = ht
     C = frame.shape[0]
     x = np.empty(C)
@@ -260,7 +260,8 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
                   D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style)
     t[r] += 1
     prev_yaw[r] = finish1(zf, zsd, x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center,
-                          const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, out, sd)
+                          const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power,
+                          out, sd)
     started[r] = True
     return phase
 
@@ -270,7 +271,8 @@ def slot_tables(tab, rep) -> tuple:
     filter without them) as ``_step_slot`` takes them."""
     t = fastrepr.tables(rep)
     rt = (t["center"], t["const"], t["dr"], t["df"], t["dang"], t["any_angle"], t["relative"], t["rot"], t["pos"],
-          t["rootf"], t["fsrc"], t["rsrc"], t["normalize"], t["mean"], t["std"], int(rep.n_features), t["root_tau"])
+          t["rootf"], t["fsrc"], t["rsrc"], t["normalize"], t["mean"], t["std"], int(rep.n_features), t["root_tau"],
+          t["root_power"])
     ht = (tab.prior_flat, tab.d_pop, int(tab.shape[1]), tab.em.fused_t, tab.mu, tab.bin0, tab.bin1, tab.bin_a,
           float(tab.kappa), float(tab.kappa_global), int(tab.n_bins), tab.lam_rows, tab.var_q, tab.pack, tab.cos,
           tab.sin)

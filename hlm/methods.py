@@ -22,7 +22,7 @@ from hlm import model as _model  # noqa: F401  (registers the model-file loader)
 from hlm.model import HLMModel, HLMOptions
 from hlm.train import fit
 from lacuna.registry import MethodSpec, register_method
-from mocap.representation import Representation
+from mocap.representation import ROOT_POS, ROOT_ROT, Representation
 
 # Defaults (section 4 of the paper where it says; representation: see docs/BENCHMARKS.md ## HLM)
 DEFAULTS: dict[str, Any] = {
@@ -35,9 +35,13 @@ DEFAULTS: dict[str, Any] = {
     "restarts": 3,
     "screen_iters": 2,
     "seed": 0,
-    "root_mode": "raw",
+    # the root heading-relative (Taylor et al. 2006) where the skeleton has root.tx..rz, its motion
+    # over a root dropout damped by exp(-(g / 40)^2 / 2) after g frames: chosen on VALIDATION
+    # (docs/BENCHMARKS.md, "HLM root representation")
+    "root_mode": "auto",
     "normalize": False,
-    "root_tau": 0.0,        # frames: damping of the root's motion over a root gap (relative mode)
+    "root_tau": 40.0,       # frames: damping of the root's motion over a root gap (relative mode)
+    "root_power": 2.0,      # its shape: 1 exponential, 2 Gaussian (mocap.representation)
     "eta": 0.1,
     "lam_s": 0.1,
     "zbar_frac": 0.01,
@@ -54,16 +58,19 @@ DEFAULTS: dict[str, Any] = {
 FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0}
 # the faithful methods' training defaults: the paper's representation (raw root angles and
 # positions, not normalised) and C = 4, whatever ``hlm``'s defaults become
-FAITHFUL_TRAIN = {"root_mode": "raw", "normalize": False, "root_tau": 0.0, "styles": 4}
+FAITHFUL_TRAIN = {"root_mode": "raw", "normalize": False, "root_tau": 0.0, "root_power": 1.0, "styles": 4}
 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
                 progress: bool = False, **options: Any) -> HLMModel:
     """Fit the representation and the HLM on raw sequences [(n_k, n_channels)] -> HLMModel."""
     o = {**DEFAULTS, **{k: v for k, v in options.items() if k in DEFAULTS and v is not None}}
+    if o["root_mode"] == "auto":
+        # heading-relative where the skeleton has the six root channels it is computed from
+        o["root_mode"] = "relative" if all(c in channels for c in ROOT_ROT + ROOT_POS) else "raw"
     t0 = time.perf_counter()
     rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]),
-                             root_tau=float(o["root_tau"]))
+                             root_tau=float(o["root_tau"]), root_power=float(o["root_power"]))
     feats = [rep.transform(s) for s in sequences]
     res = fit(feats, int(o["styles"]), int(o["cycle_frames"]), n_restarts=int(o["restarts"]), seed=int(o["seed"]),
               n_iter=int(o["n_iter"]), n_var=int(o["n_var"]), progress=progress,

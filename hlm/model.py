@@ -90,13 +90,13 @@ class HLMModel(FeatureModel):
 
     def with_options(self, **kw) -> "HLMModel":
         """A copy with other inference options (the learned parameters are shared, read-only);
-        ``root_tau`` (frames) changes the representation's root damping, which nothing learned
+        ``root_tau`` (frames) and ``root_power`` change the representation's root damping, which nothing learned
         depends on."""
         rep = self.representation
-        if "root_tau" in kw:
-            tau = float(kw.pop("root_tau"))
-            if tau != rep.root_tau:
-                rep = rep.with_root_tau(tau)
+        if "root_tau" in kw or "root_power" in kw:
+            tau, q = float(kw.pop("root_tau", rep.root_tau)), float(kw.pop("root_power", rep.root_power))
+            if (tau, q) != (rep.root_tau, rep.root_power):
+                rep = rep.with_root_damping(tau, q)
         o = HLMOptions(**{**self.options.__dict__, **kw})
         return HLMModel(rep, self.params, o, self.meta)
 

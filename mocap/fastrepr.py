@@ -118,7 +118,7 @@ def _to_rxyz(R, p0, p1, p2, out, i0, i1, i2):  # pragma: no cover - compiled
 
 @_jit
 def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, const, dr, df, dang,
-            relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, out, sd):  # pragma: no cover - compiled
+            relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power, out, sd):  # pragma: no cover - compiled
     """ReprState.finish (decode + the raw std + commit), for one stream.  Writes the completed raw
     frame to out, its std (0 where observed) to sd, and the new previous-frame state (prev_u,
     prev_raw, root_st in place); returns the new prev_yaw."""
@@ -134,7 +134,7 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         out[dr[k]] = _wrap(v) if dang[k] else v
     kd = 1.0
     if relative and root_tau > 0:
-        kd = math.exp(-root_st[0] / root_tau)
+        kd = math.exp(-((root_st[0] / root_tau) ** root_power) / root_power)
     if relative:
         side, height, fwd = Fv[rootf[0]], Fv[rootf[1]], Fv[rootf[2]]
         dyaw, pitch, roll = Fv[rootf[3]], Fv[rootf[4]], Fv[rootf[5]]
@@ -226,11 +226,11 @@ def encode_many(frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, 
 
 @_jit
 def finish_many(z, zstd, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, const, dr, df, dang,
-                relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, out, sd):  # pragma: no cover - compiled
+                relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power, out, sd):  # pragma: no cover - compiled
     for i in range(frames.shape[0]):
         prev_yaw[i] = finish1(z[i], zstd[i], frames[i], observed[i], prev_u[i], prev_raw[i], prev_yaw[i], started[i],
                               root_st[i], center, const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize,
-                              mean, std, root_tau, out[i], sd[i])
+                              mean, std, root_tau, root_power, out[i], sd[i])
         started[i] = True
 
 
@@ -259,6 +259,7 @@ def tables(rep: Any) -> dict[str, Any]:
             "mean": np.ascontiguousarray(p["mean"], np.float64),
             "std": np.ascontiguousarray(p["std"], np.float64),
             "root_tau": float(rep.root_tau),
+            "root_power": float(rep.root_power),
         }
     return t
 
@@ -287,5 +288,5 @@ def finish(rs: Any, z: np.ndarray, zstd: np.ndarray, frames: np.ndarray, observe
                 np.ascontiguousarray(frames, np.float64), np.ascontiguousarray(observed, np.bool_), rs.prev_u,
                 rs.prev_raw, rs.prev_yaw, rs.started, rs.root_st, t["center"], t["const"], t["dr"], t["df"], t["dang"],
                 t["relative"], t["rot"], t["pos"], t["rootf"], t["rsrc"], t["normalize"], t["mean"], t["std"],
-                t["root_tau"], out, sd)
+                t["root_tau"], t["root_power"], out, sd)
     return out, sd

@@ -17,8 +17,10 @@ Root dropouts (relative mode).  A root velocity feature is observed only when th
 observed in this frame *and* the previous one: the first frame after a root gap would otherwise
 "see" the whole gap's error as one frame's displacement.  While the root is missing the decoder
 integrates the filled displacement and yaw rate from the last completed frame (no jump at the
-first erased frame), damped by exp(-g / ``root_tau``) after g missing frames (``root_tau`` = 0:
-undamped), so a long root gap falls back toward holding the last root; the reported std of the
+first erased frame), damped by exp(-(g / ``root_tau``)^q / q) after g missing frames (q =
+``root_power``: 1 an exponential decay, 2 a Gaussian one that keeps the motion of short gaps and
+stops that of long ones; ``root_tau`` = 0: undamped), so a long root gap falls back toward
+holding the last root; the reported std of the
 ground position and of the heading is the std of those damped increments summed over the gap
 (the errors of successive increments are taken as fully correlated), not one frame's.
 
@@ -69,16 +71,18 @@ class Representation:
     std: list[float] = field(default_factory=list)    # per feature
     features: list[str] = field(default_factory=list)
     root_tau: float = 0.0                 # frames; damping of root motion over a root gap (0 = none)
+    root_power: float = 1.0               # shape of that damping (1 exponential, 2 Gaussian)
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
     def fit(cls, sequences: Sequence[np.ndarray], channels: Sequence[str], root_mode: str = "relative",
-            normalize: bool = True, drop_constant: bool = True, root_tau: float = 0.0) -> "Representation":
+            normalize: bool = True, drop_constant: bool = True, root_tau: float = 0.0,
+            root_power: float = 1.0) -> "Representation":
         """sequences: list of (n_frames, n_channels) raw frames."""
         if root_mode not in ("relative", "raw"):
             raise ValueError(f"root_mode must be 'relative' or 'raw' (got {root_mode!r})")
-        if not (np.isfinite(root_tau) and root_tau >= 0):
-            raise ValueError(f"root_tau must be >= 0 frames (got {root_tau})")
+        if not (np.isfinite(root_tau) and root_tau >= 0 and np.isfinite(root_power) and root_power > 0):
+            raise ValueError(f"root_tau must be >= 0 frames and root_power > 0 (got {root_tau}, {root_power})")
         channels = list(channels)
         allf = np.vstack([np.asarray(s, dtype=np.float64) for s in sequences])
         if allf.shape[1] != len(channels):
@@ -94,7 +98,7 @@ class Representation:
                 keep[channels.index(c)] = True
         center = np.where(ang, circular_mean_deg(allf), 0.0)
         rep = cls(channels, keep.tolist(), allf[0].tolist(), center.tolist(), root_mode, normalize,
-                  root_tau=float(root_tau))
+                  root_tau=float(root_tau), root_power=float(root_power))
         rep.features = rep._feature_names()
         rep.mean = [0.0] * len(rep.features)
         rep.std = [1.0] * len(rep.features)
@@ -122,12 +126,14 @@ class Representation:
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("channels", "keep", "const_value", "center", "root_mode",
-                                               "normalize", "mean", "std", "features", "root_tau")}
+                                               "normalize", "mean", "std", "features", "root_tau",
+                                               "root_power")}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Representation":
         rep = cls(**{k: d[k] for k in ("channels", "keep", "const_value", "center", "root_mode", "normalize",
-                                        "mean", "std", "features")}, root_tau=float(d.get("root_tau", 0.0)))
+                                        "mean", "std", "features")}, root_tau=float(d.get("root_tau", 0.0)),
+                  root_power=float(d.get("root_power", 1.0)))
         n, f = len(rep.channels), len(rep.features)
         for k, want in (("keep", n), ("const_value", n), ("center", n), ("mean", f), ("std", f)):
             if len(getattr(rep, k)) != want:
@@ -138,14 +144,15 @@ class Representation:
             raise ValueError(f"representation root_mode {rep.root_mode!r} is unknown")
         if not all(np.isfinite(rep.std)) or min(rep.std, default=1.0) <= 0:
             raise ValueError("representation std must be positive and finite")
-        if not (np.isfinite(rep.root_tau) and rep.root_tau >= 0):
-            raise ValueError(f"representation root_tau must be >= 0 (got {rep.root_tau})")
+        if not (np.isfinite(rep.root_tau) and rep.root_tau >= 0 and np.isfinite(rep.root_power) and rep.root_power > 0):
+            raise ValueError(f"representation root_tau must be >= 0 and root_power > 0 "
+                             f"(got {rep.root_tau}, {rep.root_power})")
         return rep
 
-    def with_root_tau(self, root_tau: float) -> "Representation":
-        """A copy with another root damping (frames; not learned, so no refit)."""
+    def with_root_damping(self, root_tau: float, root_power: float) -> "Representation":
+        """A copy with another root damping (not learned, so no refit)."""
         d = self.to_dict()
-        d["root_tau"] = float(root_tau)
+        d["root_tau"], d["root_power"] = float(root_tau), float(root_power)
         return Representation.from_dict(d)
 
     # ---- index plumbing -----------------------------------------------------------------------
@@ -365,9 +372,9 @@ class ReprState:
         return np.where(observed, frames, out)
 
     def _damping(self) -> np.ndarray:
-        """exp(-g / root_tau) for a root missing g frames before this one (1 without damping)."""
-        tau = self.rep.root_tau
-        return np.exp(-self.root_st[:, 0] / tau) if tau > 0 else np.ones(self.n)
+        """exp(-(g / root_tau)^q / q) for a root missing g frames before this one (1 without damping)."""
+        tau, q = self.rep.root_tau, self.rep.root_power
+        return np.exp(-((self.root_st[:, 0] / tau) ** q) / q) if tau > 0 else np.ones(self.n)
 
     def _decode_root(self, rf: np.ndarray, out: np.ndarray, p: dict[str, Any]) -> None:
         side, height, fwd, dyaw, pitch, roll = (rf[:, i] for i in range(6))

@@ -172,10 +172,10 @@ print("enabled", fast.enabled(), "finite", bool(np.isfinite(fill.frame).all()))
     assert r.stdout.split() == ["enabled", "False", "finite", "True"]
 
 
-@pytest.mark.parametrize("root_mode,normalize,root_tau", [("relative", True, 0.0), ("relative", False, 0.0),
-                                                           ("relative", False, 60.0), ("relative", True, 7.5),
-                                                           ("raw", True, 0.0), ("raw", False, 0.0)])
-def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_tau):
+@pytest.mark.parametrize("root_mode,normalize,root_tau,root_power",
+                         [("relative", True, 0.0, 1.0), ("relative", False, 0.0, 1.0), ("relative", False, 60.0, 1.0),
+                          ("relative", True, 7.5, 2.0), ("raw", True, 0.0, 1.0), ("raw", False, 0.0, 1.0)])
+def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_tau, root_power):
     """encode -> (a model's fill) -> decode -> commit, frame by frame over a real walk whose root and
     arm drop out: the compiled single-stream code and ReprState agree to 1e-9 in the features, the
     feature mask, the completed frame, the raw std and the carried state (unwrapped angles, yaw,
@@ -184,7 +184,7 @@ def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_t
 
     walks = [load_trial(t) for t in ("35_01", "35_06")]
     rep = Representation.fit([m.frames for m in walks], walks[0].channels, root_mode=root_mode, normalize=normalize,
-                             root_tau=root_tau)
+                             root_tau=root_tau, root_power=root_power)
     frames = load_trial("35_08").frames[:300]
     C, F = frames.shape[1], rep.n_features
     obs = np.ones(frames.shape, bool)
