@@ -135,9 +135,11 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
     kd = 1.0
     if relative and root_tau > 0:
         kd = math.exp(-((root_st[0] / root_tau) ** root_power) / root_power)
+    speed, turn = 0.0, 0.0
     if relative:
         side, height, fwd = Fv[rootf[0]], Fv[rootf[1]], Fv[rootf[2]]
         dyaw, pitch, roll = Fv[rootf[3]], Fv[rootf[4]], Fv[rootf[5]]
+        speed, turn = math.hypot(side, fwd), abs(dyaw)
         if root_tau > 0:
             side, fwd, dyaw = side * kd, fwd * kd, dyaw * kd
         yaw = prev_yaw + _rad(dyaw) if started else prev_yaw
@@ -185,8 +187,8 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         mx = s0 if s0 > s2 else s2
         if s0 != s0 or s2 != s2:
             mx = np.nan                      # np.maximum's NaN
-        sp = root_st[1] + kd * mx
-        sy = root_st[2] + kd * s3
+        sp = root_st[1] + kd * mx + (1.0 - kd) * speed
+        sy = root_st[2] + kd * s3 + (1.0 - kd) * turn
         for i in (0, 2):
             if not observed[pos[i]]:
                 sd[pos[i]] = sp

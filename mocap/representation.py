@@ -21,8 +21,9 @@ first erased frame), damped by exp(-(g / ``root_tau``)^q / q) after g missing fr
 ``root_power``: 1 an exponential decay, 2 a Gaussian one that keeps the motion of short gaps and
 stops that of long ones; ``root_tau`` = 0: undamped), so a long root gap falls back toward
 holding the last root; the reported std of the
-ground position and of the heading is the std of those damped increments summed over the gap
-(the errors of successive increments are taken as fully correlated), not one frame's.
+ground position and of the heading is summed over the gap (the errors of successive increments
+are taken as fully correlated), each frame adding its damped increment's std and the part of
+the increment the damping dropped, not one frame's std.
 
 The encoder/decoder pair is a *stream*: arrays of shape (n_streams, ...) so the daemon can
 code many streams in one call.  ``encode`` maps frame t to features using the previous
@@ -407,9 +408,12 @@ class ReprState:
         sums = None
         if rep.root_mode == "relative":
             rf = fsd[:, p["rootf"]]
+            rv = (rep.denormalize_features(feats) if norm else np.asarray(feats, dtype=np.float64))[:, p["rootf"]]
             k = self._damping()
-            sp = self.root_st[:, 1] + k * np.maximum(rf[:, 0], rf[:, 2])
-            sy = self.root_st[:, 2] + k * rf[:, 3]
+            # the damped increments' own std, and the motion the damping dropped (the performer may
+            # well keep moving: the spread between holding and integrating)
+            sp = self.root_st[:, 1] + k * np.maximum(rf[:, 0], rf[:, 2]) + (1.0 - k) * np.hypot(rv[:, 0], rv[:, 2])
+            sy = self.root_st[:, 2] + k * rf[:, 3] + (1.0 - k) * np.abs(rv[:, 3])
             pos, rot = p["pos"][[0, 2]], p["rot"]
             std[:, pos] = np.where(observed[:, pos], 0.0, sp[:, None])
             std[:, rot] = np.where(observed[:, rot], 0.0, np.maximum(std[:, rot], sy[:, None]))
