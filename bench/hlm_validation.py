@@ -4,7 +4,8 @@ Trains the HLM on the TRAIN split's locomotion takes (walks, turns, runs; ``--tr
 the non-locomotion ones) for each training setting, then fills every take of the chosen split,
 for each inference setting, in three kinds of case:
 
-  gaps       the ``gaps`` protocol's seeded bursts on joint groups (root observed), seeds 0..S-1
+  gaps       the ``gaps`` protocol's seeded bursts on joint groups, seeds 0..S-1 (since the
+             ``eval`` branch's protocol these include bursts of the root group as well)
   gaps+root  the same, plus seeded bursts of the whole root (6 channels) on their own stream
   legs-only  pan2009's pattern: over the second half every channel but the 14 leg channels
              (root included) is erased

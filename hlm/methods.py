@@ -1,14 +1,16 @@
 """Registers the HLM methods with ``lacuna eval`` and the model-file loader.
 
 hlm                    the online forward filter (causal, constant time per frame), with the
-                       stream-cycle adaptation (kappa; see hlm.online) switched on
+                       stream-cycle adaptation (kappa; see hlm.online) switched on and the
+                       heading-relative root with its dropout damping (mocap.representation)
 hlm-offline            eq. (18) with the smoothed posteriors of the whole recording (not causal)
 hlm-lag                the fixed-lag smoother, ``lag`` frames late (default 15; not causal)
 hlm-faithful           the paper's model and filler as written: no stream-cycle adaptation
 hlm-faithful-offline   the paper's section 4.3 procedure (smoothed posteriors, eq. 18)
 
 All train the same model (the faithful section 3-4 training); they differ in inference options,
-which live in the model file and can be changed without retraining (``HLMModel.with_options``).
+which live in the model file and can be changed without retraining (``HLMModel.with_options``),
+and the faithful ones train on the paper's representation (raw root, ``FAITHFUL_TRAIN``).
 """
 from __future__ import annotations
 
