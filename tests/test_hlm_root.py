@@ -160,3 +160,28 @@ def test_velocity_features_are_not_observed_right_after_a_root_gap(model, walk):
         assert zo[0, vel].all() == (t < 20 or t > 30), t
         fill = np.where(zo, z, 0.0)
         st.finish(fill, np.zeros_like(fill), np.where(o, frames[t], np.nan)[None], o[None])
+
+
+def test_faithful_methods_train_the_papers_representation_whatever_hlms_defaults(data, walk):
+    """``hlm-faithful`` and ``hlm-faithful-offline`` keep the model as it was before the relative
+    root became ``hlm``'s default: raw root, not normalised, C = 4, no adaptation; their fills
+    equal a model trained with those settings spelled out."""
+    from lacuna import registry
+
+    ms = [splits.load_take(t) for t in TRAIN[:3]]
+    ts = TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, TRAIN[:3])
+    quick = {"restarts": 1, "n_iter": 3, "screen_iters": None, "cycle_frames": 140}
+    spec = registry.get_method("hlm-faithful")
+    fm = spec.train(ts, **{**quick, **spec.defaults})
+    assert fm.representation.root_mode == "raw" and not fm.representation.normalize
+    assert fm.params.n_styles == 4 and fm.options.kappa == 0.0
+    ref = train_model(ts.sequences, ts.channels, ts.names, root_mode="raw", normalize=False, styles=4, kappa=0.0,
+                      kappa_global=0.0, style_switch=0.0, **quick)
+    frames, ch = walk
+    obs = _occlusion(frames, ch, root_too=True)
+    given = np.where(obs, frames, np.nan)
+    for name in ("hlm-faithful", "hlm-faithful-offline"):
+        a, sa = registry.get_method(name).run(fm, given, obs.copy())
+        b, sb = registry.get_method(name).run(ref, given, obs.copy())
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(sa, sb)
