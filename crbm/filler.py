@@ -8,8 +8,10 @@ Per frame t (section 5 of the paper and the released code, papers/NOTES.md):
    frame plus N(0, ``init_noise``^2) noise;
 3. K alternating Gibbs iterations: h ~ p(h | v, x) (eq. 2, binary samples), then the missing
    visibles are set to their Gaussian mean c* + h W^T (eq. 3); observed ones stay clamped;
-4. a final mean-field step: the missing visibles become c* + p(h | v, x) W^T, using the hidden
-   probabilities of the last iteration instead of its sample ("otherwise very noisy").
+4. a final mean-field step: the missing visibles become c* + p(h | v, x) W^T, with the hidden
+   probabilities given the visibles of the K-th iteration (no sample: "otherwise very noisy").
+   (Before 2026-12-01 the probabilities came from the K-th iteration's input, i.e. one visible
+   update earlier than the released code; changed to the released code's order.)
 
 S chains run in parallel from the same history; the fill is their mean.  The per-channel std
 is the spread of the visible means E[v | h] over the chains and over the second half of the
@@ -241,7 +243,8 @@ class CRBMModel(FeatureModel):
                 h1 = expit(a) if it == 0 else h
                 a2 = h1 @ self.level2.W_ + bh2
                 h2 = (a2 > L2[it]).astype(float) if gibbs else expit(a2)
-                a += h2 @ self.level2.W_.T + bv2
+                top = h2 @ self.level2.W_.T + bv2
+                a += top
             if gibbs:
                 np.greater(a, L[it], out=h)               # binary samples
             else:
@@ -252,7 +255,13 @@ class CRBMModel(FeatureModel):
                 np.copyto(v, zS, where=obsS)
             if it >= half:
                 keep[it - half] = v
-        # final mean-field step from the last iteration's hidden probabilities
+        # final mean-field step (section 5; the released code): the hidden probabilities given
+        # the visibles the K-th iteration left (eq. 2), then the missing visibles at their mean
+        # c* + p W^T (eq. 3) instead of one more sample ("otherwise very noisy")
+        np.matmul(v, W, out=a)
+        a += bh
+        if self.level2 is not None:
+            a += top                                       # the last top-down input of level 2
         ph = expit(a)
         np.matmul(ph, WT, out=v)
         v += vb
