@@ -145,3 +145,36 @@ def test_fill_clamps_observed_channels_throughout_and_ends_with_mean_field(small
                 assert not np.allclose(out[j][~obs[row]], old[~obs[row]], atol=1e-6)
     finally:
         model.set_iterations(30)
+
+
+def test_a_model_saved_by_the_released_code_loads_with_its_past_in_our_order(rng, tmp_path):
+    """crbm.anchor.load_octave_model: the released code's past is [v_{t-n} ... v_{t-1}] (oldest
+    first); loaded, our dynamic biases from our newest-first history equal the released ones."""
+    import scipy.io
+
+    from crbm.anchor import load_octave_model
+
+    F, H, n = 4, 5, 3
+    arrays = {"vishid": rng.standard_normal((F, H)).astype(np.float32), "pastvis": rng.standard_normal((n * F, F)),
+              "pasthid": rng.standard_normal((n * F, H)), "visbiases": rng.standard_normal((1, F)),
+              "hidbiases": rng.standard_normal((1, H)), "keep": np.arange(1, F + 1)[None], "nt": np.array([[n]])}
+    scipy.io.savemat(tmp_path / "m.mat", arrays)
+    c = load_octave_model(tmp_path / "m.mat")
+    frames = rng.standard_normal((n, F))                      # v_{t-3}, v_{t-2}, v_{t-1}
+    past_released = frames.reshape(1, -1)                      # reshape(V(tt-nt:tt-1,:)', 1, [])
+    ours = frames[::-1].reshape(1, -1)                         # newest first
+    bv, bh = c.dynamic_biases(ours)
+    np.testing.assert_allclose(bv, arrays["visbiases"] + past_released @ arrays["pastvis"], atol=1e-12)
+    np.testing.assert_allclose(bh, arrays["hidbiases"] + past_released @ arrays["pasthid"], atol=1e-12)
+    np.testing.assert_allclose(c.W_, arrays["vishid"], atol=0)
+
+
+def test_the_anchor_input_is_the_raw_split_z_scored(data):
+    from crbm.anchor import anchor_data
+
+    d = anchor_data()
+    Z = np.vstack(d["sequences"])
+    assert Z.shape == (2644, 56) and len(d["sequences"]) == 31           # six constant channels out
+    np.testing.assert_allclose(Z.mean(0), 0, atol=1e-9)
+    np.testing.assert_allclose(Z.std(0), 1, atol=1e-9)
+    assert {k: v.shape[0] for k, v in d["tests"].items()} == {"35_18": 44, "35_29": 125}
