@@ -14,7 +14,7 @@ Variants (name: training options | fill options):
   imp         prob + parameters averaged over the last 20% of epochs | S=1, S=8 (= ``crbm-imp``), mean-field
   ens         three ``imp`` CRBMs (seeds s, s+1000, s+2000; 1300 epochs each) filling together from
               one shared history (= ``crbm-ens``) | S=4 per member (the default), S=8, mean-field
-  2level      faithful first level + second level on its hidden activities | S=1, S=8, mean-field
+  2level      ``crbm-2level``: paper-text first level + second level on its hidden activities | S=1, S=8, mean-field
 """
 from __future__ import annotations
 
@@ -92,7 +92,7 @@ def main() -> int:
     results: dict = {"machine": f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cores, "
                                 f"python {platform.python_version()}", "repeats": a.repeats, "variants": {}}
     train_kw = {"faithful": {}, "paper-text": PAPER_TEXT, "imcrbm": {**PAPER_TEXT, "history_noise": 1.0},
-                "2level": {"levels": 2}, "prob": {**PAPER_TEXT, "positive_hidden": "prob"},
+                "2level": {**PAPER_TEXT, "levels": 2}, "prob": {**PAPER_TEXT, "positive_hidden": "prob"},
                 "imp": {**PAPER_TEXT, "positive_hidden": "prob", "average_last": 0.2},
                 "ens": {**PAPER_TEXT, "positive_hidden": "prob", "average_last": 0.2, "members": 3}}
     for v in a.variants:
@@ -108,7 +108,8 @@ def main() -> int:
                 model.set_chains(fk["n_chains"])
                 model.set_mode(fk["mode"])
                 model.bias_rate = br
-                sc = score_model(model, repeats=1 if fk["mode"] == "mean-field" else a.repeats, seed=seed)
+                # the same fill sampler seeds 0..repeats-1 for every trained model, as the anchor
+                sc = score_model(model, repeats=1 if fk["mode"] == "mean-field" else a.repeats, seed=0)
                 name = f"{v}{suffix}{f' r={br:g}' if br else ''} (seed {seed})"
                 named[name] = sc
                 r = ratios(sc, base)
