@@ -75,13 +75,13 @@ class CRBM:
         code: 0.01, as the weights; 0 = zeros).
     batches : "fixed" = the released code: the modelled frames are shuffled once, cut into
         ``n_cases // batch_size`` mini-batches of exactly ``batch_size`` (the remainder is not
-        used; fewer than ``batch_size`` cases make one mini-batch) and the same mini-batches are visited in the same order every epoch (section 3:
-        chunks "randomly assigned to different mini-batches"); "reshuffle" = a new permutation
-        every epoch, the last mini-batch smaller.
+        used; fewer than ``batch_size`` cases make one mini-batch) and the same mini-batches are
+        visited in the same order every epoch (section 3: chunks "randomly assigned to different
+        mini-batches"); "reshuffle" = a new permutation every epoch, the last mini-batch smaller.
     positive_hidden : "sample" = the paper's section 3 (binary hidden states in the data term of
         W and B), "prob" = the released code (hidden probabilities there).
     history_noise : std of Gaussian noise added to the past frames that condition each training
-        case (0 = the paper; 1 = Taylor's later imCRBM code).  Makes the dynamic biases robust
+        case (0 = the paper's text; 1 = Taylor's released code, ``mixgaussiancrbm.m``).  Makes the dynamic biases robust
         to imperfect history, which is what a filler feeds back during a gap.
     visible : "gaussian" (joint angles) or "binary" (a second level on hidden activities).
     average_last : ``fit`` returns the average of the parameters over this final fraction of
@@ -101,7 +101,8 @@ class CRBM:
                  learning_rate_ar: float = 1e-5, weight_decay: float = 2e-4, momentum: float = 0.9,
                  momentum_after: int = 5, batch_size: int = 100, n_epochs: int = 2000,
                  init_std: float = 0.01, bias_init_std: float = 0.0, batches: str = "reshuffle",
-                 positive_hidden: str = "sample", history_noise: float = 0.0, visible: str = "gaussian", average_last: float = 0.0, random_state: int | None = 0, verbose: bool = False,
+                 positive_hidden: str = "sample", history_noise: float = 0.0, visible: str = "gaussian",
+                 average_last: float = 0.0, random_state: int | None = 0, verbose: bool = False,
                  progress: Callable[[int, float], None] | None = None):
         self.n_hidden = n_hidden
         self.order = order
@@ -263,6 +264,8 @@ class CRBM:
         hidden probabilities in the negative statistics.  Returns the summed squared error."""
         rng, m = self._rng, v.shape[0]
         if self.history_noise > 0:
+            # the released code: past = data(t - q) + randn, for the dynamic biases and for the
+            # A and B statistics alike
             hist = hist + self.history_noise * rng.standard_normal(hist.shape)
         bv, bh = self.c_ + hist @ self.A_, self.b_ + hist @ self.B_
         ph = expit(v @ self.W_ + bh)                                   # eq. 2
