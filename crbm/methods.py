@@ -31,20 +31,22 @@ from lacuna.registry import MethodSpec, register_method
 _OPTIONS = ("hidden", "members", "order", "epochs", "seed", "history_noise", "positive_hidden", "bias_init_std",
             "batches", "average_last", "levels",
             "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "bias_rate", "fps", "progress",
-            "progress_every", "root_mode")
+            "progress_every", "root_mode", "final_step")
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "crbm": {},
-    # trained as ``crbm`` was before 2026-12-01 (the paper's text), as their figures in
-    # docs/BENCHMARKS.md ## CRBM were measured; with the released code's training the mean-field
-    # fill's 35_29 upper body was 14.2 (training seed 1) against 12.8 (seed 0) before
-    "crbm-mf": {**PAPER_TEXT, "mode": "mean-field"},
-    "crbm-2level": {**PAPER_TEXT, "levels": 2},
+    # trained and filled as ``crbm`` was before 2026-12-01 (the paper's text), as their figures
+    # in docs/BENCHMARKS.md ## CRBM were measured; with the released code's training the
+    # mean-field fill's 35_29 upper body was 14.2 (training seed 1) against 12.8 (seed 0) before
+    "crbm-mf": {**PAPER_TEXT, "mode": "mean-field", "final_step": "input"},
+    "crbm-2level": {**PAPER_TEXT, "levels": 2, "final_step": "input"},
     # the improved variants keep the training they were tuned with (clean history, zero biases,
-    # fresh mini-batches every epoch), with the released code's hidden probabilities
-    "crbm-imp": {**PAPER_TEXT, "positive_hidden": "prob", "average_last": 0.2, "n_chains": 8, "bias_rate": 0.02},
+    # fresh mini-batches every epoch), with the released code's hidden probabilities, and the
+    # fill's final step as they were measured (crbm.filler.FINAL_STEPS)
+    "crbm-imp": {**PAPER_TEXT, "positive_hidden": "prob", "average_last": 0.2, "n_chains": 8, "bias_rate": 0.02,
+                 "final_step": "input"},
     "crbm-ens": {**PAPER_TEXT, "positive_hidden": "prob", "average_last": 0.2, "members": 3, "n_chains": 4,
-                 "bias_rate": 0.02},
+                 "bias_rate": 0.02, "final_step": "input"},
 }
 
 

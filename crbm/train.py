@@ -48,7 +48,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
                 batches: str = RELEASED["batches"],
                 average_last: float = 0.0, levels: int = 1, level2_hidden: int | None = None,
                 level2_epochs: int | None = None, members: int = 1, n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs",
-                bias_rate: float = 0.0,
+                bias_rate: float = 0.0, final_step: str = "last",
                 method: str | None = None, names: Sequence[str] = (), fps: float | None = None,
                 root_mode: str = "relative", progress: bool = False, progress_every: int = 100) -> CRBMModel:
     """sequences: raw (n_i, C) frames in ``channels``.  Returns a trained CRBMModel.
@@ -99,10 +99,10 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
     if members > 1:
         meta["training"]["members"] = int(members)
         model = CRBMEnsemble(rep, fitted, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta,
-                             bias_rate=bias_rate)
+                             bias_rate=bias_rate, final_step=final_step)
         model.method = method or "crbm-ens"
         return model
     model = CRBMModel(rep, l1, l2, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta,
-                      bias_rate=bias_rate)
+                      bias_rate=bias_rate, final_step=final_step)
     model.method = method or ("crbm-2level" if levels == 2 else "crbm")
     return model

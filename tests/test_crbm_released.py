@@ -143,8 +143,31 @@ def test_fill_clamps_observed_channels_throughout_and_ends_with_mean_field(small
                 np.testing.assert_array_equal(out[j, obs[row]], z[row, obs[row]])
                 old = _by_hand(model, hist, z[row], obs[row], 7, final="old")
                 assert not np.allclose(out[j][~obs[row]], old[~obs[row]], atol=1e-6)
+            # the order the improved variants keep (crbm.filler.FINAL_STEPS)
+            model.final_step = "input"
+            try:
+                st = model.core_init(len(rows))
+                st["hist"][:] = hist
+                st["count"][:] = 7
+                out = model.core_step(st, np.where(obs[rows], z[rows], np.nan), obs[rows]).z
+            finally:
+                model.final_step = "last"
+            for j, row in enumerate(rows):
+                np.testing.assert_allclose(out[j], _by_hand(model, hist, z[row], obs[row], 7, final="old"),
+                                           rtol=0, atol=1e-10)
     finally:
         model.set_iterations(30)
+
+
+def test_final_step_is_kept_by_model_files_and_by_the_variants(small, tmp_path):
+    from crbm.persist import load
+
+    assert all(VARIANTS[m]["final_step"] == "input" for m in ("crbm-imp", "crbm-ens", "crbm-mf", "crbm-2level"))
+    assert "final_step" not in VARIANTS["crbm"] and small.final_step == "last"
+    small.save(tmp_path / "m.npz")
+    assert load(tmp_path / "m.npz").final_step == "last"
+    with pytest.raises(ValueError, match="final_step"):
+        type(small)(small.representation, small.crbm, final_step="first")
 
 
 def test_a_model_saved_by_the_released_code_loads_with_its_past_in_our_order(rng, tmp_path):
