@@ -92,9 +92,10 @@ def main() -> int:
     results: dict = {"machine": f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cores, "
                                 f"python {platform.python_version()}", "repeats": a.repeats, "variants": {}}
     train_kw = {"faithful": {}, "paper-text": PAPER_TEXT, "imcrbm": {**PAPER_TEXT, "history_noise": 1.0},
-                "2level": {**PAPER_TEXT, "levels": 2}, "prob": {**PAPER_TEXT, "positive_hidden": "prob"},
-                "imp": {**PAPER_TEXT, "positive_hidden": "prob", "average_last": 0.2},
-                "ens": {**PAPER_TEXT, "positive_hidden": "prob", "average_last": 0.2, "members": 3}}
+                "2level": {**PAPER_TEXT, "levels": 2, "final_step": "input"},
+                "prob": {**PAPER_TEXT, "positive_hidden": "prob"},
+                "imp": {**PAPER_TEXT, "positive_hidden": "prob", "average_last": 0.2, "final_step": "input"},
+                "ens": {**PAPER_TEXT, "positive_hidden": "prob", "average_last": 0.2, "members": 3, "final_step": "input"}}
     for v in a.variants:
         for seed in a.seeds:
             t0 = time.perf_counter()
