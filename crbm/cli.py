@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crbm.released import RELEASED
 from lacuna.errors import LacunaError
 
 
@@ -22,10 +23,15 @@ def add_commands(cli) -> None:
                    "scaled down on bigger sets to ~52k mini-batch updates)")
     p.add_argument("--fps", type=float, default=30.0, help="train at this frame rate (default 30, as the paper)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--history-noise", type=float, default=0.0,
-                   help="std of noise on the conditioning history (0 = the paper, 1 = imCRBM)")
-    p.add_argument("--positive-hidden", choices=["sample", "prob"], default="sample",
-                   help="hidden states in the data term: sampled (paper) or probabilities (released code)")
+    p.add_argument("--history-noise", type=float, default=RELEASED["history_noise"],
+                   help="std of noise on the conditioning history (default 1, the released code; 0 = none)")
+    p.add_argument("--positive-hidden", choices=["sample", "prob"], default=RELEASED["positive_hidden"],
+                   help="hidden states in the data term: probabilities (default, the released code) or "
+                   "sampled (the paper's text)")
+    p.add_argument("--bias-init-std", type=float, default=RELEASED["bias_init_std"],
+                   help="biases start from N(0, this^2) (default 0.01, the released code; 0 = zeros)")
+    p.add_argument("--batches", choices=["fixed", "reshuffle"], default=RELEASED["batches"],
+                   help="mini-batches cut once (default, the released code) or reshuffled every epoch")
     p.add_argument("--average-last", type=float, default=0.0,
                    help="return the parameters averaged over this final fraction of epochs (0 = the paper)")
     p.add_argument("--levels", type=int, choices=[1, 2], default=1, help="2 adds the section-6 second level")
@@ -94,6 +100,7 @@ def _run_train(args: argparse.Namespace) -> int:
               file=sys.stderr)
     model = train_model(seqs, channels, hidden=args.hidden, order=args.order, epochs=args.epochs, seed=args.seed,
                         history_noise=args.history_noise, positive_hidden=args.positive_hidden,
+                        bias_init_std=args.bias_init_std, batches=args.batches,
                         average_last=args.average_last, levels=args.levels, members=args.members,
                         n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, bias_rate=args.bias_rate,
                         names=names, fps=fps, skeleton=args.skeleton,

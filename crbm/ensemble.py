@@ -39,7 +39,7 @@ class CRBMEnsemble(CRBMModel):
 
     def __init__(self, representation: Representation, members: Sequence[CRBM], n_gibbs: int = 30,
                  n_chains: int = 1, mode: str = "gibbs", init_noise: float = 0.01, seed: int = 0,
-                 meta: dict[str, Any] | None = None, bias_rate: float = 0.0):
+                 meta: dict[str, Any] | None = None, bias_rate: float = 0.0, final_step: str = "last"):
         members = list(members)
         if not members:
             raise ValueError("an ensemble needs at least one CRBM")
@@ -47,10 +47,10 @@ class CRBMEnsemble(CRBMModel):
         if len(orders) != 1:
             raise ValueError(f"ensemble members must share one order (got {sorted(orders)})")
         self._members = [CRBMModel(representation, m, None, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode,
-                                   init_noise=init_noise, seed=seed) for m in members]
+                                   init_noise=init_noise, seed=seed, final_step=final_step) for m in members]
         # bias_rate (``CRBMModel``) acts on the pooled fill, against the members' mean prediction
         super().__init__(representation, members[0], None, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode,
-                         init_noise=init_noise, seed=seed, meta=meta, bias_rate=bias_rate)
+                         init_noise=init_noise, seed=seed, meta=meta, bias_rate=bias_rate, final_step=final_step)
 
     @property
     def members(self) -> list[CRBM]:
@@ -73,6 +73,7 @@ class CRBMEnsemble(CRBMModel):
         for i, mm in enumerate(self._members):
             # the knobs live on the ensemble (the daemon and generate() set them there)
             mm.n_gibbs, mm.n_chains, mm.mode, mm.init_noise = self.n_gibbs, self.n_chains, self.mode, self.init_noise
+            mm.final_step = self.final_step
             mm._seed = self._seed + _SEED_STRIDE * i
             f, s = mm._fill_rows(state, rows, zc, obs)
             means.append(f)

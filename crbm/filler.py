@@ -8,8 +8,10 @@ Per frame t (section 5 of the paper and the released code, papers/NOTES.md):
    frame plus N(0, ``init_noise``^2) noise;
 3. K alternating Gibbs iterations: h ~ p(h | v, x) (eq. 2, binary samples), then the missing
    visibles are set to their Gaussian mean c* + h W^T (eq. 3); observed ones stay clamped;
-4. a final mean-field step: the missing visibles become c* + p(h | v, x) W^T, using the hidden
-   probabilities of the last iteration instead of its sample ("otherwise very noisy").
+4. a final mean-field step: the missing visibles become c* + p(h | v, x) W^T, with the hidden
+   probabilities given the visibles of the K-th iteration (no sample: "otherwise very noisy").
+   (Before 2026-12-01 the probabilities came from the K-th iteration's input, one visible update
+   earlier than the released code; ``final_step="input"`` keeps that order.)
 
 S chains run in parallel from the same history; the fill is their mean.  The per-channel std
 is the spread of the visible means E[v | h] over the chains and over the second half of the
@@ -34,6 +36,11 @@ from lacuna.feature_model import CoreOut, FeatureModel
 from mocap.representation import Representation
 
 MODES = ("gibbs", "mean-field")
+# where the final mean-field step takes its hidden probabilities from: "last" = the visibles the
+# K-th iteration left (the released code), "input" = the K-th iteration's input (this filler
+# before 2026-12-01; kept by crbm-imp, crbm-ens, crbm-mf, crbm-2level, whose figures were
+# measured with it)
+FINAL_STEPS = ("last", "input")
 _TINY32 = np.float32(1e-30)
 
 
@@ -57,6 +64,7 @@ class CRBMModel(FeatureModel):
     n_chains : S, parallel chains averaged into the fill (1 = the paper).
     mode : "gibbs" (the paper) or "mean-field" (deterministic).
     init_noise : std of the noise added to the previous frame to start the missing visibles.
+    final_step : "last" (the released code) or "input" (``FINAL_STEPS``).
     bias_rate : per-stream bias adaptation (an extension; 0, the paper's filler, turns it off).
         Every observed feature updates an exponential average, at this rate per frame, of its
         residual against the model's one-step prediction from the history (mean field, the
@@ -82,7 +90,8 @@ class CRBMModel(FeatureModel):
 
     def __init__(self, representation: Representation, crbm: CRBM, level2: CRBM | None = None,
                  n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs", init_noise: float = 0.01,
-                 seed: int = 0, meta: dict[str, Any] | None = None, bias_rate: float = 0.0):
+                 seed: int = 0, meta: dict[str, Any] | None = None, bias_rate: float = 0.0,
+                 final_step: str = "last"):
         crbm._check_fitted()
         if crbm.n_visible_ != representation.n_features:
             raise ValueError(f"CRBM has {crbm.n_visible_} visible units but the representation has "
@@ -96,6 +105,9 @@ class CRBMModel(FeatureModel):
         if not 0.0 <= float(bias_rate) < 1.0:
             raise ValueError(f"bias_rate must be in [0, 1) (got {bias_rate!r})")
         self.bias_rate = float(bias_rate)
+        if final_step not in FINAL_STEPS:
+            raise ValueError(f"final_step must be one of {FINAL_STEPS} (got {final_step!r})")
+        self.final_step = final_step
         self.meta = dict(meta or {})
         self.set_iterations(n_gibbs)
         self.set_chains(n_chains)
@@ -138,7 +150,8 @@ class CRBMModel(FeatureModel):
     def info(self) -> dict[str, Any]:
         d = super().info()
         d.update(levels=2 if self.level2 is not None else 1, hidden=self.crbm.n_hidden, order=self.crbm.order,
-                 gibbs_iterations=self.n_gibbs, chains=self.n_chains, mode=self.mode, bias_rate=self.bias_rate)
+                 gibbs_iterations=self.n_gibbs, chains=self.n_chains, mode=self.mode, bias_rate=self.bias_rate,
+                 final_step=self.final_step)
         return d
 
     # ---- core -------------------------------------------------------------------------------------
@@ -241,7 +254,8 @@ class CRBMModel(FeatureModel):
                 h1 = expit(a) if it == 0 else h
                 a2 = h1 @ self.level2.W_ + bh2
                 h2 = (a2 > L2[it]).astype(float) if gibbs else expit(a2)
-                a += h2 @ self.level2.W_.T + bv2
+                top = h2 @ self.level2.W_.T + bv2
+                a += top
             if gibbs:
                 np.greater(a, L[it], out=h)               # binary samples
             else:
@@ -252,7 +266,14 @@ class CRBMModel(FeatureModel):
                 np.copyto(v, zS, where=obsS)
             if it >= half:
                 keep[it - half] = v
-        # final mean-field step from the last iteration's hidden probabilities
+        # final mean-field step (section 5; the released code): the hidden probabilities given
+        # the visibles the K-th iteration left (eq. 2), then the missing visibles at their mean
+        # c* + p W^T (eq. 3) instead of one more sample ("otherwise very noisy")
+        if self.final_step == "last":
+            np.matmul(v, W, out=a)
+            a += bh
+            if self.level2 is not None:
+                a += top                                   # the last top-down input of level 2
         ph = expit(a)
         np.matmul(ph, WT, out=v)
         v += vb

@@ -48,9 +48,13 @@ _PARAM_RANGES: dict[str, tuple[type, float, float | None]] = {
     "batch_size": (int, 1, None),
     "n_epochs": (int, 0, None),
     "init_std": (float, 0.0, None),
+    "bias_init_std": (float, 0.0, None),
     "history_noise": (float, 0.0, None),
     "average_last": (float, 0.0, 1.0),
 }
+
+_CHOICES: dict[str, tuple[str, ...]] = {"positive_hidden": ("sample", "prob"), "visible": ("gaussian", "binary"),
+                                        "batches": ("reshuffle", "fixed")}
 
 
 class CRBM:
@@ -67,10 +71,17 @@ class CRBM:
     batch_size : mini-batch size (100).
     n_epochs : epochs run by ``fit`` (the released demo: 2000).
     init_std : weights start from N(0, init_std^2) (0.01).
+    bias_init_std : the visible and hidden biases start from N(0, bias_init_std^2) (the released
+        code: 0.01, as the weights; 0 = zeros).
+    batches : "fixed" = the released code: the modelled frames are shuffled once, cut into
+        ``n_cases // batch_size`` mini-batches of exactly ``batch_size`` (the remainder is not
+        used; fewer than ``batch_size`` cases make one mini-batch) and the same mini-batches are
+        visited in the same order every epoch (section 3: chunks "randomly assigned to different
+        mini-batches"); "reshuffle" = a new permutation every epoch, the last mini-batch smaller.
     positive_hidden : "sample" = the paper's section 3 (binary hidden states in the data term of
         W and B), "prob" = the released code (hidden probabilities there).
     history_noise : std of Gaussian noise added to the past frames that condition each training
-        case (0 = the paper; 1 = Taylor's later imCRBM code).  Makes the dynamic biases robust
+        case (0 = the paper's text; 1 = Taylor's released code, ``mixgaussiancrbm.m``).  Makes the dynamic biases robust
         to imperfect history, which is what a filler feeds back during a gap.
     visible : "gaussian" (joint angles) or "binary" (a second level on hidden activities).
     average_last : ``fit`` returns the average of the parameters over this final fraction of
@@ -89,8 +100,9 @@ class CRBM:
     def __init__(self, n_hidden: int = 150, order: int = 3, learning_rate: float = 1e-3,
                  learning_rate_ar: float = 1e-5, weight_decay: float = 2e-4, momentum: float = 0.9,
                  momentum_after: int = 5, batch_size: int = 100, n_epochs: int = 2000,
-                 init_std: float = 0.01, positive_hidden: str = "sample", history_noise: float = 0.0,
-                 visible: str = "gaussian", average_last: float = 0.0, random_state: int | None = 0, verbose: bool = False,
+                 init_std: float = 0.01, bias_init_std: float = 0.0, batches: str = "reshuffle",
+                 positive_hidden: str = "sample", history_noise: float = 0.0, visible: str = "gaussian",
+                 average_last: float = 0.0, random_state: int | None = 0, verbose: bool = False,
                  progress: Callable[[int, float], None] | None = None):
         self.n_hidden = n_hidden
         self.order = order
@@ -102,6 +114,8 @@ class CRBM:
         self.batch_size = batch_size
         self.n_epochs = n_epochs
         self.init_std = init_std
+        self.bias_init_std = bias_init_std
+        self.batches = batches
         self.positive_hidden = positive_hidden
         self.history_noise = history_noise
         self.visible = visible
@@ -112,7 +126,7 @@ class CRBM:
 
     # ---- checks -------------------------------------------------------------------------------
     def hyperparameters(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in (*_PARAM_RANGES, "positive_hidden", "visible", "random_state")}
+        return {k: getattr(self, k) for k in (*_PARAM_RANGES, *_CHOICES, "random_state")}
 
     def _check(self) -> None:
         for name, (typ, lo, hi) in _PARAM_RANGES.items():
@@ -121,10 +135,9 @@ class CRBM:
                 raise ValueError(f"{name} must be {'an integer' if typ is int else 'a number'} (got {v!r})")
             if v < lo or (hi is not None and v > hi) or (typ is int and name in ("n_hidden", "order", "batch_size") and v < 1):
                 raise ValueError(f"{name} must be in [{lo}, {hi if hi is not None else 'inf'}] (got {v!r})")
-        if self.positive_hidden not in ("sample", "prob"):
-            raise ValueError(f"positive_hidden must be 'sample' or 'prob' (got {self.positive_hidden!r})")
-        if self.visible not in ("gaussian", "binary"):
-            raise ValueError(f"visible must be 'gaussian' or 'binary' (got {self.visible!r})")
+        for name, allowed in _CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))} (got {getattr(self, name)!r})")
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "W_"):
@@ -168,11 +181,27 @@ class CRBM:
         self.W_ = r.normal(0.0, s, (nV, nH))
         self.A_ = r.normal(0.0, s, (n * nV, nV))
         self.B_ = r.normal(0.0, s, (n * nV, nH))
-        self.c_ = np.zeros(nV)
-        self.b_ = np.zeros(nH)
+        sb = self.bias_init_std
+        self.c_ = r.normal(0.0, sb, nV) if sb > 0 else np.zeros(nV)
+        self.b_ = r.normal(0.0, sb, nH) if sb > 0 else np.zeros(nH)
         self._inc = {k: np.zeros_like(getattr(self, k)) for k in ("W_", "A_", "B_", "c_", "b_")}
         self.n_epochs_done_ = 0
         self.recon_errors_: list[float] = []
+        self._batches: list[np.ndarray] | None = None   # "fixed": cut on the first epoch
+
+    def _epoch_batches(self, idx: np.ndarray) -> list[np.ndarray]:
+        """The epoch's mini-batches of case indices (never crossing a sequence: ``idx`` holds only
+        frames with ``order`` past frames in their own sequence, see ``_stack``)."""
+        B = self.batch_size
+        if self.batches == "reshuffle":
+            order = self._rng.permutation(idx)
+            return [order[s : s + B] for s in range(0, len(order), B)]
+        if self._batches is None or not np.array_equal(self._batch_cases, idx):
+            nb = max(1, len(idx) // B)     # fewer than B cases: one smaller mini-batch of all
+            order = self._rng.permutation(idx)
+            self._batches = [order[b * B : (b + 1) * B] for b in range(nb)]
+            self._batch_cases = idx.copy()
+        return self._batches
 
     # ---- Gibbs primitives ---------------------------------------------------------------------
     def dynamic_biases(self, history: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,6 +264,8 @@ class CRBM:
         hidden probabilities in the negative statistics.  Returns the summed squared error."""
         rng, m = self._rng, v.shape[0]
         if self.history_noise > 0:
+            # the released code: past = data(t - q) + randn, for the dynamic biases and for the
+            # A and B statistics alike
             hist = hist + self.history_noise * rng.standard_normal(hist.shape)
         bv, bh = self.c_ + hist @ self.A_, self.b_ + hist @ self.B_
         ph = expit(v @ self.W_ + bh)                                   # eq. 2
@@ -267,15 +298,15 @@ class CRBM:
         if not hasattr(self, "W_"):
             self._init(X.shape[1])
         t0 = time.perf_counter()
-        order = self._rng.permutation(idx)
+        batches = self._epoch_batches(idx)
+        # released code: no momentum in epochs 1-5, 0.9 from the 6th on
         mom = self.momentum if self.n_epochs_done_ >= self.momentum_after else 0.0
         err = 0.0
         with single_thread_blas():
-            for s in range(0, len(order), self.batch_size):
-                bi = order[s : s + self.batch_size]
+            for bi in batches:
                 err += self._cd1(X[bi], self.history_at(X, bi), mom)
         self.n_epochs_done_ += 1
-        self.recon_errors_.append(err / len(idx))
+        self.recon_errors_.append(err / sum(map(len, batches)))
         if not np.all(np.isfinite(self.W_)):
             raise FloatingPointError(f"CRBM training diverged at epoch {self.n_epochs_done_} (weights not finite)")
         if self.progress is not None:
@@ -324,7 +355,7 @@ class CRBM:
     @classmethod
     def from_arrays(cls, hyper: dict[str, Any], arrays: dict[str, np.ndarray], prefix: str = "") -> "CRBM":
         """Rebuild a trained CRBM; raises ValueError naming any array of the wrong shape."""
-        m = cls(**{k: v for k, v in hyper.items() if k in _PARAM_RANGES or k in ("positive_hidden", "visible", "random_state")})
+        m = cls(**{k: v for k, v in hyper.items() if k in _PARAM_RANGES or k in _CHOICES or k == "random_state"})
         m._check()
         W = np.asarray(arrays[prefix + "W"], dtype=np.float64)
         if W.ndim != 2 or W.shape[1] != m.n_hidden:
@@ -338,6 +369,7 @@ class CRBM:
         m.W_, m.n_visible_ = W, nV
         m._rng = np.random.default_rng(m.random_state)
         m._inc = {k: np.zeros_like(getattr(m, k)) for k in ("W_", "A_", "B_", "c_", "b_")}
+        m._batches = None
         m.n_epochs_done_ = int(hyper.get("n_epochs_done", 0))
         m.recon_errors_ = []
         return m

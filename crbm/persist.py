@@ -27,7 +27,7 @@ def save_model(model: CRBMModel, path: str | os.PathLike) -> None:
         "representation": model.representation.to_dict(),
         "hyperparameters": {"level1": {**model.crbm.hyperparameters(), "n_epochs_done": model.crbm.n_epochs_done_}},
         "fill": {"n_gibbs": model.n_gibbs, "n_chains": model.n_chains, "mode": model.mode,
-                 "init_noise": model.init_noise, "bias_rate": model.bias_rate},
+                 "init_noise": model.init_noise, "bias_rate": model.bias_rate, "final_step": model.final_step},
         "training": model.meta.get("training", {}),
     }
     if isinstance(model, CRBMEnsemble):
@@ -53,7 +53,9 @@ def load_model_arrays(path: str, meta: dict[str, Any], arrays: dict[str, np.ndar
         fill = meta.get("fill", {})
         knobs = dict(n_gibbs=fill.get("n_gibbs", 30), n_chains=fill.get("n_chains", 1),
                      mode=fill.get("mode", "gibbs"), init_noise=fill.get("init_noise", 0.01),
-                     bias_rate=fill.get("bias_rate", 0.0), meta={"training": meta.get("training", {})})
+                     bias_rate=fill.get("bias_rate", 0.0),
+                     # a file saved before final_step existed filled with the "input" order
+                     final_step=fill.get("final_step", "input"), meta={"training": meta.get("training", {})})
         if "members" in hyper:
             members = [CRBM.from_arrays(h, arrays, f"m{i}_") for i, h in enumerate(hyper["members"])]
             model: CRBMModel = CRBMEnsemble(rep, members, **knobs)

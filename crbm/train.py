@@ -13,6 +13,7 @@ import numpy as np
 from crbm.ensemble import CRBMEnsemble
 from crbm.filler import CRBMModel
 from crbm.model import CRBM
+from crbm.released import PAPER_TEXT, RELEASED  # noqa: F401  (PAPER_TEXT re-exported)
 from mocap.representation import Representation
 
 # The released demo: 2000 epochs of mini-batches of 100 on ~2600 frames, i.e. ~52k updates.
@@ -42,10 +43,12 @@ def _progress_printer(what: str, every: int):
 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hidden: int = 150, order: int = 3,
-                epochs: int | None = None, seed: int = 0, history_noise: float = 0.0,
-                positive_hidden: str = "sample", average_last: float = 0.0, levels: int = 1, level2_hidden: int | None = None,
+                epochs: int | None = None, seed: int = 0, history_noise: float = RELEASED["history_noise"],
+                positive_hidden: str = RELEASED["positive_hidden"], bias_init_std: float = RELEASED["bias_init_std"],
+                batches: str = RELEASED["batches"],
+                average_last: float = 0.0, levels: int = 1, level2_hidden: int | None = None,
                 level2_epochs: int | None = None, members: int = 1, n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs",
-                bias_rate: float = 0.0,
+                bias_rate: float = 0.0, final_step: str = "last",
                 method: str | None = None, names: Sequence[str] = (), fps: float | None = None,
                 root_mode: str = "relative", progress: bool = False, progress_every: int = 100,
                 skeleton: str | None = None) -> CRBMModel:
@@ -76,7 +79,8 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
         # tried and was slower with numpy here (6.5 s against 3 x 1.2 s for 30 epochs)
         what = "crbm" if members == 1 else f"crbm member {i + 1}/{members}"
         m = CRBM(n_hidden=hidden, order=order, n_epochs=ep, history_noise=history_noise,
-                 positive_hidden=positive_hidden, average_last=average_last, random_state=seed + MEMBER_SEED_STRIDE * i,
+                 positive_hidden=positive_hidden, bias_init_std=bias_init_std, batches=batches,
+                 average_last=average_last, random_state=seed + MEMBER_SEED_STRIDE * i,
                  progress=_progress_printer(what, progress_every) if progress else None)
         fitted.append(m.fit(Z))
     l1 = fitted[0]
@@ -96,10 +100,10 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
     if members > 1:
         meta["training"]["members"] = int(members)
         model = CRBMEnsemble(rep, fitted, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta,
-                             bias_rate=bias_rate)
+                             bias_rate=bias_rate, final_step=final_step)
         model.method = method or "crbm-ens"
         return model
     model = CRBMModel(rep, l1, l2, n_gibbs=n_gibbs, n_chains=n_chains, mode=mode, seed=seed, meta=meta,
-                      bias_rate=bias_rate)
+                      bias_rate=bias_rate, final_step=final_step)
     model.method = method or ("crbm-2level" if levels == 2 else "crbm")
     return model
