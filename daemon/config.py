@@ -254,9 +254,10 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
 
 def load(path: str) -> Config:
     """Read and validate a TOML config file."""
+    from daemon.safeopen import read_regular  # (a FIFO or device at the path must not block the reload)
+
     try:
-        with open(path, "rb") as fh:
-            raw = tomllib.load(fh)
+        raw = tomllib.loads(read_regular(path, 16 << 20).decode("utf-8"))
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config ({e.strerror or e})") from None
     except tomllib.TOMLDecodeError as e:

@@ -1,14 +1,12 @@
-"""Counters and latency percentiles, as a status map and as Prometheus text (optional HTTP).
+"""Counters and latency percentiles, as a status map and as Prometheus text (served by daemon/metrics_http.py).
 
 Latency is the daemon's processing time per served frame (receipt to reply), kept in a fixed
 ring of the last ``WINDOW`` values so memory stays flat however long the daemon runs.
 """
 from __future__ import annotations
 
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -88,36 +86,3 @@ class Metrics:
 
 def _esc(s: str) -> str:
     return s.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
-
-
-class MetricsHTTP:
-    """GET /metrics on a thread.  ``text()`` is called on the HTTP thread, so it reads a
-    snapshot the main loop publishes (a str swap is atomic), never the live structures."""
-
-    def __init__(self, host: str, port: int, text: Callable[[], str]):
-        get = text
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_GET(self) -> None:  # noqa: N802 (http.server API)
-                if self.path.split("?")[0] not in ("/metrics", "/"):
-                    self.send_error(404, "only /metrics here")
-                    return
-                body = get().encode()
-                self.send_response(200)
-                self.send_header("Content-Type", "text/plain; version=0.0.4; charset=utf-8")
-                self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                self.wfile.write(body)
-
-            def log_message(self, *args: Any) -> None:  # keep stderr for the JSON log
-                pass
-
-        self.server = ThreadingHTTPServer((host, port), Handler)
-        self.server.daemon_threads = True
-        self.port = self.server.server_address[1]
-        self.thread = threading.Thread(target=self.server.serve_forever, name="metrics-http", daemon=True)
-        self.thread.start()
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()

@@ -29,6 +29,7 @@ as ssh refuses such private keys.  SIGHUP re-reads the authorized keys directory
 """
 from __future__ import annotations
 
+import glob
 import ipaddress
 import os
 import stat
@@ -41,6 +42,7 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
 from daemon.config import ConfigError
+from daemon.safeopen import check_regular, kind_of
 
 ZAP_DOMAIN = "lacuna"
 LOOPBACK_NAMES = ("localhost", "localhost.localdomain", "ip6-localhost")
@@ -177,6 +179,8 @@ def _check_private(path: str) -> None:
         st = os.stat(path)
     except OSError as e:
         raise SecurityError(f"{path}: cannot read secret key file ({e.strerror or e})") from None
+    if not stat.S_ISREG(st.st_mode):  # (a FIFO would block the reload that opens it)
+        raise SecurityError(f"{path}: secret key path is {kind_of(st.st_mode)}, not a regular file")
     if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
         raise SecurityError(f"{path}: secret key file is accessible by group/others (mode "
                             f"{stat.S_IMODE(st.st_mode):04o}); run chmod 600 {path}")
@@ -196,6 +200,7 @@ def load_server_key(path: str) -> tuple[bytes, bytes]:
 
 def load_public_key(path: str) -> bytes:
     try:
+        check_regular(path)
         public, _ = zmq.auth.load_certificate(path)
     except (OSError, ValueError) as e:
         raise SecurityError(f"{path}: not a ZeroMQ public key file ({e})") from None
@@ -207,6 +212,8 @@ def load_authorized(directory: str) -> dict[bytes, bool]:
     if not os.path.isdir(directory):
         raise SecurityError(f"{directory}: authorized_keys must be a directory of client public .key files")
     try:
+        for f in glob.glob(os.path.join(directory, "*.key")):
+            check_regular(f)  # a FIFO named *.key would block load_certificates
         keys = zmq.auth.load_certificates(directory)
     except (OSError, ValueError) as e:
         raise SecurityError(f"{directory}: cannot read the authorized client keys ({e})") from None

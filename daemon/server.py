@@ -16,7 +16,6 @@ import json
 import os
 import signal
 import sys
-import threading
 import time
 from typing import Any
 
@@ -24,11 +23,13 @@ import zmq
 
 from daemon import config as config_mod
 from daemon import osc, security, wire
-from daemon.metrics import Metrics, MetricsHTTP
+from daemon.metrics import Metrics
+from daemon.metrics_http import MetricsHTTP
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
 from daemon.pmqos import CpuLatency
 from daemon.realtime import Realtime, ordinary
+from daemon.reload import Reloader
 from daemon.prewarm import Prewarm
 from daemon.scheduler import Scheduler, fill_messages
 from daemon.session import Origin, SessionError, SessionTable
@@ -79,10 +80,9 @@ class Daemon:
         self._prom = ""
         self.flag_reload = False
         self.flag_stop = False
-        self._reload_thread: threading.Thread | None = None
-        self._reload_result: tuple[config_mod.Config | None, dict[str, Loaded], dict[str, str]] | None = None
+        self.reloader: Reloader | None = None  # started with the daemon (no thread is started at reload time)
+        self._reload_args: tuple[str | None, dict[str, Loaded]] = (None, {})
         self._switch = sys.getswitchinterval()  # restored when a reload finishes
-        self._reload_waiters: list[Origin] = []
         self.last_reload: dict[str, Any] = {}
         self.started = time.time()
         self._rej_window, self._rej_logged, self._rej_suppressed = 0.0, 0, 0
@@ -115,6 +115,7 @@ class Daemon:
         if errors:
             raise config_mod.ConfigError("; ".join(f"model {n}: {e}" for n, e in errors.items()))
         self._install(table)
+        self.reloader = Reloader(self._reload_work, self._reload_started)
         # the log object changes on reload (level): look it up at each call
         self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, lambda *a, **k: self.log(*a, **k),
                               self._batch)
@@ -218,14 +219,22 @@ class Daemon:
                 if self.flag_stop:
                     break
                 now = time.monotonic()
-                if self.flag_reload:
-                    self.flag_reload = False
-                    self._start_reload(None)
-                if self._reload_result is not None:
-                    self._finish_reload()
-                if now >= next_house:
-                    next_house = now + HOUSEKEEPING_S
-                    self._housekeeping(now)
+                try:  # (a failure here, a thread or a resource, must not end the daemon either)
+                    if self.flag_reload:
+                        self.flag_reload = False
+                        self._start_reload(None)
+                    done = self.reloader.poll()  # type: ignore[union-attr]
+                    if done is not None:
+                        try:
+                            self._finish_reload(*done)
+                        finally:
+                            self.reloader.kick()  # type: ignore[union-attr]
+                    if now >= next_house:
+                        next_house = now + HOUSEKEEPING_S
+                        self._housekeeping(now)
+                except Exception as e:
+                    self.metrics.inc("internal_errors")
+                    self.log("error", "internal_error", where="housekeeping", error=f"{type(e).__name__}: {e}"[:300])
             self._drain()
         finally:
             self.close()
@@ -625,6 +634,7 @@ class Daemon:
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
             "security": self.net.guard.info() if self.net is not None and self.net.guard is not None else None,
             "cpu_latency": self.qos.info(), "realtime": self.rt.info(), "prewarm": self.prewarm.info(),
+            "metrics_http": self.http.info() if self.http is not None else None,
         }
 
     def _status_line(self) -> str:
@@ -635,43 +645,40 @@ class Daemon:
 
     # ---- reload -----------------------------------------------------------------------------
     def _start_reload(self, origin: Origin | None) -> None:
-        if origin is not None:
-            self._reload_waiters.append(origin)
-        if self._reload_thread is not None and self._reload_thread.is_alive():
-            return  # one at a time; the waiter gets this one's answer
+        """Queue a reload (daemon/reload.py): it starts now if none runs, else right after the
+        one running, and ``origin`` (None: SIGHUP) gets the outcome of that later one."""
+        self.reloader.request(origin)  # type: ignore[union-attr]
+
+    def _reload_started(self) -> None:
+        """(main thread, as a queued reload starts)"""
         self.notify.reloading()
-        self.log("info", "reload_start", config=self.cfg.path)
-        old = dict(self.models)
-        path = self.cfg.path
-
-        def work() -> None:
-            ordinary()  # (loading a model must not compete with serving frames)
-            try:
-                new_cfg = config_mod.load(path) if path else self.cfg
-            except config_mod.ConfigError as e:
-                self._reload_result = (None, old, {"config": str(e)})
-                return
-            except Exception as e:  # a thread that dies sets no result: the reload would vanish unlogged
-                self._reload_result = (None, old, {"config": f"{path}: {type(e).__name__}: {e}"[:500]})
-                return
-            try:
-                table, errors = load_all(new_cfg, old)
-            except Exception as e:  # same: refuse the reload, keep the old models, say why
-                self._reload_result = (None, old, {"models": f"{type(e).__name__}: {e}"[:500]})
-                return
-            self._reload_result = (new_cfg, table, errors)
-
+        self.log("info", "reload_start", config=self.cfg.path, reload=self.reloader.started)  # type: ignore[union-attr]
+        self._reload_args = (self.cfg.path, dict(self.models))
         # the reload thread holds the GIL while it loads and checks models; the serving thread,
         # wanting it, waits up to the switch interval (5 ms by default, over a 4 ms budget): ask
         # for a hand-over ten times as often while the reload runs
         self._switch = sys.getswitchinterval()
         sys.setswitchinterval(RELOAD_SWITCH_S)
-        self._reload_thread = threading.Thread(target=work, name="reload", daemon=True)
-        self._reload_thread.start()
 
-    def _finish_reload(self) -> None:
-        new_cfg, table, errors = self._reload_result  # type: ignore[misc]
-        self._reload_result = None
+    def _reload_work(self) -> tuple[config_mod.Config | None, dict[str, Loaded], dict[str, str]]:
+        """(the reload thread) read the config and load what changed; never raises."""
+        path, old = self._reload_args
+        ordinary()  # (loading a model must not compete with serving frames)
+        try:
+            new_cfg = config_mod.load(path) if path else self.cfg
+        except config_mod.ConfigError as e:
+            return None, old, {"config": str(e)}
+        except Exception as e:  # an escaped exception would leave the reload unanswered and unlogged
+            return None, old, {"config": f"{path}: {type(e).__name__}: {e}"[:500]}
+        try:
+            table, errors = load_all(new_cfg, old)
+        except Exception as e:  # same: refuse the reload, keep the old models, say why
+            return None, old, {"models": f"{type(e).__name__}: {e}"[:500]}
+        return new_cfg, table, errors
+
+    def _finish_reload(self, result: tuple, waiters: list[Origin]) -> None:
+        new_cfg, table, errors = result
+        table = table or dict(self.models)  # (the worker's last resort keeps the models serving)
         sys.setswitchinterval(self._switch)
         if new_cfg is not None:
             moved = [k for k in ("zmq_router", "zmq_pull", "zmq_sub", "zmq_pub", "osc_listen", "metrics_http")
@@ -699,18 +706,18 @@ class Daemon:
                     self.log("warning", "reload_needs_restart", keys=skipped, detail="key pairs change only on restart")
         self._install(table)
         ok = not errors
-        self.last_reload = {"at": time.time(), "ok": ok, "errors": errors,
+        n = self.reloader.started  # type: ignore[union-attr]
+        self.last_reload = {"at": time.time(), "ok": ok, "errors": errors, "reload": n,
                             "models": {n: m.loaded_at for n, m in self.models.items()}}
         self.metrics.inc("reloads" if ok else "reload_failures")
         for name, err in errors.items():
             self.log("error", "reload_refused", model=name, error=err, detail="the old model keeps serving")
-        self.log("info", "reload_done", always=True, ok=ok, models=list(self.models))
+        self.log("info", "reload_done", always=True, ok=ok, models=list(self.models), reload=n, answered=len(waiters))
         self.notify.ready(self._status_line())
-        for o in self._reload_waiters:
-            self._send(o, wire.ControlReply("reload", ok, {"models": {n: m.info() for n, m in self.models.items()},
-                                                           "errors": errors},
+        for o in waiters:
+            self._send(o, wire.ControlReply("reload", ok, {"models": {k: m.info() for k, m in self.models.items()},
+                                                           "errors": errors, "reload": n},
                                             None if ok else "; ".join(f"{k}: {v}" for k, v in errors.items())))
-        self._reload_waiters = []
 
     # ---- housekeeping / shutdown --------------------------------------------------------------
     def _housekeeping(self, now: float) -> None:
