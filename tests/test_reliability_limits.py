@@ -1,0 +1,91 @@
+"""Issue 18 (F1, F4, F5, F9, F10, F11): limits that held for one frame of a message but not for
+the message, and costs that grew with what a peer chose to send.  Real daemon, real sockets.
+
+* F1: the size cap was checked on the last frame only; leading frames became the reply
+  envelope, held for a peer that never reads (+354 MB from 24 requests).
+* F4: the duplicate-name check of a hello was O(n^2); OSC strings cost by their length.
+* F5: a masked pass-through channel came back with the junk sent under the mask.
+* F9: one OSC bundle of N bad messages drew N answers (11x its size), to any source port.
+* F10: ``status`` and the metrics snapshot walked every stream (1000 idle: 19-24 ms a call).
+* F11: a map with more than 64 keys was ``not_msgpack``, though unknown keys are ignored.
+"""
+from __future__ import annotations
+
+import socket
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import zmq
+
+import fuzzgen
+from daemon import wire
+from mocap.baselines import HoldModel
+from mocap.datasets import load_trial
+from reliability_daemon import Daemon, LockStep, Sockets, recv_msg, status, write_config
+from test_reliability_faults import all_filled
+
+MiB = 1 << 20
+
+
+@pytest.fixture(scope="module")
+def walk(data):
+    m = load_trial("35_01")
+    f = m.frames.astype(np.float32)
+    f[::5, 20:24] = np.nan
+    return f, list(m.channels), HoldModel.fit([m.frames], list(m.channels))
+
+
+def _wait(cond, timeout_s: float = 15.0, what: str = "") -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise TimeoutError(what)
+        time.sleep(0.02)
+
+
+def test_leading_frames_are_refused_not_held_as_an_envelope(tmp_path, walk):
+    """F1: 24 requests of 200 leading frames of 60 KiB (12 MB each, 288 MB in all) and a valid
+    frame, from a peer that never reads: each refused `bad_envelope` and counted, RSS does not
+    grow by their size; a peer that reads gets one small error each; a frame over ZeroMQ's
+    per-frame limit costs the sender its connection; the good stream loses nothing."""
+    frames, channels, model = walk
+    model.save(str(tmp_path / "walk.npz"))
+    ep = write_config(tmp_path / "lacuna.toml", {"walk": {"file": "walk.npz"}})
+    d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
+    S = Sockets()
+    good = LockStep(ep["router"], "good", frames, hello=channels)
+    try:
+        good.start()
+        _wait(lambda: len(good.answers) > 20)
+        rss0 = d.rss_kib()
+        body = wire.encode(wire.Frame("victim", 0, 0.0, frames[0]))
+        mute = S.make(zmq.DEALER, ep["router"])
+        mute.setsockopt(zmq.SNDHWM, 0)
+        big = [bytes(60 << 10)] * 200
+        for _ in range(24):
+            mute.send_multipart(big + [body])
+        _wait(lambda: status(S, ep["router"])["rejected"].get("bad_envelope", 0) == 24, 60, "not all refused")
+        grew = d.rss_kib() - rss0
+        assert grew < 64 * 1024, f"RSS grew {grew} KiB"  # the 288 MB offered are not held
+        rd = S.make(zmq.DEALER, ep["router"])
+        rd.send_multipart(big + [body])
+        rd.send_multipart([b"", b"x", body])  # a REQ envelope with something more: refused too
+        for _ in range(2):
+            parts = rd.recv_multipart() if rd.poll(10_000) else None
+            assert parts is not None and len(parts) == 1 and len(parts[0]) < 1024
+            m = wire.decode(parts[0])
+            assert isinstance(m, wire.ErrorMsg) and m.reason == "bad_envelope"
+        req = S.make(zmq.REQ, ep["router"])  # REQ's own envelope [id, "", body] is fine
+        req.send(body)
+        assert isinstance(recv_msg(req), wire.FillMsg)
+        st = status(S, ep["router"])
+        assert st["rejected"]["bad_envelope"] == 26 and "victim" in st["streams"]
+        good.finish()
+        all_filled(good, "walk")
+        assert d.alive()
+    finally:
+        good.stop_flag.set()
+        S.close()
+        d.stop()
