@@ -46,7 +46,7 @@ from daemon.safeopen import check_regular, kind_of
 
 ZAP_DOMAIN = "lacuna"
 LOOPBACK_NAMES = ("localhost", "localhost.localdomain", "ip6-localhost")
-SECURITY_KEYS = ("server_secret_key", "authorized_keys", "osc_allow", "sub_server_key")
+SECURITY_KEYS = ("server_secret_key", "authorized_keys", "osc_allow", "sub_server_key", "operator_keys")
 
 
 class SecurityError(ConfigError):
@@ -63,6 +63,7 @@ class SecuritySpec:
     authorized_keys: str | None = None
     osc_allow: list[str] | None = None  # as written, for status
     sub_server_key: str | None = None
+    operator_keys: str | None = None  # directory of *.key: the clients that may reload and reset others' streams
     osc_networks: list[ipaddress.IPv4Network | ipaddress.IPv6Network] | None = field(default=None, repr=False)
 
     @property
@@ -81,7 +82,7 @@ def parse_config(raw: Any, where: str = "<config>", base: str | None = None) -> 
             raise SecurityError(f"{where}: unknown key security.{k} (known: {', '.join(SECURITY_KEYS)})")
     base = base or os.getcwd()
     spec = SecuritySpec()
-    for k in ("server_secret_key", "authorized_keys", "sub_server_key"):
+    for k in ("server_secret_key", "authorized_keys", "sub_server_key", "operator_keys"):
         if k in raw:
             v = raw[k]
             if not isinstance(v, str) or not v:
@@ -93,6 +94,9 @@ def parse_config(raw: Any, where: str = "<config>", base: str | None = None) -> 
     if (spec.server_secret_key is None) != (spec.authorized_keys is None):
         raise SecurityError(f"{where}: security.server_secret_key and security.authorized_keys go together "
                             f"(CURVE needs the daemon's key pair and the list of client keys it lets in)")
+    if spec.operator_keys is not None and spec.server_secret_key is None:
+        raise SecurityError(f"{where}: security.operator_keys needs CURVE (security.server_secret_key and "
+                            f"authorized_keys); without it every local ROUTER peer is an operator")
     if "osc_allow" in raw:
         v = raw["osc_allow"]
         if not isinstance(v, list) or not all(isinstance(a, str) for a in v):
@@ -169,6 +173,8 @@ def check_exposure(bound: dict[str, str | None], osc_listen: tuple[str, int] | N
                                 f"(zmq.has('curve') is False); install a pyzmq wheel, which bundles it")
         load_server_key(spec.server_secret_key)  # type: ignore[arg-type]
         load_authorized(spec.authorized_keys)  # type: ignore[arg-type]
+        if spec.operator_keys:
+            load_authorized(spec.operator_keys)
     if spec.sub_server_key:
         load_public_key(spec.sub_server_key)
 
@@ -231,6 +237,12 @@ def configure_client(sock: zmq.Socket, client_secret_file: str, server_public_fi
     sock.curve_serverkey = load_public_key(server_public_file)
 
 
+def _operators(directory: str | None) -> set[str]:
+    if not directory:
+        return set()
+    return {k.decode("ascii") if isinstance(k, bytes) else str(k) for k in load_authorized(directory)}
+
+
 # ---- the running guard ----------------------------------------------------------------------------
 class _CountingAuthenticator(ThreadAuthenticator):
     """ThreadAuthenticator that counts its decisions (the daemon reports them in status)."""
@@ -262,12 +274,17 @@ class Guard:
         self._lock = threading.Lock()
         self.auth: _CountingAuthenticator | None = None
         self._keys: tuple[bytes, bytes] | None = None
+        self.operators: set[str] = set()  # Z85 public keys
         if self.spec.curve:
             self._keys = load_server_key(self.spec.server_secret_key)  # type: ignore[arg-type]
             allowed = load_authorized(self.spec.authorized_keys)  # type: ignore[arg-type]
             self.auth = _CountingAuthenticator(ctx)
             self.auth.start()
             self.auth.certs[ZAP_DOMAIN] = allowed
+            self.operators = _operators(self.spec.operator_keys)
+
+    def is_operator(self, key: str) -> bool:
+        return key in self.operators
 
     def server(self, sock: zmq.Socket) -> None:
         if self._keys is None:
@@ -313,17 +330,19 @@ class Guard:
                 skipped.append("security.authorized_keys")  # CURVE stays on until restart
             else:
                 keys = load_authorized(spec.authorized_keys)  # raises before anything changes
+                ops = _operators(spec.operator_keys)
                 self.auth.certs[ZAP_DOMAIN] = keys
+                self.operators = ops
                 authorized = spec.authorized_keys
         self.spec = SecuritySpec(self.spec.server_secret_key, authorized, spec.osc_allow, self.spec.sub_server_key,
-                                 spec.osc_networks)
+                                 spec.operator_keys, spec.osc_networks)
         return skipped
 
     def info(self) -> dict[str, Any]:
         d: dict[str, Any] = {"curve": self.spec.curve, "osc_allow": self.spec.osc_allow, "osc_denied": self.osc_denied}
         if self.auth is not None:
             d.update(auth_allowed=self.auth.allowed, auth_denied=self.auth.denied,
-                     authorized_keys=len(self.auth.certs.get(ZAP_DOMAIN, {})))
+                     authorized_keys=len(self.auth.certs.get(ZAP_DOMAIN, {})), operator_keys=len(self.operators))
         return d
 
     def close(self) -> None:

@@ -32,7 +32,7 @@ from daemon.realtime import Realtime, ordinary
 from daemon.reload import Reloader
 from daemon.prewarm import Prewarm
 from daemon.scheduler import Scheduler, fill_messages
-from daemon.session import Origin, SessionError, SessionTable
+from daemon.session import Origin, SessionError, SessionTable, principal
 from daemon.transport import Transports
 
 BATCH_MIN = 3  # messages in a turn from which frames superseded within it are answered after the step
@@ -75,6 +75,7 @@ class Daemon:
         self.models: dict[str, Loaded] = {}
         self.sched = Scheduler(cfg.budget_ms, cfg.max_gap_frames, cfg.max_batch)
         self.sessions = SessionTable(self._resolve, cfg.max_streams, self._count)
+        self.sessions.idle_s = cfg.idle_timeout_s  # (an owner silent this long gives its stream up)
         self.net: Transports | None = None
         self.http: MetricsHTTP | None = None
         self._prom = ""
@@ -423,11 +424,11 @@ class Daemon:
         try:
             if isinstance(msg, wire.Frame):
                 self.metrics.inc("frames_in")
-                self._frame_answers(self.sessions.frame(msg, origin, arrived))
+                self._frame_answers(self.sessions.frame(msg, origin, arrived, principal(origin)))  # type: ignore[union-attr]
             elif isinstance(msg, wire.Bundle):
                 self._bundle(msg, origin, arrived)
             elif isinstance(msg, wire.Hello):
-                ack, orphans = self.sessions.hello(msg)
+                ack, orphans = self.sessions.hello(msg, principal(origin))  # type: ignore[union-attr]
                 for o, m in orphans:
                     self._send(o, m)
                 self.log("info", "stream_hello", stream=msg.stream, model=ack.model, channels=len(ack.channels),
@@ -446,6 +447,7 @@ class Daemon:
         """Each frame of a bundle as if it had come alone, at the bundle's arrival; over ROUTER
         their answers are marked to go back together (a third origin element, see Transports)."""
         self.metrics.inc("bundles_in")
+        who = principal(origin)  # type: ignore[union-attr]
         if origin[0] == "router":
             origin = (*origin, "bundle")
         for f in msg.items:
@@ -454,7 +456,7 @@ class Daemon:
                 continue
             self.metrics.inc("frames_in")
             try:
-                self._frame_answers(self.sessions.frame(f, origin, arrived))
+                self._frame_answers(self.sessions.frame(f, origin, arrived, who))
             except SessionError as e:  # one frame's refusal is its own answer; the rest go on
                 self._reject(origin, e.reason, e.detail, f.stream, f.seq)
             except Exception as e:
@@ -465,7 +467,7 @@ class Daemon:
     def _reject(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
         self.metrics.reject(reason)
         s = self.sessions.sessions.get(sid) if sid else None
-        if s is not None:
+        if s is not None and reason != "not_owner":  # (someone else's message: counted `foreign` on the stream)
             s.counts["rejected"] += 1
         # a flood of bad input must not turn into a flood of log lines: at most REJECT_LOG_PER_S
         # a second are written, the rest are summed into one line per housekeeping tick
@@ -613,14 +615,26 @@ class Daemon:
                                                                          "default": self.cfg.default_model}))
         elif msg.cmd == "reset":
             assert msg.stream is not None
-            ok, orphans = self.sessions.reset(msg.stream)
+            ok, orphans = self.sessions.reset(msg.stream, principal(origin), self._operator(origin))  # type: ignore[union-attr]
             for o, m in orphans:
                 self._send(o, m)
             self.log("info", "stream_reset", stream=msg.stream, existed=ok)
             self._send(origin, wire.ControlReply("reset", ok, {"stream": msg.stream},
                                                  None if ok else f"no open stream {msg.stream!r}"))
+        elif msg.cmd == "release":
+            assert msg.stream is not None
+            ok = self.sessions.release(msg.stream, principal(origin))
+            self._send(origin, wire.ControlReply("release", ok, {"stream": msg.stream},
+                                                 None if ok else f"no open stream {msg.stream!r}"))
         elif msg.cmd == "reload":
+            if not self._operator(origin):  # type: ignore[union-attr]
+                raise SessionError("not_operator", "reload needs an operator (with CURVE: a key listed in "
+                                                   "security.operator_keys; SIGHUP reloads too)")
             self._start_reload(origin)
+
+    def _operator(self, origin: Origin) -> bool:
+        """May this peer reload and reset others' streams (daemon/transport.py, ``operator``)?"""
+        return self.net.operator(origin) if self.net is not None else True
 
     def status(self) -> dict[str, Any]:
         return {
@@ -630,7 +644,7 @@ class Daemon:
             "latency": self.metrics.latency_summary(), "step": self.metrics.step_summary(),
             "counters": dict(self.metrics.counters), "rejected": dict(self.metrics.rejected),
             "streams": {sid: s.info() for sid, s in self.sessions.sessions.items()},
-            "expired": self.sessions.expired, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
+            "expired": self.sessions.expired, "takeovers": self.sessions.takeovers, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
             "security": self.net.guard.info() if self.net is not None and self.net.guard is not None else None,
             "cpu_latency": self.qos.info(), "realtime": self.rt.info(), "prewarm": self.prewarm.info(),
@@ -697,6 +711,7 @@ class Daemon:
             self.prewarm.lead_s = new_cfg.prewarm_ms / 1000.0
             self.sched.max_gap, self.sched.max_batch = new_cfg.max_gap_frames, new_cfg.max_batch
             self.sessions.max_streams = new_cfg.max_streams
+            self.sessions.idle_s = new_cfg.idle_timeout_s
             self.log = Log(new_cfg.log_level, self.log.stream)
             self._request_cpu_latency()
             self._request_realtime()

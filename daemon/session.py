@@ -8,6 +8,13 @@ replaces an older waiting one (conflation), so nothing queues inside the daemon.
 
 Message handling returns the immediate answers (``drop``/``error``/``hello-ack``) as a list of
 ``(origin, message)``; filled frames come from the scheduler.  No sockets here.
+
+Ownership (docs/PROTOCOL.md, "Stream ownership"): a stream belongs to the principal that opened
+it (``who``: a ZeroMQ connection, a CURVE key, an OSC source address; the daemon says which).
+Frames, ``hello`` and ``reset`` for a stream owned by someone else are refused ``not_owner``
+unless the stream's owner has been silent for ``idle_s`` (then it is free, as if it had expired),
+a ``hello`` carries the claim token the stream was opened with (the owner reconnecting), or, for
+``reset``, the caller is an operator.  ``who=None`` (in-process callers) skips the checks.
 """
 from __future__ import annotations
 
@@ -24,7 +31,22 @@ Origin = tuple  # (transport name, address): ("router", envelope) | ("router", e
 Out = list[tuple[Origin, wire.Message]]
 
 COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset",
-            "dropped_overdue", "over_budget", "rejected", "degraded", "held", "predicted", "restarts")
+            "dropped_overdue", "over_budget", "rejected", "degraded", "held", "predicted", "restarts",
+            "foreign")  # foreign: frames/hellos/resets for this stream refused because they came from someone else
+
+
+def principal(origin: Origin) -> tuple:
+    """Who sent a message, for stream ownership: the CURVE public key when the ROUTER socket is
+    a CURVE server (the transport hangs it on the envelope as ``.key``), else the ROUTER
+    connection (its routing id); an OSC source address; PULL and SUB each as one principal."""
+    kind = origin[0]
+    if kind == "router":
+        env = origin[1]
+        key = getattr(env, "key", None)
+        return ("key", key) if key is not None else ("conn", env[0])
+    if kind == "osc":
+        return ("osc", origin[1][0], origin[1][1])
+    return (kind,)
 
 
 @dataclass
@@ -86,6 +108,8 @@ class Session:
     held_streak: int = 0
     late_streak: int = 0  # frames in a row answered `overdue`: breaks ties in who goes first
     counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
+    owner: Any = None  # the principal that opened the stream (None: anyone)
+    claim: str | None = None  # the claim token of its hello: a new connection presenting it takes the stream over
 
     def restart(self) -> None:
         """Fresh filter state; the sequence numbering restarts at the next frame."""
@@ -132,6 +156,25 @@ class SessionTable:
         self.max_streams = max_streams
         self.count = count  # count(counter name, stream id or None): global metrics hook
         self.expired = 0
+        self.idle_s = float("inf")  # an owner silent this long gives its stream up (the daemon sets idle_timeout_s)
+        self.takeovers = 0  # streams taken over by a claim token or from a silent owner
+
+    # ---- ownership --------------------------------------------------------------------------
+    def _owned(self, s: Session, who: Any, claim: str | None = None) -> bool:
+        """May ``who`` act on ``s``?  Taking it over (claim token, silent owner) says yes."""
+        if who is None or s.owner is None or s.owner == who:
+            return True
+        if (claim is not None and claim == s.claim) or time.monotonic() - s.last_active > self.idle_s:
+            self.takeovers += 1
+            return True
+        s.counts["foreign"] += 1
+        return False
+
+    @staticmethod
+    def _foreign(sid: str, what: str) -> SessionError:
+        return SessionError("not_owner", f"stream {sid!r} belongs to another connection; {what} refused (a stream is "
+                                         f"free once its owner is silent for idle_timeout_s; a reconnecting owner "
+                                         f"sends its hello with the stream's claim token)")
 
     # ---- lifecycle --------------------------------------------------------------------------
     def _new(self, sid: str, studio: list[str] | None, model_req: str | None, width: int = 0) -> Session:
@@ -157,16 +200,34 @@ class SessionTable:
         self.sessions[sid] = s
         return s
 
-    def hello(self, msg: wire.Hello) -> tuple[wire.HelloAck, Out]:
+    def hello(self, msg: wire.Hello, who: Any = None) -> tuple[wire.HelloAck, Out]:
         """(ack, answers for a frame that was waiting under the old handshake)."""
         old = self.sessions.get(msg.stream)
+        if old is not None and not self._owned(old, who, msg.claim):
+            raise self._foreign(msg.stream, "hello")
         s = self._new(msg.stream, msg.channels, msg.model)
+        s.owner, s.claim = who, msg.claim
         mp = s.mapping
         return wire.HelloAck(msg.stream, s.model_name, mp.channels, mp.passthrough, mp.missing), self._orphan(old)
 
-    def reset(self, sid: str) -> tuple[bool, Out]:
-        old = self.sessions.pop(sid, None)
+    def reset(self, sid: str, who: Any = None, operator: bool = False) -> tuple[bool, Out]:
+        """End stream ``sid``: its owner may, an operator may end anyone's."""
+        old = self.sessions.get(sid)
+        if old is not None and not operator and not self._owned(old, who):
+            raise self._foreign(sid, "reset")
+        self.sessions.pop(sid, None)
         return old is not None, self._orphan(old)
+
+    def release(self, sid: str, who: Any = None) -> bool:
+        """The owner gives its stream up (a client closing): state and counters stay, and the
+        next principal to send a frame or hello for it owns it."""
+        s = self.sessions.get(sid)
+        if s is None:
+            return False
+        if not self._owned(s, who):
+            raise self._foreign(sid, "release")
+        s.owner, s.claim = None, None
+        return True
 
     def _orphan(self, old: Session | None) -> Out:
         """A frame still waiting in a session being replaced gets its answer: dropped, ``reset``."""
@@ -228,22 +289,31 @@ class SessionTable:
         return [(p.origin, wire.Drop(s.sid, p.frame.seq, "overdue"))]
 
     # ---- frames -----------------------------------------------------------------------------
-    def frame(self, f: wire.Frame, origin: Origin, arrived: float) -> Out:
+    def frame(self, f: wire.Frame, origin: Origin, arrived: float, who: Any = None) -> Out:
         """Take a frame into its session's pending slot; returns the immediate answers."""
         s = self.sessions.get(f.stream)
+        out: Out = []
+        if s is not None and s.owner != who and who is not None:
+            if not self._owned(s, who):
+                raise self._foreign(f.stream, "frame")
+            if s.owner is not None:  # taken over from a silent owner: a fresh stream
+                out = self._orphan(s)
+                s = None
+            else:  # released (or opened in-process): the sender adopts it
+                s.owner = who
         if s is None:
             s = self._new(f.stream, None, None, f.angles.shape[0])
+            s.owner = who
         if f.angles.shape[0] != s.mapping.n_in:
             raise SessionError("width", f"stream {f.stream!r} has {s.mapping.n_in} channels, the frame has "
                                         f"{f.angles.shape[0]} (send a hello to change the channel list)")
         s.last_active = time.monotonic()
         s.counts["frames_in"] += 1
-        out: Out = []
         if s.last_seq is not None and f.seq <= s.last_seq:
             why = "duplicate" if f.seq == s.last_seq else "late"
             s.counts[f"dropped_{why}"] += 1
             self.count(f"dropped_{why}", f.stream)
-            return [(origin, wire.Drop(f.stream, f.seq, why))]
+            return out + [(origin, wire.Drop(f.stream, f.seq, why))]
         p = s.pending
         if p is not None:
             if f.seq <= p.frame.seq:

@@ -61,6 +61,7 @@ class Transports:
         self._bundles: dict[tuple[bytes, ...], list[bytes]] = {}  # ROUTER envelope -> held answers to bundled frames
         self._pack = msgpack.Packer(use_bin_type=True).pack  # one for the daemon's thread (packb builds one per call)
         self._flush_every = max(1, min(FLUSH_MAX, cfg.zmq_hwm // 4))
+        self._curve = False  # set in open() when the sockets are CURVE servers
 
     def _sock(self, kind: int) -> zmq.Socket:
         assert self.ctx is not None
@@ -84,6 +85,7 @@ class Transports:
         self.ctx = zmq.Context()
         try:
             self.guard = security.Guard(self.ctx, c.security)  # ZAP allow list of client keys, OSC sources
+            self._curve = self.guard.spec.curve
             if c.zmq_router:
                 self.router = self._sock(zmq.ROUTER)
                 # an answer that cannot be queued (peer gone, or not reading: at its high-water
@@ -145,9 +147,10 @@ class Transports:
             # (ZeroMQ's I/O thread is not woken between them) and the scheduler sees the whole burst
             got = []
             keep = _KEEP[name]
+            keyed = self._curve and name == "router"
             for _ in range(DRAIN_MAX):
                 try:
-                    got.append((_recv_bounded(sock_, keep), time.perf_counter()))
+                    got.append((_recv_bounded(sock_, keep, keyed), time.perf_counter()))
                 except zmq.Again:
                     break
             for parts, arrived in got:
@@ -158,7 +161,7 @@ class Transports:
                     # frames never become an envelope the daemon holds for a peer (the size cap
                     # covers the body; the envelope is bounded to 255 + 0 bytes)
                     if n == 2 or (n == 3 and not parts[1]):
-                        origin: Origin = ("router", parts[:-1])
+                        origin: Origin = ("router", parts[:-1] if not keyed else _Keyed(parts[:-1], parts.key))
                     else:
                         n = n if type(parts[-1]) is not int else n - 1 + parts[-1]
                         self.on_reject(("router", parts[:1]), "bad_envelope",
@@ -188,6 +191,17 @@ class Transports:
                 batch.append((data, ("osc", addr), time.perf_counter()))
         if batch:
             self.on_batch(batch)
+
+    def operator(self, origin: Origin) -> bool:
+        """May this peer act on others' streams and reload?  Without CURVE every ROUTER peer is
+        local (non-loopback binds need CURVE) and is one; with CURVE, a key listed in
+        security.operator_keys.  OSC and PULL/SUB peers never are."""
+        if origin[0] != "router":
+            return False
+        if not self._curve:
+            return True
+        key = getattr(origin[1], "key", None)
+        return key is not None and self.guard is not None and self.guard.is_operator(key)
 
     def hold(self) -> None:
         """Queue ZeroMQ answers until :meth:`flush` (the daemon holds them for one loop turn):
@@ -298,14 +312,36 @@ class Transports:
 _KEEP = {"router": 3, "pull": 1, "sub": 2}  # frames of a message that can be valid: [id, "", body], [body], [topic, body]
 
 
-def _recv_bounded(sock_: zmq.Socket, keep: int) -> list:
+class _Keyed(list):
+    """A ROUTER envelope (sent back as its frames) that also carries the CURVE public key (Z85)
+    its message was authenticated with: read from that very message, so a routing id reused by
+    another connection can never inherit a key."""
+
+    __slots__ = ("key",)
+
+    def __init__(self, frames: list, key: str | None):
+        super().__init__(frames)
+        self.key = key
+
+
+def _recv_bounded(sock_: zmq.Socket, keep: int, keyed: bool = False) -> list:
     """One multipart message, at most ``keep`` frames of it copied into Python: the frames after
     those (the message is refused) are taken zero-copy and dropped at once, so a peer sending
     many leading frames costs neither a copy nor memory held (each frame is capped by
     MAXMSGSIZE, the number of them by nothing in ZeroMQ).  An over-long message comes back as
-    its first ``keep`` frames and then the count of frames dropped (an int)."""
+    its first ``keep`` frames and then the count of frames dropped (an int).  ``keyed`` (CURVE
+    on a ROUTER): the result is a :class:`_Keyed` whose ``key`` is the message's ZAP User-Id,
+    the peer's public key, so streams are owned by keys, not connections."""
     recv, more = sock_.recv, sock_.getsockopt
-    parts = [recv(_NOBLOCK)]
+    if not keyed:
+        parts = [recv(_NOBLOCK)]
+    else:
+        f = recv(_NOBLOCK, copy=False)
+        try:
+            key = f.get("User-Id")
+        except zmq.ZMQError:
+            key = None
+        parts = _Keyed([f.bytes], key)
     while more(_RCVMORE):
         if len(parts) < keep:
             parts.append(recv(_NOBLOCK))
