@@ -342,6 +342,18 @@ class Daemon:
             keys.append(k)
         chains: dict[str, list[int]] = {}  # stream -> indices set aside, behind its newest frame
         if not barrier:
+            # a frame from someone but its stream's owner (refused, or adopting a released stream)
+            # is handled in order with the rest: whether it is refused can depend on what came before
+            sessions = self.sessions.sessions
+            senders: dict[str, tuple] = {}
+            for k, (_, origin, _) in zip(keys, items):
+                if k is None or (s := sessions.get(k[0])) is None:
+                    continue
+                who = principal(origin)
+                if who != (s.owner if s.owner is not None else senders.setdefault(k[0], who)):
+                    barrier = True
+                    break
+        if not barrier:
             sessions = self.sessions.sessions
             newest: dict[str, int] = {}
             for i, k in enumerate(keys):
