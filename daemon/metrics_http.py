@@ -25,6 +25,8 @@ import time
 from collections import OrderedDict
 from typing import Callable
 
+from daemon.security import address_allowed
+
 MAX_CONNECTIONS = 32
 DEADLINE_S = 5.0  # accept -> answer sent
 MAX_REQUEST = 8192  # bytes of request line + headers
@@ -42,8 +44,9 @@ class MetricsHTTP:
     """``MetricsHTTP(host, port, text)`` binds and starts the thread; ``close()`` stops it."""
 
     def __init__(self, host: str, port: int, text: Callable[[], str], max_connections: int = MAX_CONNECTIONS,
-                 deadline_s: float = DEADLINE_S):
+                 deadline_s: float = DEADLINE_S, allow: list | None = None):
         self.text = text
+        self.allow = allow  # source networks answered (metrics.allow; None: any, which config allows on loopback only)
         self.max_connections, self.deadline_s = max_connections, deadline_s
         fam = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.lsock = socket.socket(fam, socket.SOCK_STREAM)
@@ -59,7 +62,7 @@ class MetricsHTTP:
         self.sel = selectors.DefaultSelector()
         self.sel.register(self.lsock, selectors.EVENT_READ, None)
         self.conns: OrderedDict[int, _Conn] = OrderedDict()  # fd -> connection, oldest first
-        self.counts = {"served": 0, "evicted": 0, "timeouts": 0, "bad_requests": 0, "errors": 0}
+        self.counts = {"served": 0, "evicted": 0, "timeouts": 0, "bad_requests": 0, "errors": 0, "denied": 0}
         self.last_error: str | None = None
         self._stop = False
         self.thread = threading.Thread(target=self._run, name="metrics-http", daemon=True)
@@ -89,13 +92,17 @@ class MetricsHTTP:
     def _accept(self, now: float) -> None:
         for _ in range(64):
             try:
-                s, _ = self.lsock.accept()
+                s, addr = self.lsock.accept()
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as e:  # EMFILE and the like: count, the listening socket stays
                 self.counts["errors"] += 1
                 self.last_error = f"accept: {e}"[:200]
                 return
+            if self.allow is not None and not address_allowed(addr[0], self.allow):
+                self.counts["denied"] += 1  # closed unanswered
+                s.close()
+                continue
             s.setblocking(False)
             while len(self.conns) >= self.max_connections:
                 _, old = self.conns.popitem(last=False)

@@ -106,12 +106,25 @@ def parse_config(raw: Any, where: str = "<config>", base: str | None = None) -> 
     return spec
 
 
-def _network(where: str, a: str) -> ipaddress.IPv4Network | ipaddress.IPv6Network:
+def _network(where: str, a: str, key: str = "security.osc_allow") -> ipaddress.IPv4Network | ipaddress.IPv6Network:
     try:
         return ipaddress.ip_network(a.strip(), strict=False)
     except ValueError:
-        raise SecurityError(f"{where}: security.osc_allow entry {a!r} is not an IP address or network "
+        raise SecurityError(f"{where}: {key} entry {a!r} is not an IP address or network "
                             f"(like 192.168.10.7 or 192.168.10.0/24)") from None
+
+
+def address_allowed(addr: str, nets: list | None) -> bool:
+    """Is source address ``addr`` in ``nets`` (None: no list, everyone)?"""
+    if nets is None:
+        return True
+    try:
+        ip = ipaddress.ip_address(str(addr).split("%")[0])
+    except ValueError:
+        return False
+    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    return any(ip in n for n in nets)
 
 
 def apply_config(cfg: Any, raw: Any, where: str = "<config>", base: str | None = None) -> None:
@@ -120,6 +133,15 @@ def apply_config(cfg: Any, raw: Any, where: str = "<config>", base: str | None =
     cfg.security = parse_config(raw, where, base)
     check_exposure({"zmq.router": cfg.zmq_router, "zmq.pull": cfg.zmq_pull, "zmq.pub": cfg.zmq_pub},
                    cfg.osc_listen, cfg.security, where)
+    cfg.metrics_networks = None
+    if cfg.metrics_allow is not None:
+        cfg.metrics_networks = [_network(where, a, "metrics.allow") for a in cfg.metrics_allow]
+    if cfg.metrics_http is not None and not host_is_loopback(cfg.metrics_http[0]) and cfg.metrics_networks is None:
+        # the endpoint names streams and models and has no authentication: the same rule as OSC
+        raise SecurityError(
+            f"{where}: metrics.http = \"{cfg.metrics_http[0]}:{cfg.metrics_http[1]}\" is not a loopback address and "
+            f"the metrics endpoint has no authentication: set metrics.allow to the scrapers' addresses "
+            f"(e.g. [\"192.168.10.5\"]), or bind 127.0.0.1")
 
 
 # ---- the exposure rule ------------------------------------------------------------------------

@@ -122,7 +122,8 @@ class Daemon:
                               self._batch)
         self.net.open()
         if self.cfg.metrics_http:
-            self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom)
+            self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom,
+                                    allow=self.cfg.metrics_networks)
         self._request_cpu_latency()
         self._request_realtime()  # (after every thread the daemon starts for good, so only these get it)
         self._prom = self.metrics.prometheus(self.status())
@@ -707,7 +708,7 @@ class Daemon:
         table = table or dict(self.models)  # (the worker's last resort keeps the models serving)
         sys.setswitchinterval(self._switch)
         if new_cfg is not None:
-            moved = [k for k in ("zmq_router", "zmq_pull", "zmq_sub", "zmq_pub", "osc_listen", "metrics_http")
+            moved = [k for k in ("zmq_router", "zmq_pull", "zmq_sub", "zmq_pub", "osc_listen", "metrics_http", "metrics_allow")
                      if getattr(new_cfg, k) != getattr(self.cfg, k)]
             if moved:
                 self.log("warning", "reload_needs_restart", keys=moved, detail="socket addresses change only on restart")

@@ -486,9 +486,9 @@ def unpack(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> dict:
         m = msgpack.unpackb(
             data, raw=False, strict_map_key=False, use_list=True,
             max_str_len=max_bytes, max_bin_len=max_bytes, max_array_len=MAX_CHANNELS + 16,
-            # requests are small maps; a client reading a status reply (one entry per stream)
-            # passes a larger max_bytes, and the byte cap still bounds what a map can hold
-            max_map_len=64 if max_bytes <= MAX_MESSAGE_BYTES else max_bytes // 2, max_ext_len=0,
+            # any number of (unknown, ignored) keys up to the byte cap: a key and its value take
+            # at least a byte each, so a map declaring more than max_bytes // 2 cannot be real
+            max_map_len=max_bytes // 2, max_ext_len=0,
         )
     except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError,
             UnicodeDecodeError, OverflowError) as e:

@@ -89,3 +89,65 @@ def test_leading_frames_are_refused_not_held_as_an_envelope(tmp_path, walk):
         good.stop_flag.set()
         S.close()
         d.stop()
+
+
+def test_masked_passthrough_channels_come_back_nan(tmp_path, walk):
+    """F5: a channel passed through (the model lacks it) or served by the pass-through model,
+    masked out with junk under the mask (inf, 3e38), came back as the junk with filled 0, std 0.
+    PROTOCOL says NaN, and NaN it is; observed values come back exactly."""
+    frames, channels, model = walk
+    model.save(str(tmp_path / "walk.npz"))
+    ep = write_config(tmp_path / "lacuna.toml", {"walk": {"file": "walk.npz"}, "floor": {"builtin": "passthrough"}})
+    d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
+    S = Sockets()
+    try:
+        s = S.make(zmq.DEALER, ep["router"])
+        studio = channels + ["studio.a", "studio.b", "studio.c"]
+        for sid, model_name, names in (("withextra", "walk", studio), ("floor", "floor", studio)):
+            s.send(wire.encode(wire.Hello(sid, names, model_name)))
+            assert isinstance(recv_msg(s), wire.HelloAck)
+            for seq in range(20):
+                a = np.nan_to_num(frames[seq], nan=0.0).astype(np.float32)
+                a = np.concatenate([a, np.array([np.inf, 3e38, 7.5], np.float32)])
+                obs = np.ones(a.size, bool)
+                obs[-3:-1] = False  # the two junk values are masked out; 7.5 is observed
+                obs[10:14] = False
+                a[10] = np.inf
+                s.send(wire.encode(wire.Frame(sid, seq, seq / 120, a, obs)))
+                m = recv_msg(s)
+                assert isinstance(m, wire.FillMsg), m
+                assert np.isnan(m.angles[-3:-1]).all(), (sid, m.angles[-3:])
+                assert m.angles[-1] == 7.5 and np.array_equal(m.angles[obs], a[obs])
+                assert not m.filled[-3:].any() and (m.std[-3:] == 0).all()
+                if model_name == "walk":  # the model's own masked channels are filled, finite
+                    assert m.filled[10:14].all() and np.isfinite(m.angles[10:14]).all()
+                else:
+                    assert np.isnan(m.angles[10:14]).all() and not m.filled.any()
+    finally:
+        S.close()
+        d.stop()
+
+
+def test_a_map_with_many_unknown_keys_is_served(tmp_path):
+    """F11: unknown keys are ignored, so a frame with 500 of them (within max_message_bytes) is
+    served like any other; one beyond the byte cap is `too_large`."""
+    ep = write_config(tmp_path / "lacuna.toml", {"floor": {"builtin": "passthrough"}})
+    d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
+    S = Sockets()
+    try:
+        s = S.make(zmq.DEALER, ep["router"])
+        base = wire.to_map(wire.Frame("keys", 0, 0.0, np.array([1.0, np.nan], np.float32)))
+        for n in (65, 500, 5000):
+            m = {**base, "seq": n, **{f"x-{i}": i for i in range(n)}}
+            s.send(msgpack.packb(m, use_bin_type=True))
+            got = recv_msg(s)
+            assert isinstance(got, wire.FillMsg) and got.seq == n, got
+        m = {**base, "seq": 9999, **{f"x-{i}": i for i in range(7000)}}  # (~77 KB: over the 64 KiB cap)
+        s.send(msgpack.packb(m, use_bin_type=True))
+        got = recv_msg(s)
+        assert isinstance(got, wire.ErrorMsg) and got.reason == "too_large"
+        st = status(S, ep["router"])
+        assert st["rejected"] == {"too_large": 1} and st["streams"]["keys"]["frames_out"] == 3
+    finally:
+        S.close()
+        d.stop()
