@@ -22,7 +22,7 @@ from typing import Any
 import zmq
 
 from daemon import config as config_mod
-from daemon import osc, security, wire
+from daemon import budget as budgets, osc, security, wire
 from daemon.metrics import Metrics
 from daemon.metrics_http import MetricsHTTP
 from daemon.models import Loaded, load_all
@@ -35,6 +35,7 @@ from daemon.scheduler import Scheduler, fill_messages
 from daemon.session import Origin, SessionError, SessionTable, principal
 from daemon.transport import Transports
 
+SLICE = 16  # messages of a barrier burst between two looks at the clock (see _batch)
 BATCH_MIN = 3  # messages in a turn from which frames superseded within it are answered after the step
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
 HOUSEKEEPING_S = 0.5
@@ -95,6 +96,7 @@ class Daemon:
         self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` and `overdue` drops, sent after its fills
         self._drop_overdue = self.cfg.overdue == "drop"
         self.prewarm = Prewarm(cfg.prewarm_ms)
+        self.budget = budgets.Budget()  # hello/control requests per peer (daemon/budget.py)
 
     @property
     def _busy_s(self) -> float:
@@ -259,7 +261,12 @@ class Daemon:
         if not counted:
             self.metrics.inc("messages_in")
         if origin[0] != "osc":
-            self._take(wire.decode, data, origin, arrived)
+            try:
+                m = wire.unpack(data, self.cfg.max_message_bytes)
+            except wire.WireError as e:
+                self._reject(origin, e.reason, e.detail, e.stream, e.seq)
+                return
+            self._handle_map(m, origin, arrived)
         elif data.startswith(osc.BUNDLE_PREFIX):  # several messages of one instant
             self._take(self._osc_bundle, data, origin, arrived)
         else:
@@ -272,8 +279,19 @@ class Daemon:
             self._handle(m, origin, arrived, counted=True)
         elif isinstance(m, wire.WireError):
             self._reject(origin, m.reason, m.detail, m.stream, m.seq)
+        elif m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
+                not self.budget.allow(principal(origin), units):
+            # (before decoding: checking a hello's names is the cost the budget is for)
+            self._rate_limited(origin, m)
         else:
             self._take(_decode_map, m, origin, arrived)
+
+    def _rate_limited(self, origin: Origin, m: dict | None = None) -> None:
+        sid = m.get("stream") if m is not None else None
+        self._reject(origin, "rate_limited", f"over this peer's budget for hello/control requests "
+                                             f"({budgets.RATE:g} cost units a second, bursts of {budgets.BURST:g}; "
+                                             f"a hello costs 1 + channels/64, a control request {budgets.CONTROL_COST:g})",
+                     sid if isinstance(sid, str) else None, None)
 
     def _osc_bundle(self, data: bytes, maxb: int) -> list[Any]:
         items = osc.decode_bundle(data, maxb)
@@ -375,9 +393,19 @@ class Daemon:
             aside = {i for c in chains.values() for i in c}
         else:
             heads, aside = {}, set()
+        # a burst of costly requests (hellos, controls: that is what makes it a barrier) must not
+        # hold up the frames read with it: every SLICE messages, once a quarter of the budget is
+        # spent, the frames taken so far are served (as if the rest had come in the next turn)
+        slice_at, t_slice = (SLICE if barrier else len(maps) + 1), time.perf_counter()
+        frames_seen = self.metrics.counters.get("frames_in", 0)
         for i, (m, (_, origin, arrived)) in enumerate(zip(maps, items)):
             if i in aside:
                 continue
+            if i and not i % slice_at and time.perf_counter() - t_slice > self.sched.budget_s / 4:
+                if self.metrics.counters.get("frames_in", 0) != frames_seen:
+                    self._serve()
+                    frames_seen = self.metrics.counters.get("frames_in", 0)
+                t_slice = time.perf_counter()
             self._handle_map(m, origin, arrived)
             sid = heads.get(i)
             if sid is None:
@@ -440,6 +468,10 @@ class Daemon:
                 self._frame_answers(self.sessions.frame(msg, origin, arrived, principal(origin)))  # type: ignore[union-attr]
             elif isinstance(msg, wire.Bundle):
                 self._bundle(msg, origin, arrived)
+            elif isinstance(msg, (wire.Hello, wire.Control)) and \
+                    not self.budget.allow(principal(origin), budgets.HELLO_COST if isinstance(msg, wire.Hello)
+                                          else budgets.CONTROL_COST):
+                self._rate_limited(origin)
             elif isinstance(msg, wire.Hello):
                 ack, orphans = self.sessions.hello(msg, principal(origin))  # type: ignore[union-attr]
                 for o, m in orphans:

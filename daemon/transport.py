@@ -31,6 +31,7 @@ from daemon.metrics import Metrics
 from daemon.session import Origin
 
 DRAIN_MAX = 2048  # messages read per socket per tick: keeps one busy socket from starving the rest
+DRAIN_MAX_BYTES = 1 << 20  # and bytes: a turn of big requests (hellos of 4096 names) is cut short
 UDP_MAX = 65535  # bytes
 _NOBLOCK = int(zmq.NOBLOCK)
 _RCVMORE = int(zmq.RCVMORE)
@@ -148,10 +149,15 @@ class Transports:
             got = []
             keep = _KEEP[name]
             keyed = self._curve and name == "router"
+            nbytes = 0
             for _ in range(DRAIN_MAX):
                 try:
-                    got.append((_recv_bounded(sock_, keep, keyed), time.perf_counter()))
+                    parts = _recv_bounded(sock_, keep, keyed)
                 except zmq.Again:
+                    break
+                got.append((parts, time.perf_counter()))
+                nbytes += len(parts[-1]) if type(parts[-1]) is bytes else 0
+                if nbytes > DRAIN_MAX_BYTES:  # (the rest next turn: one turn's decoding stays bounded)
                     break
             for parts, arrived in got:
                 n = len(parts)

@@ -211,9 +211,11 @@ def _names(v: Any, key: str, what: str, sid: str | None) -> list[str]:
         raise WireError("bad_type", f"{what} field {key!r} must be an array of strings (got {type(v).__name__})", sid)
     if not 0 < len(v) <= MAX_CHANNELS:
         raise WireError("bad_length", f"{what} field {key!r} must list 1..{MAX_CHANNELS} names (got {len(v)})", sid)
-    for i, c in enumerate(v):
-        if not isinstance(c, str) or not 0 < len(c) <= MAX_NAME:
-            raise WireError("bad_type", f"{what} {key}[{i}] must be a non-empty string (got {c!r:.40})", sid)
+    # (checked at C speed first: a 4096-name hello is the costliest request there is)
+    if set(map(type, v)) != {str} or not 0 < min(map(len, v)) <= max(map(len, v)) <= MAX_NAME:
+        for i, c in enumerate(v):
+            if not isinstance(c, str) or not 0 < len(c) <= MAX_NAME:
+                raise WireError("bad_type", f"{what} {key}[{i}] must be a non-empty string (got {c!r:.40})", sid)
     if len(set(v)) != len(v):  # (linear: list.count per name made a 4096-name hello cost 10-20 ms)
         seen: set[str] = set()
         dups: set[str] = set()

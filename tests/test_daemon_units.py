@@ -274,7 +274,8 @@ def test_observed_mask_wins_over_values_and_passthrough_channels_untouched():
     s = t.sessions["s"]
     [(sess, fill, status)] = sched.run({id(model): (model, [s])}, 0.0)
     msg = fill_message(sess, fill, status, 0.001)
-    assert msg.angles.tolist() == [1.0, 42.0, 5.0]
+    # zz (passed through) was masked out: NaN, not the 42 sent under the mask (docs/PROTOCOL.md, issue 18 F5)
+    assert msg.angles[0] == 1.0 and np.isnan(msg.angles[1]) and msg.angles[2] == 5.0
     assert msg.filled.tolist() == [False, False, True] and msg.status == "ok"
 
 

@@ -151,3 +151,46 @@ def test_a_map_with_many_unknown_keys_is_served(tmp_path):
     finally:
         S.close()
         d.stop()
+
+
+def test_expensive_requests_have_a_budget_per_peer(tmp_path, walk):
+    """F4: 1000 hellos of 4096 identical names (a quadratic duplicate check once made each cost
+    10-22 ms) from one peer: each answered, `bad_channels` up to the peer's budget, then
+    `rate_limited`, all counted; a fresh peer still gets its hello; the good stream loses
+    nothing.  A 60 KB OSC string is refused `bad_length` before python-osc parses it."""
+    frames, channels, model = walk
+    model.save(str(tmp_path / "walk.npz"))
+    ep = write_config(tmp_path / "lacuna.toml", {"walk": {"file": "walk.npz"}}, osc=True)
+    d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
+    S = Sockets()
+    good = LockStep(ep["router"], "good", frames, hello=channels)
+    try:
+        good.start()
+        _wait(lambda: len(good.answers) > 20)
+        att = S.make(zmq.DEALER, ep["router"])
+        att.setsockopt(zmq.RCVHWM, 0)
+        bad = wire.encode(wire.Hello("dups", ["ab"] * 4096))
+        for _ in range(1000):
+            att.send(bad)
+        got = [recv_msg(att, 20_000) for _ in range(1000)]
+        reasons = {r: sum(1 for m in got if m.reason == r) for r in {m.reason for m in got}}
+        assert set(reasons) == {"bad_channels", "rate_limited"} and reasons["rate_limited"] > 0, reasons
+        assert all("repeat: ['ab']" in m.detail for m in got if m.reason == "bad_channels")
+        fresh = S.make(zmq.DEALER, ep["router"])
+        fresh.send(wire.encode(wire.Hello("other", channels)))
+        assert isinstance(recv_msg(fresh), wire.HelloAck)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as u:
+            u.settimeout(5)
+            u.bind(("127.0.0.1", 0))
+            u.sendto(fuzzgen.osc_message("/lacuna/hello", [("s", "o1"), ("s", ""), ("s", "x" * 60000)]), ep["osc"])
+            assert b"bad_length" in u.recv(65535)
+        st = status(S, ep["router"])
+        assert st["rejected"]["bad_channels"] == reasons["bad_channels"]
+        assert st["rejected"]["rate_limited"] == reasons["rate_limited"] and st["rejected"]["bad_length"] == 1
+        good.finish()
+        all_filled(good, "walk")
+        assert d.alive()
+    finally:
+        good.stop_flag.set()
+        S.close()
+        d.stop()
