@@ -35,6 +35,8 @@ from daemon.scheduler import Scheduler, fill_messages
 from daemon.session import Origin, SessionError, SessionTable, principal
 from daemon.transport import Transports
 
+OSC_ERRORS_PER_S = 20  # error answers a second to one OSC source host; the rest are counted, not sent
+OSC_ERROR_FLOOR = 64  # bytes an OSC error answer may take even when what it answers was smaller (a reason code)
 SLICE = 16  # messages of a barrier burst between two looks at the clock (see _batch)
 BATCH_MIN = 3  # messages in a turn from which frames superseded within it are answered after the step
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
@@ -97,6 +99,9 @@ class Daemon:
         self._drop_overdue = self.cfg.overdue == "drop"
         self.prewarm = Prewarm(cfg.prewarm_ms)
         self.budget = budgets.Budget()  # hello/control requests per peer (daemon/budget.py)
+        self.osc_err_budget = budgets.Budget(OSC_ERRORS_PER_S, OSC_ERRORS_PER_S)  # error answers per OSC source host
+        self._osc_in = 0  # bytes of the OSC datagram being handled (its answers may not be larger)
+        self._osc_errs: list[tuple[str, str]] | None = None  # errors of the OSC bundle being handled
 
     @property
     def _busy_s(self) -> float:
@@ -268,8 +273,15 @@ class Daemon:
                 return
             self._handle_map(m, origin, arrived)
         elif data.startswith(osc.BUNDLE_PREFIX):  # several messages of one instant
-            self._take(self._osc_bundle, data, origin, arrived)
+            self._osc_in, self._osc_errs = len(data), []
+            try:
+                self._take(self._osc_bundle, data, origin, arrived)
+            finally:
+                errs, self._osc_errs = self._osc_errs, None
+                if errs:
+                    self._osc_summary(origin, errs)
         else:
+            self._osc_in = len(data)
             self._take(osc.decode, data, origin, arrived)
 
     def _handle_map(self, m: dict | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
@@ -525,8 +537,43 @@ class Daemon:
                      transport=origin[0] if origin else None)
         else:
             self._rej_suppressed += 1
-        if origin is not None:
-            self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
+        if origin is None:
+            return
+        if origin[0] == "osc":
+            if self._osc_errs is not None:  # an element of a bundle: one answer for them all, after it
+                self._osc_errs.append((reason, detail))
+            else:
+                self._osc_error(origin, wire.ErrorMsg(reason, detail, sid, seq))
+            return
+        self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
+
+    # ---- OSC error answers: bounded (no amplification, no reflection flood) ---------------
+    def _osc_summary(self, origin: Origin, errs: list[tuple[str, str]]) -> None:
+        by: dict[str, int] = {}
+        for r, _ in errs:
+            by[r] = by.get(r, 0) + 1
+        counts = ", ".join(f"{r} x{n}" for r, n in sorted(by.items(), key=lambda kv: -kv[1]))
+        self._osc_error(origin, wire.ErrorMsg(errs[0][0], f"{len(errs)} message(s) of the bundle refused ({counts}); "
+                                                         f"first: {errs[0][1]}"))
+
+    def _osc_error(self, origin: Origin, msg: wire.ErrorMsg) -> None:
+        """An OSC error answer, at most OSC_ERRORS_PER_S a second per source host and no larger
+        than the datagram it answers or OSC_ERROR_FLOOR bytes, whichever is more (the detail
+        is cut to fit; an answer that cannot fit is not sent): spoofing a source cannot turn
+        the daemon into an amplifier."""
+        if not self.osc_err_budget.allow(origin[1][0]):
+            self.metrics.inc("osc_errors_unanswered")
+            return
+        room = max(self._osc_in, OSC_ERROR_FLOOR)
+        data = osc.encode(msg)
+        if len(data) > room:
+            base = len(osc.encode(wire.ErrorMsg(msg.reason, "")))
+            keep = room - base - 4  # (the detail's terminator and padding)
+            if keep < 0:
+                self.metrics.inc("osc_errors_unanswered")
+                return
+            msg = wire.ErrorMsg(msg.reason, msg.detail.encode()[:keep].decode(errors="ignore"), msg.stream, msg.seq)
+        self._send(origin, msg)
 
     def _serve(self) -> None:
         pend = [s for s in self.sessions.sessions.values() if s.pending is not None]

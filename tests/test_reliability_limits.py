@@ -194,3 +194,53 @@ def test_expensive_requests_have_a_budget_per_peer(tmp_path, walk):
         good.stop_flag.set()
         S.close()
         d.stop()
+
+
+def _osc_bundle(*elements: bytes) -> bytes:
+    return b"#bundle\0" + b"\0" * 7 + b"\1" + b"".join(len(e).to_bytes(4, "big") + e for e in elements)
+
+
+def _until_fill(u: socket.socket, ep, sid: str, seq: int) -> list[bytes]:
+    """Send a good frame as a barrier and return every datagram received before its fill."""
+    u.sendto(fuzzgen.osc_frame(sid, seq, 0.0, np.array([1.0, 2.0], np.float32)), ep["osc"])
+    got = []
+    while True:
+        b = u.recv(65535)
+        if b.startswith(b"#bundle") and b"/lacuna/fill" in b:
+            return got
+        got.append(b)
+
+
+def test_osc_error_answers_are_bounded(tmp_path):
+    """F9: a 12 KB bundle of 1024 bad messages drew 1024 answers (11x its size); a burst of bad
+    datagrams drew one answer each, to whatever source they claimed.  Now one bounded summary
+    per bundle (every element still counted), at most 20 error answers a second per source host,
+    none larger than what it answers (or 64 bytes)."""
+    ep = write_config(tmp_path / "lacuna.toml", {"floor": {"builtin": "passthrough"}}, osc=True)
+    d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
+    S = Sockets()
+    u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    u.bind(("127.0.0.1", 0))
+    u.settimeout(10)
+    u.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+    try:
+        assert _until_fill(u, ep, "b", 0) == []
+        bad = fuzzgen.osc_message("/lacuna/nope", [("i", 1)])
+        bundle = _osc_bundle(*[bad] * 1024)
+        assert len(bundle) < 65536
+        u.sendto(bundle, ep["osc"])
+        got = _until_fill(u, ep, "b", 1)
+        assert len(got) == 1 and len(got[0]) <= len(bundle) and b"1024 message(s)" in got[0], got[:2]
+        st = status(S, ep["router"])
+        assert st["rejected"]["unknown_type"] == 1024
+        for i in range(100):  # single bad datagrams, as fast as the socket takes them
+            u.sendto(bad, ep["osc"])
+        got = _until_fill(u, ep, "b", 2)
+        assert 1 <= len(got) <= 40 and all(len(g) <= max(len(bad), 64) for g in got)  # (20 a second, burst 20)
+        st = status(S, ep["router"])
+        assert st["rejected"]["unknown_type"] == 1124
+        assert st["counters"]["osc_errors_unanswered"] == 100 - len(got)
+    finally:
+        u.close()
+        S.close()
+        d.stop()
