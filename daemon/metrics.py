@@ -75,9 +75,9 @@ class Metrics:
         metric("lacuna_processing_seconds", "summary", "receipt-to-reply time of served frames (recent window)",
                [(f'{{quantile="{qq}"}}', lat[k] / 1e3) for qq, k in q if k in lat] + [("_count", lat["count"])])
         streams = status.get("streams", {})
-        metric("lacuna_streams", "gauge", "open streams", [("", len(streams))])
+        metric("lacuna_streams", "gauge", "open streams", [("", status.get("streams_total", len(streams)))])
         for key in ("frames_in", "frames_out", "dropped", "rejected", "degraded", "predicted"):
-            metric(f"lacuna_stream_{key}_total", "counter", f"per-stream {key}",
+            metric(f"lacuna_stream_{key}_total", "counter", f"per-stream {key} (the most recently active streams)",
                    [(f'{{stream="{_esc(sid)}",model="{_esc(s["model"])}"}}', s[key]) for sid, s in sorted(streams.items())])
         metric("lacuna_model_loaded", "gauge", "models loaded",
                [(f'{{model="{_esc(n)}",method="{_esc(str(m.get("method")))}"}}', 1) for n, m in sorted(status.get("models", {}).items())])

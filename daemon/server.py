@@ -37,6 +37,8 @@ from daemon.transport import Transports
 
 OSC_ERRORS_PER_S = 20  # error answers a second to one OSC source host; the rest are counted, not sent
 OSC_ERROR_FLOOR = 64  # bytes an OSC error answer may take even when what it answers was smaller (a reason code)
+STATUS_STREAMS = 256  # streams `status` details by default, most recently active first (`limit` asks for more)
+PROM_STREAMS = 64  # streams with per-stream series in the metrics snapshot
 SLICE = 16  # messages of a barrier burst between two looks at the clock (see _batch)
 BATCH_MIN = 3  # messages in a turn from which frames superseded within it are answered after the step
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
@@ -701,7 +703,14 @@ class Daemon:
     # ---- control ----------------------------------------------------------------------------
     def _control(self, msg: wire.Control, origin: Origin) -> None:
         if msg.cmd == "status":
-            self._send(origin, wire.ControlReply("status", True, self.status()))
+            if msg.stream is not None and msg.stream not in self.sessions.sessions:
+                self._send(origin, wire.ControlReply("status", False, {}, f"no open stream {msg.stream!r}"))
+                return
+            n = STATUS_STREAMS if msg.limit is None else msg.limit
+            if n > STATUS_STREAMS and not self.budget.allow(principal(origin), (n - STATUS_STREAMS) / 64.0):
+                self._rate_limited(origin)  # (a long listing costs its length)
+                return
+            self._send(origin, wire.ControlReply("status", True, self.status(n, msg.stream)))
         elif msg.cmd == "list-models":
             self._send(origin, wire.ControlReply("list-models", True, {"models": {n: m.info() for n, m in self.models.items()},
                                                                          "default": self.cfg.default_model}))
@@ -728,14 +737,19 @@ class Daemon:
         """May this peer reload and reset others' streams (daemon/transport.py, ``operator``)?"""
         return self.net.operator(origin) if self.net is not None else True
 
-    def status(self) -> dict[str, Any]:
+    def status(self, limit: int = STATUS_STREAMS, stream: str | None = None) -> dict[str, Any]:
+        """The status map; per-stream detail for the ``limit`` most recently active streams (or
+        for ``stream`` alone): its cost does not grow with the idle streams."""
+        ss = self.sessions
+        listed = [stream] if stream is not None else ss.most_recent(limit)
         return {
             "pid": os.getpid(), "uptime_s": round(time.time() - self.started, 3), "config": self.cfg.path,
             "budget_ms": self.cfg.budget_ms, "overdue": self.cfg.overdue, "default_model": self.cfg.default_model,
             "models": {n: m.info() for n, m in self.models.items()},
             "latency": self.metrics.latency_summary(), "step": self.metrics.step_summary(),
             "counters": dict(self.metrics.counters), "rejected": dict(self.metrics.rejected),
-            "streams": {sid: s.info() for sid, s in self.sessions.sessions.items()},
+            "streams": {sid: ss.sessions[sid].info() for sid in listed},
+            "streams_total": len(ss.sessions), "streams_listed": len(listed),
             "expired": self.sessions.expired, "takeovers": self.sessions.takeovers, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
             "security": self.net.guard.info() if self.net is not None and self.net.guard is not None else None,
@@ -836,8 +850,8 @@ class Daemon:
         for sid in gone:
             self.log("info", "stream_expired", stream=sid)
             self.metrics.inc("expired")
-        if self.http is not None:
-            self._prom = self.metrics.prometheus(self.status())
+        if self.http is not None:  # (per-stream series for the most recently active only)
+            self._prom = self.metrics.prometheus(self.status(PROM_STREAMS))
         self.notify.status(self._status_line())
 
     def _drain(self) -> None:

@@ -19,7 +19,9 @@ a ``hello`` carries the claim token the stream was opened with (the owner reconn
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
+from itertools import islice
 from typing import Any, Callable
 
 import numpy as np
@@ -152,6 +154,9 @@ class SessionTable:
     def __init__(self, resolve: Callable[[str | None, str], tuple[str, Model]], max_streams: int,
                  count: Callable[[str, str | None], None]):
         self.sessions: dict[str, Session] = {}
+        # stream ids, least recently active first (a frame or hello moves one to the end): status
+        # lists the most recent without looking at the idle ones, expiry stops at the first live one
+        self.recent: OrderedDict[str, None] = OrderedDict()
         self.resolve = resolve
         self.max_streams = max_streams
         self.count = count  # count(counter name, stream id or None): global metrics hook
@@ -198,6 +203,8 @@ class SessionTable:
         if old is not None:
             s.counts = old.counts
         self.sessions[sid] = s
+        self.recent[sid] = None
+        self.recent.move_to_end(sid)
         return s
 
     def hello(self, msg: wire.Hello, who: Any = None) -> tuple[wire.HelloAck, Out]:
@@ -216,6 +223,7 @@ class SessionTable:
         if old is not None and not operator and not self._owned(old, who):
             raise self._foreign(sid, "reset")
         self.sessions.pop(sid, None)
+        self.recent.pop(sid, None)
         return old is not None, self._orphan(old)
 
     def release(self, sid: str, who: Any = None) -> bool:
@@ -239,11 +247,24 @@ class SessionTable:
         return [(p.origin, wire.Drop(old.sid, p.frame.seq, "reset"))]
 
     def expire(self, now: float, idle_s: float) -> list[str]:
-        gone = [sid for sid, s in self.sessions.items() if s.pending is None and now - s.last_active > idle_s]
+        """End the streams idle for more than ``idle_s``: from the least recently active, up to
+        the first that is not (cost: the streams expired, not the streams open)."""
+        gone = []
+        for sid in self.recent:
+            s = self.sessions[sid]
+            if now - s.last_active <= idle_s:
+                break
+            if s.pending is None:
+                gone.append(sid)
         for sid in gone:
             del self.sessions[sid]
+            del self.recent[sid]
         self.expired += len(gone)
         return gone
+
+    def most_recent(self, n: int) -> list[str]:
+        """The ``n`` most recently active stream ids, most recent first."""
+        return list(islice(reversed(self.recent), n))
 
     def rebind(self, name: str, model: Model) -> int:
         """After a reload swapped model ``name``: its sessions get states of the new model.
@@ -308,6 +329,7 @@ class SessionTable:
             raise SessionError("width", f"stream {f.stream!r} has {s.mapping.n_in} channels, the frame has "
                                         f"{f.angles.shape[0]} (send a hello to change the channel list)")
         s.last_active = time.monotonic()
+        self.recent.move_to_end(f.stream)
         s.counts["frames_in"] += 1
         if s.last_seq is not None and f.seq <= s.last_seq:
             why = "duplicate" if f.seq == s.last_seq else "late"

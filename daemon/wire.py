@@ -123,6 +123,7 @@ class Control:
 
     cmd: str
     stream: str | None = None
+    limit: int | None = None  # status: how many streams to detail (default: the daemon's, most recently active first)
 
 
 @dataclass
@@ -323,7 +324,10 @@ def _decode_control(m: dict) -> Control:
     stream = _get(m, "stream", str, "control", optional=True)
     if cmd in ("reset", "release") and not stream:
         raise WireError("missing_field", f"control {cmd} needs field 'stream'")
-    return Control(cmd, stream)
+    limit = _get(m, "limit", int, "control", optional=True)
+    if limit is not None and not 0 <= limit <= 100000:
+        raise WireError("bad_length", f"control field 'limit' must be 0..100000 (got {limit})")
+    return Control(cmd, stream, limit)
 
 
 def _decode_fill(m: dict) -> FillMsg:
@@ -578,6 +582,8 @@ def to_map(msg: Message) -> dict[str, Any]:
         d = {"v": 1, "type": "control", "cmd": msg.cmd}
         if msg.stream:
             d["stream"] = msg.stream
+        if msg.limit is not None:
+            d["limit"] = msg.limit
         return d
     if isinstance(msg, ControlReply):
         d = {"v": 1, "type": "control-reply", "cmd": msg.cmd, "ok": msg.ok, "result": msg.result}

@@ -244,3 +244,44 @@ def test_osc_error_answers_are_bounded(tmp_path):
         u.close()
         S.close()
         d.stop()
+
+
+def test_status_cost_does_not_grow_with_idle_streams(tmp_path):
+    """F10: `status` and the metrics snapshot walked every stream (1000 idle: 19-24 ms a call on
+    the serving thread).  Now they detail the most recently active 256 (status) and 64
+    (metrics); `limit` asks for more, `stream` for one; the totals stay exact."""
+    from reliability_daemon import free_port
+    from test_reliability_wedge import scrape
+
+    mport = free_port()
+    ep = write_config(tmp_path / "lacuna.toml", {"floor": {"builtin": "passthrough"}},
+                      daemon={"max_streams": 2000}, extra=f'[metrics]\nhttp = "127.0.0.1:{mport}"\n')
+    d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
+    S = Sockets()
+    try:
+        s = S.make(zmq.DEALER, ep["router"])
+        x = np.array([1.0, 2.0], np.float32)
+        for i in range(1000):
+            s.send(wire.encode(wire.Frame(f"idle{i:04d}", 0, 0.0, x)))
+            assert isinstance(recv_msg(s), wire.FillMsg)
+        s.send(wire.encode(wire.Frame("live", 0, 0.0, x)))
+        assert isinstance(recv_msg(s), wire.FillMsg)
+        st = status(S, ep["router"])
+        assert st["streams_total"] == 1001 and st["streams_listed"] == len(st["streams"]) == 256
+        assert list(st["streams"])[:3] == ["live", "idle0999", "idle0998"]  # most recently active first
+        assert st["counters"]["frames_out"] == 1001
+        one = S.make(zmq.DEALER, ep["router"])
+        one.send(wire.encode(wire.Control("status", "idle0000")))
+        m = recv_msg(one)
+        assert m.ok and list(m.result["streams"]) == ["idle0000"]
+        one.send(wire.encode(wire.Control("status", limit=5000)))
+        m = recv_msg(one)
+        assert m.ok and m.result["streams_listed"] == 1001
+        deadline = time.monotonic() + 10  # (the snapshot is taken every housekeeping tick)
+        while "lacuna_streams 1001" not in (body := scrape(mport)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert "lacuna_streams 1001" in body, "metrics snapshot never showed 1001 streams"
+        assert body.count("lacuna_stream_frames_out_total{") == 64
+    finally:
+        S.close()
+        d.stop()
