@@ -74,6 +74,14 @@ class Metrics:
         q = [("0.5", "p50_ms"), ("0.9", "p90_ms"), ("0.99", "p99_ms"), ("0.999", "p999_ms")]
         metric("lacuna_processing_seconds", "summary", "receipt-to-reply time of served frames (recent window)",
                [(f'{{quantile="{qq}"}}', lat[k] / 1e3) for qq, k in q if k in lat] + [("_count", lat["count"])])
+        loop = status.get("loop") or {}
+        if loop:
+            metric("lacuna_loop_stalls_total", "counter", "loop turns that woke later than asked, by how much",
+                   [(f'{{over="{k}"}}', v) for k, v in loop["stalls_over"].items()])
+            metric("lacuna_loop_max_stall_seconds", "gauge", "the latest wake-up so far",
+                   [("", loop["max_stall_ms"] / 1e3)])
+            metric("lacuna_loop_long_turns_total", "counter", "loop turns that took this long from waking to sleeping",
+                   [(f'{{over="{k}"}}', v) for k, v in loop["long_turns_over"].items()])
         streams = status.get("streams", {})
         metric("lacuna_streams", "gauge", "open streams", [("", status.get("streams_total", len(streams)))])
         for key in ("frames_in", "frames_out", "dropped", "rejected", "degraded", "predicted"):

@@ -32,6 +32,7 @@ from daemon.realtime import Realtime, ordinary
 from daemon.reload import Reloader
 from daemon.prewarm import Prewarm
 from daemon.scheduler import Scheduler, fill_messages
+from daemon.stalls import Stalls
 from daemon.session import Origin, SessionError, SessionTable, principal
 from daemon.transport import Transports
 
@@ -100,6 +101,7 @@ class Daemon:
         self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` and `overdue` drops, sent after its fills
         self._drop_overdue = self.cfg.overdue == "drop"
         self.prewarm = Prewarm(cfg.prewarm_ms)
+        self.stalls = Stalls()  # how late the loop woke (a stopped or starved process), daemon/stalls.py
         self.budget = budgets.Budget()  # hello/control requests per peer (daemon/budget.py)
         self.osc_err_budget = budgets.Budget(OSC_ERRORS_PER_S, OSC_ERRORS_PER_S)  # error answers per OSC source host
         self._osc_in = 0  # bytes of the OSC datagram being handled (its answers may not be larger)
@@ -210,7 +212,14 @@ class Daemon:
                         pw.rehearse(self.sessions.sessions, self.sched, self.net._encode)  # type: ignore[union-attr]
                     else:
                         timeout = min(timeout, int(left * 1000))
-                ready = self._spin(timeout) if timeout and self._busy_s else self.net.poll(timeout)  # type: ignore[union-attr]
+                self.stalls.sleeping()
+                due = time.perf_counter() + timeout / 1000.0
+                if timeout and self._busy_s:
+                    due += max(0.0, self._last_rx + self._busy_s - time.perf_counter())
+                    ready = self._spin(timeout)
+                else:
+                    ready = self.net.poll(timeout)  # type: ignore[union-attr]
+                self.stalls.woke(due)
                 net = self.net
                 net.hold()  # type: ignore[union-attr]  # this turn's answers go out together, after its work
                 try:
@@ -755,6 +764,7 @@ class Daemon:
             "security": self.net.guard.info() if self.net is not None and self.net.guard is not None else None,
             "cpu_latency": self.qos.info(), "realtime": self.rt.info(), "prewarm": self.prewarm.info(),
             "metrics_http": self.http.info() if self.http is not None else None,
+            "loop": self.stalls.info(),
         }
 
     def _status_line(self) -> str:

@@ -34,7 +34,13 @@ Out = list[tuple[Origin, wire.Message]]
 
 COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset",
             "dropped_overdue", "over_budget", "rejected", "degraded", "held", "predicted", "restarts",
-            "foreign")  # foreign: frames/hellos/resets for this stream refused because they came from someone else
+            "foreign", "waited")
+# foreign: frames/hellos/resets for this stream refused because they came from someone else;
+# waited: frames that reached the daemon WAIT_REPORT_S or more later than their capture
+# timestamp says they should have, judged against the stream's quickest delivery (see frame())
+WAIT_REPORT_S = 0.05
+WAIT_PLAUSIBLE_S = 30.0  # more than this is taken for a jump of the capture clock, not a wait
+WAIT_FOLLOW = 1e-4  # how fast the quickest-delivery baseline follows a drift between the clocks
 
 
 def principal(origin: Origin) -> tuple:
@@ -110,6 +116,8 @@ class Session:
     held_streak: int = 0
     late_streak: int = 0  # frames in a row answered `overdue`: breaks ties in who goes first
     counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
+    t_base: float | None = None  # quickest (arrival - capture t) seen: the stream's delivery baseline
+    max_wait_s: float = 0.0
     owner: Any = None  # the principal that opened the stream (None: anyone)
     claim: str | None = None  # the claim token of its hello: a new connection presenting it takes the stream over
 
@@ -137,7 +145,7 @@ class Session:
         d: dict[str, Any] = dict(self.counts)
         d.update(model=self.model_name, last_seq=self.last_seq, channels=self.mapping.n_in,
                  passthrough=len(self.mapping.passthrough), missing=len(self.mapping.missing),
-                 idle_s=round(time.monotonic() - self.last_active, 3))
+                 idle_s=round(time.monotonic() - self.last_active, 3), max_wait_ms=round(self.max_wait_s * 1e3, 1))
         d["dropped"] = sum(v for k, v in self.counts.items() if k.startswith("dropped_"))
         return d
 
@@ -330,6 +338,23 @@ class SessionTable:
                                         f"{f.angles.shape[0]} (send a hello to change the channel list)")
         s.last_active = time.monotonic()
         self.recent.move_to_end(f.stream)
+        # did the frame wait on its way (a stalled daemon, a full socket)?  arrival - capture time
+        # is constant for a frame delivered as quickly as ever; more means it waited
+        off = arrived - f.t
+        b = s.t_base
+        if b is None or off < b:
+            s.t_base = off
+        else:
+            w = off - b
+            if w > WAIT_PLAUSIBLE_S:  # the capture clock jumped: a new baseline
+                s.t_base = off
+            else:
+                s.t_base = b + w * WAIT_FOLLOW
+                if w >= WAIT_REPORT_S:
+                    s.counts["waited"] += 1
+                    self.count("frames_waited", f.stream)
+                    if w > s.max_wait_s:
+                        s.max_wait_s = w
         s.counts["frames_in"] += 1
         if s.last_seq is not None and f.seq <= s.last_seq:
             why = "duplicate" if f.seq == s.last_seq else "late"

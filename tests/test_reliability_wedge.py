@@ -223,3 +223,52 @@ def test_fifo_at_config_or_model_path_cannot_wedge_reloading(tmp_path, walk):
         ls.stop_flag.set()
         S.close()
         d.stop()
+
+
+def test_a_stopped_daemon_shows_the_stall(tmp_path):
+    """F12: after a SIGSTOP the client saw a long round trip while the daemon's own figures
+    (max_ms, over_budget, overdue) did not move.  Now the loop counts how late it woke, and the
+    frame that waited in the socket meanwhile is counted `waited` from its capture timestamp."""
+    mport = free_port()
+    ep = write_config(tmp_path / "lacuna.toml", {"floor": {"builtin": "passthrough"}},
+                      extra=f'[metrics]\nhttp = "127.0.0.1:{mport}"\n')
+    d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
+    S = Sockets()
+    s = S.make(zmq.DEALER, ep["router"])
+    x = np.array([1.0, 2.0, np.nan], np.float32)
+
+    def one(seq: int) -> wire.Message:
+        s.send(wire.encode(wire.Frame("cam", seq, time.monotonic(), x)))  # capture time: now, this clock
+        return recv_msg(s, 20_000)
+
+    try:
+        for seq in range(30):
+            assert isinstance(one(seq), wire.FillMsg)
+        before = status(S, ep["router"])
+        assert before["streams"]["cam"]["waited"] == 0 and before["loop"]["stalls_over"]["1000ms"] == 0
+        d.signal(signal.SIGSTOP)
+        try:
+            s.send(wire.encode(wire.Frame("cam", 30, time.monotonic(), x)))
+            time.sleep(1.5)  # (the stop itself: what the daemon must notice afterwards)
+        finally:
+            d.signal(signal.SIGCONT)
+        assert isinstance(recv_msg(s, 20_000), wire.FillMsg)
+        for seq in range(31, 40):
+            assert isinstance(one(seq), wire.FillMsg)
+        st = status(S, ep["router"])
+        cam = st["streams"]["cam"]
+        assert cam["waited"] == 1 and st["counters"]["frames_waited"] == 1, cam  # the frame sent during the stop
+        assert cam["max_wait_ms"] >= 1000  # (it was sent before a 1.5 s stop and read after it)
+        # (the stop met the loop asleep in poll, or, less likely, inside a turn's work)
+        lp = st["loop"]
+        assert lp["stalls_over"]["1000ms"] + lp["long_turns_over"]["1000ms"] == 1
+        assert max(lp["max_stall_ms"], lp["max_turn_ms"]) >= 1000
+        body = ""
+        deadline = time.monotonic() + 10
+        while "lacuna_frames_waited_total 1" not in body and time.monotonic() < deadline:
+            body = scrape(mport)
+            time.sleep(0.05)
+        assert "lacuna_frames_waited_total 1" in body and "lacuna_loop_max_stall_seconds" in body
+    finally:
+        S.close()
+        d.stop()
