@@ -219,18 +219,25 @@ class Client(_DealerLink):
                     self.session.handshaken = False  # the daemon lost our mapping: say it again
                     continue
                 if msg.reason == "not_owner" and not resynced and attempt < self.retries:
-                    resynced = self._resync()  # our connection changed under a frame-only stream
+                    resynced = self._resync_or_reconnect()  # our connection changed under a frame-only stream
                     continue
                 raise DaemonRefused(msg)
             if isinstance(msg, wire.Drop) and msg.reason == "late" and not resynced and attempt < self.retries:
                 # we never sent a later frame: the daemon's sequence for the stream is ahead of ours
                 # for a reason we cannot see (another process of ours with the same key, an old
                 # incarnation's frames): restart the stream once and send the frame again
-                resynced = self._resync()
+                resynced = self._resync_or_reconnect()
                 continue
             return msg
         raise DaemonUnavailable(f"no answer from {self.endpoint} for frame {seq} of {self.session.stream!r} "
                                 f"after {self.retries + 1} tries of {self.timeout_s:g} s")
+
+    def _resync_or_reconnect(self) -> bool:
+        try:
+            return self._resync()
+        except TimeoutError:
+            self.reconnect()
+            return True
 
     def _resync(self) -> bool:
         """Restart the stream on the daemon from this connection: a fresh ``hello`` when there is

@@ -18,7 +18,7 @@ from collections import OrderedDict
 from typing import Any
 
 RATE = 1000.0  # cost units a second per principal, sustained (~15 hellos of 4096 names, ~125 controls)
-BURST = 500.0
+BURST = 2048.0  # (a capture system opening 1024 streams on one connection: 1024 hellos at once)
 HELLO_COST = 1.0
 CONTROL_COST = 8.0  # a status, list-models or reload
 MAX_KEYS = 4096

@@ -39,6 +39,7 @@ class Reloader:
         self.running: list[Any] | None = None  # the waiters of the reload in progress
         self.queued: list[Any] | None = None  # requests for the next reload (None: none)
         self.started = 0  # reloads started so far; the running one is number `started`
+        self._stopping = False
         self.thread = threading.Thread(target=self._run, name="reload", daemon=True)
         self.thread.start()
 
@@ -57,8 +58,10 @@ class Reloader:
     def _start(self) -> None:
         self.running, self.queued = self.queued or [], None
         self.started += 1
-        self._on_start()
-        self._go.set()
+        try:
+            self._on_start()
+        finally:  # (whatever the hook does, the reload runs and is answered)
+            self._go.set()
 
     def poll(self) -> tuple[Result, list[Any]] | None:
         if self.running is None:
@@ -76,10 +79,17 @@ class Reloader:
         if self.running is None and self.queued is not None:
             self._start()
 
+    def stop(self) -> None:
+        """End the worker (after the reload it may be running; it is a daemon thread anyway)."""
+        self._stopping = True
+        self._go.set()
+
     def _run(self) -> None:
         while True:
             self._go.wait()
             self._go.clear()
+            if self._stopping:
+                return
             try:
                 res = self._work()
             except BaseException as e:  # noqa: BLE001 - the worker must never die

@@ -46,7 +46,7 @@ WAIT_FOLLOW = 1e-4  # how fast the quickest-delivery baseline follows a drift be
 def principal(origin: Origin) -> tuple:
     """Who sent a message, for stream ownership: the CURVE public key when the ROUTER socket is
     a CURVE server (the transport hangs it on the envelope as ``.key``), else the ROUTER
-    connection (its routing id); an OSC source address; PULL and SUB each as one principal."""
+    connection (its routing id); an OSC source address; PULL and SUB senders together as one."""
     kind = origin[0]
     if kind == "router":
         env = origin[1]
@@ -116,6 +116,7 @@ class Session:
     held_streak: int = 0
     late_streak: int = 0  # frames in a row answered `overdue`: breaks ties in who goes first
     counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
+    order: int = 0  # when its stream id entered the table (a replaced session keeps it)
     t_base: float | None = None  # quickest (arrival - capture t) seen: the stream's delivery baseline
     max_wait_s: float = 0.0
     owner: Any = None  # the principal that opened the stream (None: anyone)
@@ -150,6 +151,10 @@ class Session:
         return d
 
 
+def _order(s: Session) -> int:
+    return s.order
+
+
 class SessionError(Exception):
     def __init__(self, reason: str, detail: str):
         self.reason, self.detail = reason, detail
@@ -165,6 +170,10 @@ class SessionTable:
         # stream ids, least recently active first (a frame or hello moves one to the end): status
         # lists the most recent without looking at the idle ones, expiry stops at the first live one
         self.recent: OrderedDict[str, None] = OrderedDict()
+        # sessions given a waiting frame since the daemon last served (it looks only at these;
+        # ones whose frame went meanwhile, or that were replaced, it skips)
+        self.waiting: dict[int, Session] = {}
+        self._opened = 0  # streams opened so far: a session's `order` (the table's own order)
         self.resolve = resolve
         self.max_streams = max_streams
         self.count = count  # count(counter name, stream id or None): global metrics hook
@@ -209,7 +218,10 @@ class SessionTable:
         s = Session(sid, name, model, mp, model.stream())
         old = self.sessions.get(sid)
         if old is not None:
-            s.counts = old.counts
+            s.counts, s.order = old.counts, old.order
+        else:
+            self._opened += 1
+            s.order = self._opened
         self.sessions[sid] = s
         self.recent[sid] = None
         self.recent.move_to_end(sid)
@@ -372,4 +384,15 @@ class SessionTable:
             self.count("dropped_conflated", f.stream)
             out.append((p.origin, wire.Drop(f.stream, p.frame.seq, "conflated")))
         s.pending = Pending(f, origin, arrived)
+        self.waiting[id(s)] = s
+        return out
+
+    def take_waiting(self) -> list[Session]:
+        """The sessions with a frame waiting, in the table's order (as a walk over every open
+        session would give them); empties the list."""
+        w, self.waiting = self.waiting, {}
+        live = self.sessions
+        out = [s for s in w.values() if s.pending is not None and live.get(s.sid) is s]
+        if len(out) > 1:
+            out.sort(key=_order)
         return out
