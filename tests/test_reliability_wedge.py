@@ -92,7 +92,11 @@ def test_metrics_flood_holds_no_thread_and_reload_still_runs(tmp_path, walk):
         for c in conns:  # all at once
             c.close()
         conns.clear()
-        body = scrape(mport)
+        body = scrape(mport)  # (the snapshot is refreshed every housekeeping tick: frames_out comes once served)
+        deadline = time.monotonic() + 10
+        while "lacuna_frames_out_total" not in body and time.monotonic() < deadline:
+            time.sleep(0.05)
+            body = scrape(mport)
         assert "lacuna_up 1" in body and "lacuna_frames_out_total" in body
         peak = max(peak, threads(d.pid))
         assert peak <= base, (base, peak)  # no thread per connection, none per reload
