@@ -10,7 +10,11 @@ answers by ``seq``.  A request that gets no answer within ``timeout_s`` rebuilds
 (Lazy Pirate, zguide ch. 4) and retries; a TCP disconnect seen on the socket monitor makes the
 next frame re-send the handshake first, so a daemon restarted under the client maps the studio's
 channels the same way.  Stream id, handshake and sequence numbers survive; the daemon's filter
-state for the stream does not (it lived in the old process).
+state for the stream does not (it lived in the old process).  The handshake carries a claim
+token kept across reconnects, so the new connection takes its stream back from the old one
+(streams are owned, docs/PROTOCOL.md); a ``late`` answer to a frame newer than any sent (the
+daemon's sequence is ahead of ours) or a ``not_owner`` makes the client restart its stream
+once (a fresh hello, or a reset) and send the frame again.
 """
 from __future__ import annotations
 
@@ -23,6 +27,8 @@ import zmq
 from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS, DaemonRefused,
                              DaemonUnavailable, StreamSession, dealer_socket, open_monitor)
 from daemon import wire
+
+RELEASE_WAIT_S = 0.5  # Client.close waits at most this for the daemon to confirm its streams are released
 
 
 class _DealerLink:
@@ -44,8 +50,10 @@ class _DealerLink:
         self.sock = None
         self._mon = None
 
+    curve: tuple[str, str] | None = None
+
     def _open(self) -> None:
-        self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)
+        self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s, self.curve)
         self._mon = open_monitor(self.ctx, self.sock, self._monitor_name)
 
     def _close_socket(self) -> None:
@@ -67,10 +75,34 @@ class _DealerLink:
         self.session.link_lost()
         self._open()
 
+    def _release(self, streams: list[str]) -> None:
+        """Give our streams up before the socket goes (``release``; docs/PROTOCOL.md, stream
+        ownership): the next client to open them, a restarted plugin say, owns them at once
+        instead of after idle_timeout_s.  Best effort, a short wait: a daemon that does not
+        answer (gone, or older than ownership) changes nothing."""
+        if self.sock is None:
+            return
+        try:
+            for sid in streams:
+                self.sock.send(wire.encode(wire.Control("release", sid)), zmq.NOBLOCK)
+            deadline = time.monotonic() + min(self.timeout_s, RELEASE_WAIT_S)
+            left = len(streams)
+            while left and self.sock.poll(max(0, int((deadline - time.monotonic()) * 1000)), zmq.POLLIN):
+                m = decode_reply(self.sock.recv())
+                if (isinstance(m, wire.ControlReply) and m.cmd == "release") or \
+                        (isinstance(m, wire.ErrorMsg) and m.seq is None):
+                    left -= 1
+        except (zmq.ZMQError, ValueError, wire.WireError):
+            pass
+
     def close(self) -> None:
+        self._release(self._owned_streams())
         self._close_socket()
         if self._own_ctx:
             self.ctx.term()
+
+    def _owned_streams(self) -> list[str]:
+        return []
 
 
 class Client(_DealerLink):
@@ -84,17 +116,27 @@ class Client(_DealerLink):
     model : model name in the daemon's config, or None for its default.
     timeout_s : how long one request waits for its answer.
     retries : how many times a request is re-sent on a fresh socket before DaemonUnavailable.
+    curve : (this client's .key_secret file, the daemon's public .key file) for a daemon with keys.
+    claim : the stream's claim token, to keep across client restarts (default: a fresh random one).
     """
 
     def __init__(self, endpoint: str, stream: str, channels: list[str] | None = None, model: str | None = None,
                  *, timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
-                 ctx: zmq.Context | None = None, first_seq: int = 0):
+                 ctx: zmq.Context | None = None, first_seq: int = 0, curve: tuple[str, str] | None = None,
+                 claim: str | None = None):
         self.session = StreamSession(stream, channels, model, first_seq)
+        if claim is not None:
+            self.session.claim = claim
+        self.curve = curve
         self._link(endpoint, timeout_s, retries, ctx)
         self._monitor_name = self.session.stream.encode().hex()[:32]
         self._open()
 
     # ---- socket lifecycle ------------------------------------------------------------------
+    def _owned_streams(self) -> list[str]:
+        ss = self.session
+        return [ss.stream] if ss.ack is not None or ss.next_seq > ss.first_seq else []
+
     def __enter__(self) -> "Client":
         return self
 
@@ -161,6 +203,7 @@ class Client(_DealerLink):
         Raises DaemonUnavailable after every retry timed out, DaemonRefused on an ``error`` reply.
         """
         seq, data = self.session.frame_bytes(angles, observed, t, seq)
+        resynced = False
         for attempt in range(self.retries + 1):
             try:
                 self._ensure_handshake()
@@ -175,10 +218,46 @@ class Client(_DealerLink):
                 if msg.reason in REHELLO_REASONS and self.session.channels is not None and attempt < self.retries:
                     self.session.handshaken = False  # the daemon lost our mapping: say it again
                     continue
+                if msg.reason == "not_owner" and not resynced and attempt < self.retries:
+                    resynced = self._resync_or_reconnect()  # our connection changed under a frame-only stream
+                    continue
                 raise DaemonRefused(msg)
+            if isinstance(msg, wire.Drop) and msg.reason == "late" and not resynced and attempt < self.retries:
+                # we never sent a later frame: the daemon's sequence for the stream is ahead of ours
+                # for a reason we cannot see (another process of ours with the same key, an old
+                # incarnation's frames): restart the stream once and send the frame again
+                resynced = self._resync_or_reconnect()
+                continue
             return msg
         raise DaemonUnavailable(f"no answer from {self.endpoint} for frame {seq} of {self.session.stream!r} "
                                 f"after {self.retries + 1} tries of {self.timeout_s:g} s")
+
+    def _resync_or_reconnect(self) -> bool:
+        try:
+            return self._resync()
+        except TimeoutError:
+            self.reconnect()
+            return True
+
+    def _resync(self) -> bool:
+        """Restart the stream on the daemon from this connection: a fresh ``hello`` when there is
+        a channel list (it restarts the stream and, with our claim token, takes it over),
+        else a ``reset`` on this socket (the owner's, or an operator's).  Returns True."""
+        self.session.resyncs += 1
+        if self.session.channels is not None:
+            self.session.handshaken = False
+            return True
+        assert self.sock is not None
+        self._send(wire.encode(wire.Control("reset", self.session.stream)))
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            msg = self.recv(max(0.0, deadline - time.monotonic()))
+            if msg is None:
+                raise TimeoutError("no answer to reset")
+            if isinstance(msg, wire.ControlReply) and msg.cmd == "reset":
+                return True
+            if isinstance(msg, wire.ErrorMsg) and msg.seq is None:
+                raise DaemonRefused(msg)
 
     def _await_seq(self, seq: int) -> wire.Message:
         deadline = time.monotonic() + self.timeout_s
@@ -195,7 +274,7 @@ class Client(_DealerLink):
     # ---- control ---------------------------------------------------------------------------
     def control(self, cmd: str, stream: str | None = None) -> wire.ControlReply:
         """A control request (status, reset, reload, list-models) on this client's socket."""
-        return control(self.endpoint, cmd, stream, timeout_s=self.timeout_s, ctx=self.ctx)
+        return control(self.endpoint, cmd, stream, timeout_s=self.timeout_s, ctx=self.ctx, curve=self.curve)
 
     def status(self) -> dict[str, Any]:
         r = self.control("status")
@@ -229,6 +308,9 @@ class CaptureClient(_DealerLink):
         self._link(endpoint, timeout_s, retries, ctx)
         self._monitor_name = "capture-" + self.session.stream.encode().hex()[:24]
         self._open()
+
+    def _owned_streams(self) -> list[str]:
+        return [sid for sid, ss in self.sessions.items() if ss.ack is not None or ss.next_seq > ss.first_seq]
 
     def reconnect(self) -> None:
         super().reconnect()   # marks the first session
@@ -333,14 +415,14 @@ def decode_reply(data: bytes) -> wire.Message:
 
 
 def control(endpoint: str, cmd: str, stream: str | None = None, *, timeout_s: float = DEFAULT_TIMEOUT_S,
-            ctx: zmq.Context | None = None) -> wire.ControlReply:
+            ctx: zmq.Context | None = None, curve: tuple[str, str] | None = None) -> wire.ControlReply:
     """One control request on a short-lived DEALER; DaemonUnavailable on timeout.
 
     A separate socket keeps control answers out of a stream's pipelined frame answers.
     """
     own = ctx is None
     ctx = ctx or zmq.Context()
-    s = dealer_socket(ctx, endpoint, timeout_s)
+    s = dealer_socket(ctx, endpoint, timeout_s, curve)
     try:
         try:
             s.send(wire.encode(wire.Control(cmd, stream)))

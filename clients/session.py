@@ -11,6 +11,7 @@ restarted and forgotten the handshake, so the next frame is preceded by a fresh 
 """
 from __future__ import annotations
 
+import secrets
 import time
 from typing import Any
 
@@ -44,9 +45,15 @@ class DaemonRefused(LacunaError):
         super().__init__(f"daemon refused the message: {err.reason}: {err.detail}")
 
 
-def dealer_socket(ctx: zmq.Context, endpoint: str, timeout_s: float) -> zmq.Socket:
-    """A DEALER connected to ``endpoint`` with the options every client uses."""
+def dealer_socket(ctx: zmq.Context, endpoint: str, timeout_s: float,
+                  curve: tuple[str, str] | None = None) -> zmq.Socket:
+    """A DEALER connected to ``endpoint`` with the options every client uses; ``curve`` =
+    (this client's .key_secret file, the daemon's public .key file) for a daemon with keys."""
     s = ctx.socket(zmq.DEALER)
+    if curve is not None:
+        from daemon.security import configure_client
+
+        configure_client(s, *curve)
     s.setsockopt(zmq.LINGER, 0)  # never block close on unsent frames of a dead daemon
     # IMMEDIATE: queue nothing while no daemon is connected, so stale frames are never
     # delivered to a daemon that comes back later; send blocks up to SNDTIMEO instead.
@@ -75,12 +82,15 @@ class StreamSession:
         self.stream = stream
         self.channels = list(channels) if channels is not None else None
         self.model = model
-        self.next_seq = int(first_seq)
+        self.next_seq = self.first_seq = int(first_seq)
         self.handshaken = channels is None  # nothing to tell the daemon
         self.ack: wire.HelloAck | None = None
         self.disconnects = 0
         self.reconnects = 0
         self.rehellos = 0
+        self.resyncs = 0  # times the daemon's view of the stream was put right (a `late` or `not_owner` we did not cause)
+        # kept across reconnects: a hello that carries it takes the stream back from the old connection
+        self.claim = secrets.token_hex(16)
 
     @property
     def n_channels(self) -> int | None:
@@ -89,7 +99,7 @@ class StreamSession:
     # ---- messages --------------------------------------------------------------------------
     def hello_bytes(self) -> bytes:
         assert self.channels is not None
-        return wire.encode(wire.Hello(self.stream, self.channels, self.model))
+        return wire.encode(wire.Hello(self.stream, self.channels, self.model, self.claim))
 
     def frame_bytes(self, angles: Any, observed: Any = None, t: float | None = None,
                     seq: int | None = None) -> tuple[int, bytes]:

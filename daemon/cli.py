@@ -99,7 +99,9 @@ def render(st: dict[str, Any]) -> str:
     if rl:
         L.append(f"last reload: {'ok' if rl.get('ok') else 'REFUSED: ' + '; '.join(f'{k}: {v}' for k, v in rl.get('errors', {}).items())}")
     streams = st.get("streams", {})
-    L.append(f"streams: {len(streams)} open, {st.get('expired', 0)} expired")
+    total = st.get("streams_total", len(streams))
+    L.append(f"streams: {total} open, {st.get('expired', 0)} expired"
+             + (f" (the {len(streams)} most recently active below)" if total > len(streams) else ""))
     if streams:
         L.append(f"  {'stream':<20} {'model':<12} {'in':>8} {'out':>8} {'dropped':>8} {'rejected':>8} {'degraded':>8} "
                  f"{'predicted':>9} {'last seq':>9}")

@@ -72,7 +72,9 @@ class Config:
     osc_listen: tuple[str, int] | None = None
     osc_send: tuple[str, int] | None = None
     metrics_http: tuple[str, int] | None = None
+    metrics_allow: list[str] | None = None  # source addresses/networks the metrics endpoint answers (needed off loopback)
     security: Any = None  # daemon.security.SecuritySpec, set by security.apply_config
+    metrics_networks: Any = None  # metrics_allow parsed (security.apply_config)
 
     def summary(self) -> dict[str, Any]:
         return {"path": self.path, "budget_ms": self.budget_ms, "overdue": self.overdue, "busy_poll_ms": self.busy_poll_ms,
@@ -109,7 +111,7 @@ _SCHEMA: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "hwm": (int, (1, 10_000_000)),
     },
     "osc": {"listen": (str, None), "send": (str, None)},
-    "metrics": {"http": (str, None)},
+    "metrics": {"http": (str, None), "allow": (list, None)},
 }
 
 
@@ -242,6 +244,10 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
     m = vals["metrics"]
     if m.get("http"):
         cfg.metrics_http = parse_hostport(where, "metrics.http", m["http"])
+    if "allow" in m:
+        if not all(isinstance(a, str) for a in m["allow"]):
+            raise ConfigError(f"{where}: metrics.allow must be a list of addresses or networks (got {m['allow']!r:.60})")
+        cfg.metrics_allow = list(m["allow"])
     if not (cfg.zmq_router or cfg.zmq_pull or cfg.zmq_sub or cfg.osc_listen):
         raise ConfigError(f"{where}: no input configured (set zmq.router, zmq.pull, zmq.sub or osc.listen)")
     if (cfg.zmq_pull or cfg.zmq_sub) and not cfg.zmq_pub:
@@ -254,9 +260,10 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
 
 def load(path: str) -> Config:
     """Read and validate a TOML config file."""
+    from daemon.safeopen import read_regular  # (a FIFO or device at the path must not block the reload)
+
     try:
-        with open(path, "rb") as fh:
-            raw = tomllib.load(fh)
+        raw = tomllib.loads(read_regular(path, 16 << 20).decode("utf-8"))
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config ({e.strerror or e})") from None
     except tomllib.TOMLDecodeError as e:

@@ -1,14 +1,12 @@
-"""Counters and latency percentiles, as a status map and as Prometheus text (optional HTTP).
+"""Counters and latency percentiles, as a status map and as Prometheus text (served by daemon/metrics_http.py).
 
 Latency is the daemon's processing time per served frame (receipt to reply), kept in a fixed
 ring of the last ``WINDOW`` values so memory stays flat however long the daemon runs.
 """
 from __future__ import annotations
 
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -76,10 +74,18 @@ class Metrics:
         q = [("0.5", "p50_ms"), ("0.9", "p90_ms"), ("0.99", "p99_ms"), ("0.999", "p999_ms")]
         metric("lacuna_processing_seconds", "summary", "receipt-to-reply time of served frames (recent window)",
                [(f'{{quantile="{qq}"}}', lat[k] / 1e3) for qq, k in q if k in lat] + [("_count", lat["count"])])
+        loop = status.get("loop") or {}
+        if loop:
+            metric("lacuna_loop_stalls_total", "counter", "loop turns that woke later than asked, by how much",
+                   [(f'{{over="{k}"}}', v) for k, v in loop["stalls_over"].items()])
+            metric("lacuna_loop_max_stall_seconds", "gauge", "the latest wake-up so far",
+                   [("", loop["max_stall_ms"] / 1e3)])
+            metric("lacuna_loop_long_turns_total", "counter", "loop turns that took this long from waking to sleeping",
+                   [(f'{{over="{k}"}}', v) for k, v in loop["long_turns_over"].items()])
         streams = status.get("streams", {})
-        metric("lacuna_streams", "gauge", "open streams", [("", len(streams))])
+        metric("lacuna_streams", "gauge", "open streams", [("", status.get("streams_total", len(streams)))])
         for key in ("frames_in", "frames_out", "dropped", "rejected", "degraded", "predicted"):
-            metric(f"lacuna_stream_{key}_total", "counter", f"per-stream {key}",
+            metric(f"lacuna_stream_{key}_total", "counter", f"per-stream {key} (the most recently active streams)",
                    [(f'{{stream="{_esc(sid)}",model="{_esc(s["model"])}"}}', s[key]) for sid, s in sorted(streams.items())])
         metric("lacuna_model_loaded", "gauge", "models loaded",
                [(f'{{model="{_esc(n)}",method="{_esc(str(m.get("method")))}"}}', 1) for n, m in sorted(status.get("models", {}).items())])
@@ -88,36 +94,3 @@ class Metrics:
 
 def _esc(s: str) -> str:
     return s.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
-
-
-class MetricsHTTP:
-    """GET /metrics on a thread.  ``text()`` is called on the HTTP thread, so it reads a
-    snapshot the main loop publishes (a str swap is atomic), never the live structures."""
-
-    def __init__(self, host: str, port: int, text: Callable[[], str]):
-        get = text
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_GET(self) -> None:  # noqa: N802 (http.server API)
-                if self.path.split("?")[0] not in ("/metrics", "/"):
-                    self.send_error(404, "only /metrics here")
-                    return
-                body = get().encode()
-                self.send_response(200)
-                self.send_header("Content-Type", "text/plain; version=0.0.4; charset=utf-8")
-                self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                self.wfile.write(body)
-
-            def log_message(self, *args: Any) -> None:  # keep stderr for the JSON log
-                pass
-
-        self.server = ThreadingHTTPServer((host, port), Handler)
-        self.server.daemon_threads = True
-        self.port = self.server.server_address[1]
-        self.thread = threading.Thread(target=self.server.serve_forever, name="metrics-http", daemon=True)
-        self.thread.start()
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()

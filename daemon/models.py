@@ -12,6 +12,7 @@ from typing import Any
 
 from daemon.config import Config, ModelSpec
 from daemon.fillers import PassThroughModel
+from daemon.safeopen import NotRegularFile, proc_path, regular_fd
 from daemon.scheduler import CostModel, Scheduler
 from lacuna.filler import Model
 from lacuna.modelfile import ModelFileError, load_model
@@ -43,6 +44,23 @@ def file_stamp(path: str) -> tuple[int, int] | None:
     return st.st_mtime_ns, st.st_size
 
 
+def _load_regular(path: str) -> Model:
+    """``load_model`` of a regular file only: opened without blocking and checked first (a FIFO
+    or a device at the path would block the reload thread forever), then read through the
+    checked descriptor (daemon/safeopen.py)."""
+    try:
+        with regular_fd(path) as fd:
+            via = proc_path(fd)
+            try:
+                return load_model(via or path)
+            except ModelFileError as e:
+                raise ModelFileError(str(e).replace(via, path) if via else str(e)) from None
+    except NotRegularFile as e:
+        raise ModelFileError(f"{e}; refusing to read it") from None
+    except OSError as e:
+        raise ModelFileError(f"{path}: cannot read model file ({e.strerror or e})") from None
+
+
 def load_one(spec: ModelSpec, budget_ms: float) -> Loaded:
     """Load and warm up one model.  Raises ModelFileError/ValueError naming the file and cause."""
     if spec.builtin == "passthrough":
@@ -51,7 +69,7 @@ def load_one(spec: ModelSpec, budget_ms: float) -> Loaded:
     else:
         assert spec.file is not None
         stamp = file_stamp(spec.file)
-        model = load_model(spec.file)
+        model = _load_regular(spec.file)
         if not model.causal:
             raise ModelFileError(f"{spec.file}: method {model.method!r} is not causal (it needs the future); "
                                  f"the daemon serves causal fillers only")

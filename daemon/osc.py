@@ -56,6 +56,7 @@ def decode(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES) -> wire.Message
     if not data.startswith(b"/"):
         what = "an OSC bundle (decode_bundle reads those)" if data.startswith(BUNDLE_PREFIX) else "not an OSC message"
         raise wire.WireError("not_osc", f"{len(data)} bytes are {what}")
+    _precheck(data)
     try:
         m = OscMessage(data)
         addr, args = m.address, list(m.params)
@@ -86,6 +87,52 @@ def decode(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES) -> wire.Message
         raise wire.WireError("malformed", f"OSC {addr} could not be read ({type(e).__name__})") from None
     raise wire.WireError("unknown_type", f"OSC address {addr[:60]!r} is not one of /lacuna/frame, /lacuna/frame/masked, "
                                          f"/lacuna/hello, /lacuna/reset")
+
+
+def _precheck(data: bytes) -> None:
+    """Bound what python-osc's parser (a Python loop per byte of a string, per argument) may be
+    given: the address and every string argument at most MAX_STRING bytes, at most
+    wire.MAX_CHANNELS + 8 arguments.  Each string's end is found with bytes.find (C speed,
+    searched no further than the limit).  Raises WireError("bad_length")."""
+    end = data.find(b"\0", 0, MAX_STRING + 1)
+    if end < 0:
+        if len(data) <= MAX_STRING:
+            return  # not terminated at all: python-osc says not_osc
+        raise wire.WireError("bad_length", f"OSC address longer than {MAX_STRING} bytes")
+    i = (end // 4 + 1) * 4
+    if data[i:i + 1] != b",":
+        return  # no type tags: python-osc decides what it is
+    tend = data.find(b"\0", i, i + wire.MAX_CHANNELS + 10)
+    if tend < 0:
+        if len(data) < i + wire.MAX_CHANNELS + 10:
+            return
+        raise wire.WireError("bad_length", f"OSC message with more than {wire.MAX_CHANNELS + 8} arguments")
+    tags = data[i + 1:tend]
+    last = max(tags.rfind(b"s"), tags.rfind(b"S"))
+    i = (tend // 4 + 1) * 4
+    for t in tags[:last + 1]:  # (up to the last string argument; frames have one, first)
+        if t in _STR:
+            e = data.find(b"\0", i, i + MAX_STRING + 1)
+            if e < 0:
+                if len(data) <= i + MAX_STRING:
+                    return
+                raise wire.WireError("bad_length", f"OSC string argument longer than {MAX_STRING} bytes")
+            i = (e // 4 + 1) * 4
+        elif t in _W4:
+            i += 4
+        elif t in _W8:
+            i += 8
+        elif t == 98:  # b: blob, size-prefixed and padded
+            n = int.from_bytes(data[i:i + 4], "big", signed=True)
+            if n < 0:
+                return
+            i += 4 + n + (-n % 4)
+        elif t not in _W0:
+            return  # a type python-osc may or may not know: it decides
+
+
+MAX_STRING = 512  # bytes of an OSC string argument or address (names are at most 256 characters)
+_STR, _W4, _W8, _W0 = b"sS", b"ifcrm", b"hdt", b"TFNI[]"
 
 
 def decode_bundle(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES, depth: int = 0) -> list[wire.Message | wire.WireError]:

@@ -362,7 +362,9 @@ def fill_message(s: Session, fill: Fill, status: str, now: float) -> wire.FillMs
         filled = np.asarray(fill.filled) & ~sent
         std = np.asarray(fill.std, np.float32)
     else:
-        angles = f.angles.astype(np.float32, copy=True)
+        # channels passed through (the model lacks them) come back as sent where observed, NaN
+        # where not: whatever was sent under a mask is not a measurement
+        angles = np.where(sent, f.angles, np.float32(np.nan)).astype(np.float32, copy=False)
         filled = np.zeros(mp.n_in, bool)
         std = np.zeros(mp.n_in, np.float32)
         angles[mp.s_idx] = np.asarray(fill.frame)[mp.m_idx]

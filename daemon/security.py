@@ -29,6 +29,7 @@ as ssh refuses such private keys.  SIGHUP re-reads the authorized keys directory
 """
 from __future__ import annotations
 
+import glob
 import ipaddress
 import os
 import stat
@@ -41,10 +42,11 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
 from daemon.config import ConfigError
+from daemon.safeopen import check_regular, kind_of
 
 ZAP_DOMAIN = "lacuna"
 LOOPBACK_NAMES = ("localhost", "localhost.localdomain", "ip6-localhost")
-SECURITY_KEYS = ("server_secret_key", "authorized_keys", "osc_allow", "sub_server_key")
+SECURITY_KEYS = ("server_secret_key", "authorized_keys", "osc_allow", "sub_server_key", "operator_keys")
 
 
 class SecurityError(ConfigError):
@@ -61,6 +63,7 @@ class SecuritySpec:
     authorized_keys: str | None = None
     osc_allow: list[str] | None = None  # as written, for status
     sub_server_key: str | None = None
+    operator_keys: str | None = None  # directory of *.key: the clients that may reload and reset others' streams
     osc_networks: list[ipaddress.IPv4Network | ipaddress.IPv6Network] | None = field(default=None, repr=False)
 
     @property
@@ -79,7 +82,7 @@ def parse_config(raw: Any, where: str = "<config>", base: str | None = None) -> 
             raise SecurityError(f"{where}: unknown key security.{k} (known: {', '.join(SECURITY_KEYS)})")
     base = base or os.getcwd()
     spec = SecuritySpec()
-    for k in ("server_secret_key", "authorized_keys", "sub_server_key"):
+    for k in ("server_secret_key", "authorized_keys", "sub_server_key", "operator_keys"):
         if k in raw:
             v = raw[k]
             if not isinstance(v, str) or not v:
@@ -91,6 +94,9 @@ def parse_config(raw: Any, where: str = "<config>", base: str | None = None) -> 
     if (spec.server_secret_key is None) != (spec.authorized_keys is None):
         raise SecurityError(f"{where}: security.server_secret_key and security.authorized_keys go together "
                             f"(CURVE needs the daemon's key pair and the list of client keys it lets in)")
+    if spec.operator_keys is not None and spec.server_secret_key is None:
+        raise SecurityError(f"{where}: security.operator_keys needs CURVE (security.server_secret_key and "
+                            f"authorized_keys); without it every local ROUTER peer is an operator")
     if "osc_allow" in raw:
         v = raw["osc_allow"]
         if not isinstance(v, list) or not all(isinstance(a, str) for a in v):
@@ -100,12 +106,25 @@ def parse_config(raw: Any, where: str = "<config>", base: str | None = None) -> 
     return spec
 
 
-def _network(where: str, a: str) -> ipaddress.IPv4Network | ipaddress.IPv6Network:
+def _network(where: str, a: str, key: str = "security.osc_allow") -> ipaddress.IPv4Network | ipaddress.IPv6Network:
     try:
         return ipaddress.ip_network(a.strip(), strict=False)
     except ValueError:
-        raise SecurityError(f"{where}: security.osc_allow entry {a!r} is not an IP address or network "
+        raise SecurityError(f"{where}: {key} entry {a!r} is not an IP address or network "
                             f"(like 192.168.10.7 or 192.168.10.0/24)") from None
+
+
+def address_allowed(addr: str, nets: list | None) -> bool:
+    """Is source address ``addr`` in ``nets`` (None: no list, everyone)?"""
+    if nets is None:
+        return True
+    try:
+        ip = ipaddress.ip_address(str(addr).split("%")[0])
+    except ValueError:
+        return False
+    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    return any(ip in n for n in nets)
 
 
 def apply_config(cfg: Any, raw: Any, where: str = "<config>", base: str | None = None) -> None:
@@ -114,6 +133,15 @@ def apply_config(cfg: Any, raw: Any, where: str = "<config>", base: str | None =
     cfg.security = parse_config(raw, where, base)
     check_exposure({"zmq.router": cfg.zmq_router, "zmq.pull": cfg.zmq_pull, "zmq.pub": cfg.zmq_pub},
                    cfg.osc_listen, cfg.security, where)
+    cfg.metrics_networks = None
+    if cfg.metrics_allow is not None:
+        cfg.metrics_networks = [_network(where, a, "metrics.allow") for a in cfg.metrics_allow]
+    if cfg.metrics_http is not None and not host_is_loopback(cfg.metrics_http[0]) and cfg.metrics_networks is None:
+        # the endpoint names streams and models and has no authentication: the same rule as OSC
+        raise SecurityError(
+            f"{where}: metrics.http = \"{cfg.metrics_http[0]}:{cfg.metrics_http[1]}\" is not a loopback address and "
+            f"the metrics endpoint has no authentication: set metrics.allow to the scrapers' addresses "
+            f"(e.g. [\"192.168.10.5\"]), or bind 127.0.0.1")
 
 
 # ---- the exposure rule ------------------------------------------------------------------------
@@ -167,6 +195,8 @@ def check_exposure(bound: dict[str, str | None], osc_listen: tuple[str, int] | N
                                 f"(zmq.has('curve') is False); install a pyzmq wheel, which bundles it")
         load_server_key(spec.server_secret_key)  # type: ignore[arg-type]
         load_authorized(spec.authorized_keys)  # type: ignore[arg-type]
+        if spec.operator_keys:
+            load_authorized(spec.operator_keys)
     if spec.sub_server_key:
         load_public_key(spec.sub_server_key)
 
@@ -177,6 +207,8 @@ def _check_private(path: str) -> None:
         st = os.stat(path)
     except OSError as e:
         raise SecurityError(f"{path}: cannot read secret key file ({e.strerror or e})") from None
+    if not stat.S_ISREG(st.st_mode):  # (a FIFO would block the reload that opens it)
+        raise SecurityError(f"{path}: secret key path is {kind_of(st.st_mode)}, not a regular file")
     if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
         raise SecurityError(f"{path}: secret key file is accessible by group/others (mode "
                             f"{stat.S_IMODE(st.st_mode):04o}); run chmod 600 {path}")
@@ -196,6 +228,7 @@ def load_server_key(path: str) -> tuple[bytes, bytes]:
 
 def load_public_key(path: str) -> bytes:
     try:
+        check_regular(path)
         public, _ = zmq.auth.load_certificate(path)
     except (OSError, ValueError) as e:
         raise SecurityError(f"{path}: not a ZeroMQ public key file ({e})") from None
@@ -207,6 +240,8 @@ def load_authorized(directory: str) -> dict[bytes, bool]:
     if not os.path.isdir(directory):
         raise SecurityError(f"{directory}: authorized_keys must be a directory of client public .key files")
     try:
+        for f in glob.glob(os.path.join(directory, "*.key")):
+            check_regular(f)  # a FIFO named *.key would block load_certificates
         keys = zmq.auth.load_certificates(directory)
     except (OSError, ValueError) as e:
         raise SecurityError(f"{directory}: cannot read the authorized client keys ({e})") from None
@@ -222,6 +257,12 @@ def configure_client(sock: zmq.Socket, client_secret_file: str, server_public_fi
     sock.curve_publickey = public
     sock.curve_secretkey = secret
     sock.curve_serverkey = load_public_key(server_public_file)
+
+
+def _operators(directory: str | None) -> set[str]:
+    if not directory:
+        return set()
+    return {k.decode("ascii") if isinstance(k, bytes) else str(k) for k in load_authorized(directory)}
 
 
 # ---- the running guard ----------------------------------------------------------------------------
@@ -255,12 +296,17 @@ class Guard:
         self._lock = threading.Lock()
         self.auth: _CountingAuthenticator | None = None
         self._keys: tuple[bytes, bytes] | None = None
+        self.operators: set[str] = set()  # Z85 public keys
         if self.spec.curve:
             self._keys = load_server_key(self.spec.server_secret_key)  # type: ignore[arg-type]
             allowed = load_authorized(self.spec.authorized_keys)  # type: ignore[arg-type]
             self.auth = _CountingAuthenticator(ctx)
             self.auth.start()
             self.auth.certs[ZAP_DOMAIN] = allowed
+            self.operators = _operators(self.spec.operator_keys)
+
+    def is_operator(self, key: str) -> bool:
+        return key in self.operators
 
     def server(self, sock: zmq.Socket) -> None:
         if self._keys is None:
@@ -306,17 +352,19 @@ class Guard:
                 skipped.append("security.authorized_keys")  # CURVE stays on until restart
             else:
                 keys = load_authorized(spec.authorized_keys)  # raises before anything changes
+                ops = _operators(spec.operator_keys)
                 self.auth.certs[ZAP_DOMAIN] = keys
+                self.operators = ops
                 authorized = spec.authorized_keys
         self.spec = SecuritySpec(self.spec.server_secret_key, authorized, spec.osc_allow, self.spec.sub_server_key,
-                                 spec.osc_networks)
+                                 spec.operator_keys, spec.osc_networks)
         return skipped
 
     def info(self) -> dict[str, Any]:
         d: dict[str, Any] = {"curve": self.spec.curve, "osc_allow": self.spec.osc_allow, "osc_denied": self.osc_denied}
         if self.auth is not None:
             d.update(auth_allowed=self.auth.allowed, auth_denied=self.auth.denied,
-                     authorized_keys=len(self.auth.certs.get(ZAP_DOMAIN, {})))
+                     authorized_keys=len(self.auth.certs.get(ZAP_DOMAIN, {})), operator_keys=len(self.operators))
         return d
 
     def close(self) -> None:

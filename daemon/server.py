@@ -16,24 +16,31 @@ import json
 import os
 import signal
 import sys
-import threading
 import time
 from typing import Any
 
 import zmq
 
 from daemon import config as config_mod
-from daemon import osc, security, wire
-from daemon.metrics import Metrics, MetricsHTTP
+from daemon import budget as budgets, osc, security, wire
+from daemon.metrics import Metrics
+from daemon.metrics_http import MetricsHTTP
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
 from daemon.pmqos import CpuLatency
 from daemon.realtime import Realtime, ordinary
+from daemon.reload import Reloader
 from daemon.prewarm import Prewarm
 from daemon.scheduler import Scheduler, fill_messages
-from daemon.session import Origin, SessionError, SessionTable
+from daemon.stalls import Stalls
+from daemon.session import Origin, SessionError, SessionTable, principal
 from daemon.transport import Transports
 
+OSC_ERRORS_PER_S = 20  # error answers a second to one OSC source host; the rest are counted, not sent
+OSC_ERROR_FLOOR = 64  # bytes an OSC error answer may take even when what it answers was smaller (a reason code)
+STATUS_STREAMS = 256  # streams `status` details by default, most recently active first (`limit` asks for more)
+PROM_STREAMS = 64  # streams with per-stream series in the metrics snapshot
+SLICE = 16  # messages of a barrier burst between two looks at the clock (see _batch)
 BATCH_MIN = 3  # messages in a turn from which frames superseded within it are answered after the step
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
 HOUSEKEEPING_S = 0.5
@@ -74,15 +81,15 @@ class Daemon:
         self.models: dict[str, Loaded] = {}
         self.sched = Scheduler(cfg.budget_ms, cfg.max_gap_frames, cfg.max_batch)
         self.sessions = SessionTable(self._resolve, cfg.max_streams, self._count)
+        self.sessions.idle_s = cfg.idle_timeout_s  # (an owner silent this long gives its stream up)
         self.net: Transports | None = None
         self.http: MetricsHTTP | None = None
         self._prom = ""
         self.flag_reload = False
         self.flag_stop = False
-        self._reload_thread: threading.Thread | None = None
-        self._reload_result: tuple[config_mod.Config | None, dict[str, Loaded], dict[str, str]] | None = None
+        self.reloader: Reloader | None = None  # started with the daemon (no thread is started at reload time)
+        self._reload_args: tuple[str | None, dict[str, Loaded]] = (None, {})
         self._switch = sys.getswitchinterval()  # restored when a reload finishes
-        self._reload_waiters: list[Origin] = []
         self.last_reload: dict[str, Any] = {}
         self.started = time.time()
         self._rej_window, self._rej_logged, self._rej_suppressed = 0.0, 0, 0
@@ -94,6 +101,11 @@ class Daemon:
         self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` and `overdue` drops, sent after its fills
         self._drop_overdue = self.cfg.overdue == "drop"
         self.prewarm = Prewarm(cfg.prewarm_ms)
+        self.stalls = Stalls()  # how late the loop woke (a stopped or starved process), daemon/stalls.py
+        self.budget = budgets.Budget()  # hello/control requests per peer (daemon/budget.py)
+        self.osc_err_budget = budgets.Budget(OSC_ERRORS_PER_S, OSC_ERRORS_PER_S)  # error answers per OSC source host
+        self._osc_in = 0  # bytes of the OSC datagram being handled (its answers may not be larger)
+        self._osc_errs: list[tuple[str, str]] | None = None  # errors of the OSC bundle being handled
 
     @property
     def _busy_s(self) -> float:
@@ -115,12 +127,14 @@ class Daemon:
         if errors:
             raise config_mod.ConfigError("; ".join(f"model {n}: {e}" for n, e in errors.items()))
         self._install(table)
+        self.reloader = Reloader(self._reload_work, self._reload_started)
         # the log object changes on reload (level): look it up at each call
         self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, lambda *a, **k: self.log(*a, **k),
                               self._batch)
         self.net.open()
         if self.cfg.metrics_http:
-            self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom)
+            self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom,
+                                    allow=self.cfg.metrics_networks)
         self._request_cpu_latency()
         self._request_realtime()  # (after every thread the daemon starts for good, so only these get it)
         self._prom = self.metrics.prometheus(self.status())
@@ -184,7 +198,7 @@ class Daemon:
         next_house = 0.0
         try:
             while True:
-                pending = any(s.pending is not None for s in self.sessions.sessions.values())
+                pending = bool(self.sessions.waiting)  # (cost: the streams with a frame, not the open ones)
                 timeout = 0 if pending else IDLE_POLL_MS
                 wd = self.notify.watchdog_due(time.monotonic())
                 if wd is not None:
@@ -198,7 +212,14 @@ class Daemon:
                         pw.rehearse(self.sessions.sessions, self.sched, self.net._encode)  # type: ignore[union-attr]
                     else:
                         timeout = min(timeout, int(left * 1000))
-                ready = self._spin(timeout) if timeout and self._busy_s else self.net.poll(timeout)  # type: ignore[union-attr]
+                self.stalls.sleeping()
+                due = time.perf_counter() + timeout / 1000.0
+                if timeout and self._busy_s:
+                    due += max(0.0, self._last_rx + self._busy_s - time.perf_counter())
+                    ready = self._spin(timeout)
+                else:
+                    ready = self.net.poll(timeout)  # type: ignore[union-attr]
+                self.stalls.woke(due)
                 net = self.net
                 net.hold()  # type: ignore[union-attr]  # this turn's answers go out together, after its work
                 try:
@@ -218,14 +239,22 @@ class Daemon:
                 if self.flag_stop:
                     break
                 now = time.monotonic()
-                if self.flag_reload:
-                    self.flag_reload = False
-                    self._start_reload(None)
-                if self._reload_result is not None:
-                    self._finish_reload()
-                if now >= next_house:
-                    next_house = now + HOUSEKEEPING_S
-                    self._housekeeping(now)
+                try:  # (a failure here, a thread or a resource, must not end the daemon either)
+                    if self.flag_reload:
+                        self.flag_reload = False
+                        self._start_reload(None)
+                    done = self.reloader.poll()  # type: ignore[union-attr]
+                    if done is not None:
+                        try:
+                            self._finish_reload(*done)
+                        finally:
+                            self.reloader.kick()  # type: ignore[union-attr]
+                    if now >= next_house:
+                        next_house = now + HOUSEKEEPING_S
+                        self._housekeeping(now)
+                except Exception as e:
+                    self.metrics.inc("internal_errors")
+                    self.log("error", "internal_error", where="housekeeping", error=f"{type(e).__name__}: {e}"[:300])
             self._drain()
         finally:
             self.close()
@@ -248,10 +277,22 @@ class Daemon:
         if not counted:
             self.metrics.inc("messages_in")
         if origin[0] != "osc":
-            self._take(wire.decode, data, origin, arrived)
+            try:
+                m = wire.unpack(data, self.cfg.max_message_bytes)
+            except wire.WireError as e:
+                self._reject(origin, e.reason, e.detail, e.stream, e.seq)
+                return
+            self._handle_map(m, origin, arrived)
         elif data.startswith(osc.BUNDLE_PREFIX):  # several messages of one instant
-            self._take(self._osc_bundle, data, origin, arrived)
+            self._osc_in, self._osc_errs = len(data), []
+            try:
+                self._take(self._osc_bundle, data, origin, arrived)
+            finally:
+                errs, self._osc_errs = self._osc_errs, None
+                if errs:
+                    self._osc_summary(origin, errs)
         else:
+            self._osc_in = len(data)
             self._take(osc.decode, data, origin, arrived)
 
     def _handle_map(self, m: dict | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
@@ -261,8 +302,19 @@ class Daemon:
             self._handle(m, origin, arrived, counted=True)
         elif isinstance(m, wire.WireError):
             self._reject(origin, m.reason, m.detail, m.stream, m.seq)
+        elif m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
+                not self.budget.allow(principal(origin), units):
+            # (before decoding: checking a hello's names is the cost the budget is for)
+            self._rate_limited(origin, m)
         else:
             self._take(_decode_map, m, origin, arrived)
+
+    def _rate_limited(self, origin: Origin, m: dict | None = None) -> None:
+        sid = m.get("stream") if m is not None else None
+        self._reject(origin, "rate_limited", f"over this peer's budget for hello/control requests "
+                                             f"({budgets.RATE:g} cost units a second, bursts of {budgets.BURST:g}; "
+                                             f"a hello costs 1 + channels/64, a control request {budgets.CONTROL_COST:g})",
+                     sid if isinstance(sid, str) else None, None)
 
     def _osc_bundle(self, data: bytes, maxb: int) -> list[Any]:
         items = osc.decode_bundle(data, maxb)
@@ -333,6 +385,16 @@ class Daemon:
         chains: dict[str, list[int]] = {}  # stream -> indices set aside, behind its newest frame
         if not barrier:
             sessions = self.sessions.sessions
+            # only streams with an owner that is not about to lose them (a frame from anyone
+            # else is then refused whatever came before it: a released stream's adoption and a
+            # silent owner's takeover depend on the order, so those bursts go in order)
+            fresh = time.monotonic() - self.sessions.idle_s / 2
+            single: dict[str, Any] = {}  # unowned stream -> its one sender in the burst (False: several)
+            for k, it in zip(keys, items):
+                if k is not None and (s := sessions.get(k[0])) is not None and s.owner is None:
+                    w = principal(it[1])
+                    if single.setdefault(k[0], w) != w:
+                        single[k[0]] = False
             newest: dict[str, int] = {}
             for i, k in enumerate(keys):
                 if k is None:
@@ -341,7 +403,8 @@ class Daemon:
                 j = newest.get(sid)
                 if j is None:
                     s = sessions.get(sid)
-                    if s is not None and s.pending is None:
+                    if s is not None and s.pending is None and s.last_active > fresh and \
+                            (s.owner is not None or single.get(sid) is not False):
                         newest[sid] = i
                 elif seq > keys[j][1]:  # type: ignore[index]
                     chains.setdefault(sid, []).append(j)
@@ -352,9 +415,19 @@ class Daemon:
             aside = {i for c in chains.values() for i in c}
         else:
             heads, aside = {}, set()
+        # a burst of costly requests (hellos, controls: that is what makes it a barrier) must not
+        # hold up the frames read with it: every SLICE messages, once a quarter of the budget is
+        # spent, the frames taken so far are served (as if the rest had come in the next turn)
+        slice_at, t_slice = (SLICE if barrier else len(maps) + 1), time.perf_counter()
+        frames_seen = self.metrics.counters.get("frames_in", 0)
         for i, (m, (_, origin, arrived)) in enumerate(zip(maps, items)):
             if i in aside:
                 continue
+            if i and not i % slice_at and time.perf_counter() - t_slice > self.sched.budget_s / 4:
+                if self.metrics.counters.get("frames_in", 0) != frames_seen:
+                    self._serve()
+                    frames_seen = self.metrics.counters.get("frames_in", 0)
+                t_slice = time.perf_counter()
             self._handle_map(m, origin, arrived)
             sid = heads.get(i)
             if sid is None:
@@ -414,11 +487,15 @@ class Daemon:
         try:
             if isinstance(msg, wire.Frame):
                 self.metrics.inc("frames_in")
-                self._frame_answers(self.sessions.frame(msg, origin, arrived))
+                self._frame_answers(self.sessions.frame(msg, origin, arrived, principal(origin)))  # type: ignore[union-attr]
             elif isinstance(msg, wire.Bundle):
                 self._bundle(msg, origin, arrived)
+            elif isinstance(msg, (wire.Hello, wire.Control)) and \
+                    not self.budget.allow(principal(origin), budgets.HELLO_COST if isinstance(msg, wire.Hello)
+                                          else budgets.CONTROL_COST):
+                self._rate_limited(origin)
             elif isinstance(msg, wire.Hello):
-                ack, orphans = self.sessions.hello(msg)
+                ack, orphans = self.sessions.hello(msg, principal(origin))  # type: ignore[union-attr]
                 for o, m in orphans:
                     self._send(o, m)
                 self.log("info", "stream_hello", stream=msg.stream, model=ack.model, channels=len(ack.channels),
@@ -437,6 +514,7 @@ class Daemon:
         """Each frame of a bundle as if it had come alone, at the bundle's arrival; over ROUTER
         their answers are marked to go back together (a third origin element, see Transports)."""
         self.metrics.inc("bundles_in")
+        who = principal(origin)  # type: ignore[union-attr]
         if origin[0] == "router":
             origin = (*origin, "bundle")
         for f in msg.items:
@@ -445,7 +523,7 @@ class Daemon:
                 continue
             self.metrics.inc("frames_in")
             try:
-                self._frame_answers(self.sessions.frame(f, origin, arrived))
+                self._frame_answers(self.sessions.frame(f, origin, arrived, who))
             except SessionError as e:  # one frame's refusal is its own answer; the rest go on
                 self._reject(origin, e.reason, e.detail, f.stream, f.seq)
             except Exception as e:
@@ -456,7 +534,7 @@ class Daemon:
     def _reject(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
         self.metrics.reject(reason)
         s = self.sessions.sessions.get(sid) if sid else None
-        if s is not None:
+        if s is not None and reason != "not_owner":  # (someone else's message: counted `foreign` on the stream)
             s.counts["rejected"] += 1
         # a flood of bad input must not turn into a flood of log lines: at most REJECT_LOG_PER_S
         # a second are written, the rest are summed into one line per housekeeping tick
@@ -469,11 +547,46 @@ class Daemon:
                      transport=origin[0] if origin else None)
         else:
             self._rej_suppressed += 1
-        if origin is not None:
-            self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
+        if origin is None:
+            return
+        if origin[0] == "osc":
+            if self._osc_errs is not None:  # an element of a bundle: one answer for them all, after it
+                self._osc_errs.append((reason, detail))
+            else:
+                self._osc_error(origin, wire.ErrorMsg(reason, detail, sid, seq))
+            return
+        self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
+
+    # ---- OSC error answers: bounded (no amplification, no reflection flood) ---------------
+    def _osc_summary(self, origin: Origin, errs: list[tuple[str, str]]) -> None:
+        by: dict[str, int] = {}
+        for r, _ in errs:
+            by[r] = by.get(r, 0) + 1
+        counts = ", ".join(f"{r} x{n}" for r, n in sorted(by.items(), key=lambda kv: -kv[1]))
+        self._osc_error(origin, wire.ErrorMsg(errs[0][0], f"{len(errs)} message(s) of the bundle refused ({counts}); "
+                                                         f"first: {errs[0][1]}"))
+
+    def _osc_error(self, origin: Origin, msg: wire.ErrorMsg) -> None:
+        """An OSC error answer, at most OSC_ERRORS_PER_S a second per source host and no larger
+        than the datagram it answers or OSC_ERROR_FLOOR bytes, whichever is more (the detail
+        is cut to fit; an answer that cannot fit is not sent): spoofing a source cannot turn
+        the daemon into an amplifier."""
+        if not self.osc_err_budget.allow(origin[1][0]):
+            self.metrics.inc("osc_errors_unanswered")
+            return
+        room = max(self._osc_in, OSC_ERROR_FLOOR)
+        data = osc.encode(msg)
+        if len(data) > room:
+            base = len(osc.encode(wire.ErrorMsg(msg.reason, "")))
+            keep = room - base - 4  # (the detail's terminator and padding)
+            if keep < 0:
+                self.metrics.inc("osc_errors_unanswered")
+                return
+            msg = wire.ErrorMsg(msg.reason, msg.detail.encode()[:keep].decode(errors="ignore"), msg.stream, msg.seq)
+        self._send(origin, msg)
 
     def _serve(self) -> None:
-        pend = [s for s in self.sessions.sessions.values() if s.pending is not None]
+        pend = self.sessions.take_waiting()
         if not pend:
             return
         t0 = time.perf_counter()
@@ -598,33 +711,59 @@ class Daemon:
     # ---- control ----------------------------------------------------------------------------
     def _control(self, msg: wire.Control, origin: Origin) -> None:
         if msg.cmd == "status":
-            self._send(origin, wire.ControlReply("status", True, self.status()))
+            if msg.stream is not None and msg.stream not in self.sessions.sessions:
+                self._send(origin, wire.ControlReply("status", False, {}, f"no open stream {msg.stream!r}"))
+                return
+            n = STATUS_STREAMS if msg.limit is None else msg.limit
+            if n > STATUS_STREAMS and not self.budget.allow(principal(origin), (n - STATUS_STREAMS) / 64.0):
+                self._rate_limited(origin)  # (a long listing costs its length)
+                return
+            self._send(origin, wire.ControlReply("status", True, self.status(n, msg.stream)))
         elif msg.cmd == "list-models":
             self._send(origin, wire.ControlReply("list-models", True, {"models": {n: m.info() for n, m in self.models.items()},
                                                                          "default": self.cfg.default_model}))
         elif msg.cmd == "reset":
             assert msg.stream is not None
-            ok, orphans = self.sessions.reset(msg.stream)
+            ok, orphans = self.sessions.reset(msg.stream, principal(origin), self._operator(origin))  # type: ignore[union-attr]
             for o, m in orphans:
                 self._send(o, m)
             self.log("info", "stream_reset", stream=msg.stream, existed=ok)
             self._send(origin, wire.ControlReply("reset", ok, {"stream": msg.stream},
                                                  None if ok else f"no open stream {msg.stream!r}"))
+        elif msg.cmd == "release":
+            assert msg.stream is not None
+            ok = self.sessions.release(msg.stream, principal(origin))
+            self._send(origin, wire.ControlReply("release", ok, {"stream": msg.stream},
+                                                 None if ok else f"no open stream {msg.stream!r}"))
         elif msg.cmd == "reload":
+            if not self._operator(origin):  # type: ignore[union-attr]
+                raise SessionError("not_operator", "reload needs an operator (with CURVE: a key listed in "
+                                                   "security.operator_keys; SIGHUP reloads too)")
             self._start_reload(origin)
 
-    def status(self) -> dict[str, Any]:
+    def _operator(self, origin: Origin) -> bool:
+        """May this peer reload and reset others' streams (daemon/transport.py, ``operator``)?"""
+        return self.net.operator(origin) if self.net is not None else True
+
+    def status(self, limit: int = STATUS_STREAMS, stream: str | None = None) -> dict[str, Any]:
+        """The status map; per-stream detail for the ``limit`` most recently active streams (or
+        for ``stream`` alone): its cost does not grow with the idle streams."""
+        ss = self.sessions
+        listed = [stream] if stream is not None else ss.most_recent(limit)
         return {
             "pid": os.getpid(), "uptime_s": round(time.time() - self.started, 3), "config": self.cfg.path,
             "budget_ms": self.cfg.budget_ms, "overdue": self.cfg.overdue, "default_model": self.cfg.default_model,
             "models": {n: m.info() for n, m in self.models.items()},
             "latency": self.metrics.latency_summary(), "step": self.metrics.step_summary(),
             "counters": dict(self.metrics.counters), "rejected": dict(self.metrics.rejected),
-            "streams": {sid: s.info() for sid, s in self.sessions.sessions.items()},
-            "expired": self.sessions.expired, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
+            "streams": {sid: ss.sessions[sid].info() for sid in listed},
+            "streams_total": len(ss.sessions), "streams_listed": len(listed),
+            "expired": self.sessions.expired, "takeovers": self.sessions.takeovers, "step_errors": self.sched.step_errors, "probes": self.sched.probes,
             "last_step_error": self.sched.last_error, "reload": self.last_reload,
             "security": self.net.guard.info() if self.net is not None and self.net.guard is not None else None,
             "cpu_latency": self.qos.info(), "realtime": self.rt.info(), "prewarm": self.prewarm.info(),
+            "metrics_http": self.http.info() if self.http is not None else None,
+            "loop": self.stalls.info(),
         }
 
     def _status_line(self) -> str:
@@ -635,46 +774,43 @@ class Daemon:
 
     # ---- reload -----------------------------------------------------------------------------
     def _start_reload(self, origin: Origin | None) -> None:
-        if origin is not None:
-            self._reload_waiters.append(origin)
-        if self._reload_thread is not None and self._reload_thread.is_alive():
-            return  # one at a time; the waiter gets this one's answer
+        """Queue a reload (daemon/reload.py): it starts now if none runs, else right after the
+        one running, and ``origin`` (None: SIGHUP) gets the outcome of that later one."""
+        self.reloader.request(origin)  # type: ignore[union-attr]
+
+    def _reload_started(self) -> None:
+        """(main thread, as a queued reload starts)"""
         self.notify.reloading()
-        self.log("info", "reload_start", config=self.cfg.path)
-        old = dict(self.models)
-        path = self.cfg.path
-
-        def work() -> None:
-            ordinary()  # (loading a model must not compete with serving frames)
-            try:
-                new_cfg = config_mod.load(path) if path else self.cfg
-            except config_mod.ConfigError as e:
-                self._reload_result = (None, old, {"config": str(e)})
-                return
-            except Exception as e:  # a thread that dies sets no result: the reload would vanish unlogged
-                self._reload_result = (None, old, {"config": f"{path}: {type(e).__name__}: {e}"[:500]})
-                return
-            try:
-                table, errors = load_all(new_cfg, old)
-            except Exception as e:  # same: refuse the reload, keep the old models, say why
-                self._reload_result = (None, old, {"models": f"{type(e).__name__}: {e}"[:500]})
-                return
-            self._reload_result = (new_cfg, table, errors)
-
+        self.log("info", "reload_start", config=self.cfg.path, reload=self.reloader.started)  # type: ignore[union-attr]
+        self._reload_args = (self.cfg.path, dict(self.models))
         # the reload thread holds the GIL while it loads and checks models; the serving thread,
         # wanting it, waits up to the switch interval (5 ms by default, over a 4 ms budget): ask
         # for a hand-over ten times as often while the reload runs
         self._switch = sys.getswitchinterval()
         sys.setswitchinterval(RELOAD_SWITCH_S)
-        self._reload_thread = threading.Thread(target=work, name="reload", daemon=True)
-        self._reload_thread.start()
 
-    def _finish_reload(self) -> None:
-        new_cfg, table, errors = self._reload_result  # type: ignore[misc]
-        self._reload_result = None
+    def _reload_work(self) -> tuple[config_mod.Config | None, dict[str, Loaded], dict[str, str]]:
+        """(the reload thread) read the config and load what changed; never raises."""
+        path, old = self._reload_args
+        ordinary()  # (loading a model must not compete with serving frames)
+        try:
+            new_cfg = config_mod.load(path) if path else self.cfg
+        except config_mod.ConfigError as e:
+            return None, old, {"config": str(e)}
+        except Exception as e:  # an escaped exception would leave the reload unanswered and unlogged
+            return None, old, {"config": f"{path}: {type(e).__name__}: {e}"[:500]}
+        try:
+            table, errors = load_all(new_cfg, old)
+        except Exception as e:  # same: refuse the reload, keep the old models, say why
+            return None, old, {"models": f"{type(e).__name__}: {e}"[:500]}
+        return new_cfg, table, errors
+
+    def _finish_reload(self, result: tuple, waiters: list[Origin]) -> None:
+        new_cfg, table, errors = result
+        table = table or dict(self.models)  # (the worker's last resort keeps the models serving)
         sys.setswitchinterval(self._switch)
         if new_cfg is not None:
-            moved = [k for k in ("zmq_router", "zmq_pull", "zmq_sub", "zmq_pub", "osc_listen", "metrics_http")
+            moved = [k for k in ("zmq_router", "zmq_pull", "zmq_sub", "zmq_pub", "osc_listen", "metrics_http", "metrics_allow")
                      if getattr(new_cfg, k) != getattr(self.cfg, k)]
             if moved:
                 self.log("warning", "reload_needs_restart", keys=moved, detail="socket addresses change only on restart")
@@ -690,6 +826,7 @@ class Daemon:
             self.prewarm.lead_s = new_cfg.prewarm_ms / 1000.0
             self.sched.max_gap, self.sched.max_batch = new_cfg.max_gap_frames, new_cfg.max_batch
             self.sessions.max_streams = new_cfg.max_streams
+            self.sessions.idle_s = new_cfg.idle_timeout_s
             self.log = Log(new_cfg.log_level, self.log.stream)
             self._request_cpu_latency()
             self._request_realtime()
@@ -699,18 +836,18 @@ class Daemon:
                     self.log("warning", "reload_needs_restart", keys=skipped, detail="key pairs change only on restart")
         self._install(table)
         ok = not errors
-        self.last_reload = {"at": time.time(), "ok": ok, "errors": errors,
+        n = self.reloader.started  # type: ignore[union-attr]
+        self.last_reload = {"at": time.time(), "ok": ok, "errors": errors, "reload": n,
                             "models": {n: m.loaded_at for n, m in self.models.items()}}
         self.metrics.inc("reloads" if ok else "reload_failures")
         for name, err in errors.items():
             self.log("error", "reload_refused", model=name, error=err, detail="the old model keeps serving")
-        self.log("info", "reload_done", always=True, ok=ok, models=list(self.models))
+        self.log("info", "reload_done", always=True, ok=ok, models=list(self.models), reload=n, answered=len(waiters))
         self.notify.ready(self._status_line())
-        for o in self._reload_waiters:
-            self._send(o, wire.ControlReply("reload", ok, {"models": {n: m.info() for n, m in self.models.items()},
-                                                           "errors": errors},
+        for o in waiters:
+            self._send(o, wire.ControlReply("reload", ok, {"models": {k: m.info() for k, m in self.models.items()},
+                                                           "errors": errors, "reload": n},
                                             None if ok else "; ".join(f"{k}: {v}" for k, v in errors.items())))
-        self._reload_waiters = []
 
     # ---- housekeeping / shutdown --------------------------------------------------------------
     def _housekeeping(self, now: float) -> None:
@@ -722,8 +859,8 @@ class Daemon:
         for sid in gone:
             self.log("info", "stream_expired", stream=sid)
             self.metrics.inc("expired")
-        if self.http is not None:
-            self._prom = self.metrics.prometheus(self.status())
+        if self.http is not None:  # (per-stream series for the most recently active only)
+            self._prom = self.metrics.prometheus(self.status(PROM_STREAMS))
         self.notify.status(self._status_line())
 
     def _drain(self) -> None:
@@ -746,6 +883,8 @@ class Daemon:
                  send_dropped=c.get("send_dropped", 0), send_errors=c.get("send_errors", 0))
 
     def close(self) -> None:
+        if self.reloader is not None:
+            self.reloader.stop()
         self.rt.release()  # (before the ZeroMQ threads end: their ids must not be reused by then)
         if self.net is not None:
             self.net.close(DRAIN_LINGER_MS if self.flag_stop else 0)

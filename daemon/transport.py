@@ -31,11 +31,13 @@ from daemon.metrics import Metrics
 from daemon.session import Origin
 
 DRAIN_MAX = 2048  # messages read per socket per tick: keeps one busy socket from starving the rest
+DRAIN_MAX_BYTES = 1 << 20  # and bytes: a turn of big requests (hellos of 4096 names) is cut short
 UDP_MAX = 65535  # bytes
 _NOBLOCK = int(zmq.NOBLOCK)
+_RCVMORE = int(zmq.RCVMORE)
 _MORE_NOBLOCK = int(zmq.SNDMORE | zmq.NOBLOCK)
 FLUSH_MAX = 64  # held answers sent at once, at most (fewer when the hwm is small)
-ZMQ_MAXMSG_FLOOR = 1 << 20  # bytes
+ZMQ_MAXMSG_MARGIN = 64 << 10  # bytes a frame may exceed max_message_bytes and still be read (and answered too_large)
 
 
 class Transports:
@@ -60,6 +62,7 @@ class Transports:
         self._bundles: dict[tuple[bytes, ...], list[bytes]] = {}  # ROUTER envelope -> held answers to bundled frames
         self._pack = msgpack.Packer(use_bin_type=True).pack  # one for the daemon's thread (packb builds one per call)
         self._flush_every = max(1, min(FLUSH_MAX, cfg.zmq_hwm // 4))
+        self._curve = False  # set in open() when the sockets are CURVE servers
 
     def _sock(self, kind: int) -> zmq.Socket:
         assert self.ctx is not None
@@ -68,9 +71,11 @@ class Transports:
         s.setsockopt(zmq.LINGER, 0)
         s.setsockopt(zmq.SNDHWM, c.zmq_hwm)
         s.setsockopt(zmq.RCVHWM, c.zmq_hwm)
-        # beyond this ZeroMQ disconnects the peer without reading the message into memory;
-        # between max_message_bytes and this the daemon reads it and answers `too_large`
-        s.setsockopt(zmq.MAXMSGSIZE, max(ZMQ_MAXMSG_FLOOR, 4 * c.max_message_bytes))
+        # a frame beyond this makes ZeroMQ disconnect the peer without reading it into memory;
+        # between max_message_bytes and this the daemon reads it and answers `too_large`.  It
+        # is per frame: the frames of a message beyond its envelope are dropped uncopied
+        # (_recv_bounded), so one message costs at most 3 frames of this size
+        s.setsockopt(zmq.MAXMSGSIZE, c.max_message_bytes + ZMQ_MAXMSG_MARGIN)
         assert self.guard is not None
         (self.guard.client if kind == zmq.SUB else self.guard.server)(s)  # CURVE when keys are configured
         return s
@@ -81,6 +86,7 @@ class Transports:
         self.ctx = zmq.Context()
         try:
             self.guard = security.Guard(self.ctx, c.security)  # ZAP allow list of client keys, OSC sources
+            self._curve = self.guard.spec.curve
             if c.zmq_router:
                 self.router = self._sock(zmq.ROUTER)
                 # an answer that cannot be queued (peer gone, or not reading: at its high-water
@@ -141,20 +147,39 @@ class Transports:
             # read everything waiting first, then handle it: the socket calls run back to back
             # (ZeroMQ's I/O thread is not woken between them) and the scheduler sees the whole burst
             got = []
-            recv = sock_.recv_multipart
+            keep = _KEEP[name]
+            keyed = self._curve and name == "router"
+            nbytes = 0
             for _ in range(DRAIN_MAX):
                 try:
-                    got.append((recv(zmq.NOBLOCK), time.perf_counter()))
+                    parts = _recv_bounded(sock_, keep, keyed)
                 except zmq.Again:
                     break
+                got.append((parts, time.perf_counter()))
+                nbytes += len(parts[-1]) if type(parts[-1]) is bytes else 0
+                if nbytes > DRAIN_MAX_BYTES:  # (the rest next turn: one turn's decoding stays bounded)
+                    break
             for parts, arrived in got:
+                n = len(parts)
                 if name == "router":
-                    if len(parts) < 2:
-                        self.on_reject(None, "bad_envelope", f"ROUTER message of {len(parts)} frame(s)", None, None)
+                    # [routing id, body] from a DEALER, [routing id, "", body] from a REQ: anything
+                    # else is refused, and the answer goes to the routing id alone, so leading
+                    # frames never become an envelope the daemon holds for a peer (the size cap
+                    # covers the body; the envelope is bounded to 255 + 0 bytes)
+                    if n == 2 or (n == 3 and not parts[1]):
+                        origin: Origin = ("router", parts[:-1] if not keyed else _Keyed(parts[:-1], parts.key))
+                    else:
+                        n = n if type(parts[-1]) is not int else n - 1 + parts[-1]
+                        self.on_reject(("router", parts[:1]), "bad_envelope",
+                                       f"ROUTER message of {n} frame(s): send one "
+                                       f"frame from a DEALER, or [\"\", body] from a REQ", None, None)
                         continue
-                    origin: Origin = ("router", parts[:-1])
-                else:
+                elif n == 1 or (n == 2 and name == "sub" and len(parts[0]) <= 256):  # (SUB: [topic, body])
                     origin = ("pull", None)
+                else:
+                    self.on_reject(None, "bad_envelope", f"{name.upper()} message of more than {keep} frame(s): "
+                                   f"one frame per message", None, None)
+                    continue
                 batch.append((parts[-1], origin, arrived))
         if self.udp is not None and self.udp.fileno() in ready:
             for _ in range(DRAIN_MAX):
@@ -172,6 +197,17 @@ class Transports:
                 batch.append((data, ("osc", addr), time.perf_counter()))
         if batch:
             self.on_batch(batch)
+
+    def operator(self, origin: Origin) -> bool:
+        """May this peer act on others' streams and reload?  Without CURVE every ROUTER peer is
+        local (non-loopback binds need CURVE) and is one; with CURVE, a key listed in
+        security.operator_keys.  OSC and PULL/SUB peers never are."""
+        if origin[0] != "router":
+            return False
+        if not self._curve:
+            return True
+        key = getattr(origin[1], "key", None)
+        return key is not None and self.guard is not None and self.guard.is_operator(key)
 
     def hold(self) -> None:
         """Queue ZeroMQ answers until :meth:`flush` (the daemon holds them for one loop turn):
@@ -277,6 +313,54 @@ class Transports:
         if self.ctx is not None:
             self.ctx.term()
             self.ctx = None
+
+
+_KEEP = {"router": 3, "pull": 1, "sub": 2}  # frames of a message that can be valid: [id, "", body], [body], [topic, body]
+
+
+class _Keyed(list):
+    """A ROUTER envelope (sent back as its frames) that also carries the CURVE public key (Z85)
+    its message was authenticated with: read from that very message, so a routing id reused by
+    another connection can never inherit a key."""
+
+    __slots__ = ("key",)
+
+    def __init__(self, frames: list, key: str | None):
+        super().__init__(frames)
+        self.key = key
+
+
+def _recv_bounded(sock_: zmq.Socket, keep: int, keyed: bool = False) -> list:
+    """One multipart message, at most ``keep`` frames of it copied into Python: the frames after
+    those (the message is refused) are taken zero-copy and dropped at once, so a peer sending
+    many leading frames costs neither a copy nor memory held (each frame is capped by
+    MAXMSGSIZE, the number of them by nothing in ZeroMQ).  An over-long message comes back as
+    its first ``keep`` frames and then the count of frames dropped (an int).  ``keyed`` (CURVE
+    on a ROUTER): the result is a :class:`_Keyed` whose ``key`` is the message's ZAP User-Id,
+    the peer's public key, so streams are owned by keys, not connections."""
+    recv, more = sock_.recv, sock_.getsockopt
+    if not keyed:
+        parts = [recv(_NOBLOCK)]
+    else:
+        f = recv(_NOBLOCK, copy=False)
+        try:
+            key = f.get("User-Id")
+        except zmq.ZMQError:
+            key = None
+        parts = _Keyed([f.bytes], key)
+    while more(_RCVMORE):
+        if len(parts) < keep:
+            parts.append(recv(_NOBLOCK))
+            continue
+        dropped = 0
+        while True:
+            recv(_NOBLOCK, copy=False)
+            dropped += 1
+            if not more(_RCVMORE):
+                break
+        parts.append(dropped)
+        break
+    return parts
 
 
 def _bind(s: zmq.Socket, endpoint: str, key: str) -> None:

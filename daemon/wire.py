@@ -26,9 +26,10 @@ MAX_CHANNELS = 4096
 MAX_STREAM_ID = 128  # characters
 MAX_SEQ = (1 << 63) - 1
 MAX_NAME = 256  # characters, channel and model names
+MAX_CLAIM = 128  # characters, a hello's claim token
 MAX_BUNDLE = 1024  # frames in one ``frames`` message (and answers in one ``replies``)
 STATUSES = ("ok", "degraded", "passthrough")
-CONTROL_COMMANDS = ("status", "reset", "reload", "list-models")
+CONTROL_COMMANDS = ("status", "reset", "reload", "list-models", "release")
 
 F32 = np.dtype("<f4")
 
@@ -49,6 +50,7 @@ class Hello:
     stream: str
     channels: list[str]
     model: str | None = None
+    claim: str | None = None  # a secret the client keeps across reconnects: presenting it takes its stream over
 
 
 @dataclass
@@ -121,6 +123,7 @@ class Control:
 
     cmd: str
     stream: str | None = None
+    limit: int | None = None  # status: how many streams to detail (default: the daemon's, most recently active first)
 
 
 @dataclass
@@ -209,11 +212,17 @@ def _names(v: Any, key: str, what: str, sid: str | None) -> list[str]:
         raise WireError("bad_type", f"{what} field {key!r} must be an array of strings (got {type(v).__name__})", sid)
     if not 0 < len(v) <= MAX_CHANNELS:
         raise WireError("bad_length", f"{what} field {key!r} must list 1..{MAX_CHANNELS} names (got {len(v)})", sid)
-    for i, c in enumerate(v):
-        if not isinstance(c, str) or not 0 < len(c) <= MAX_NAME:
-            raise WireError("bad_type", f"{what} {key}[{i}] must be a non-empty string (got {c!r:.40})", sid)
-    if len(set(v)) != len(v):
-        dup = sorted({c for c in v if v.count(c) > 1})[:5]
+    # (checked at C speed first: a 4096-name hello is the costliest request there is)
+    if set(map(type, v)) != {str} or not 0 < min(map(len, v)) <= max(map(len, v)) <= MAX_NAME:
+        for i, c in enumerate(v):
+            if not isinstance(c, str) or not 0 < len(c) <= MAX_NAME:
+                raise WireError("bad_type", f"{what} {key}[{i}] must be a non-empty string (got {c!r:.40})", sid)
+    if len(set(v)) != len(v):  # (linear: list.count per name made a 4096-name hello cost 10-20 ms)
+        seen: set[str] = set()
+        dups: set[str] = set()
+        for c in v:
+            (dups if c in seen else seen).add(c)
+        dup = sorted(dups)[:5]
         raise WireError("bad_channels", f"{what} channel names repeat: {dup}", sid)
     return list(v)
 
@@ -302,7 +311,10 @@ def _decode_hello(m: dict) -> Hello:
     if channels is None:
         raise WireError("missing_field", "hello needs field 'channels'", sid)
     model = _get(m, "model", str, "hello", optional=True)
-    return Hello(sid, channels, model or None)
+    claim = _get(m, "claim", str, "hello", optional=True)
+    if claim is not None and not 0 < len(claim) <= MAX_CLAIM:
+        raise WireError("bad_length", f"hello field 'claim' must be 1..{MAX_CLAIM} characters (got {len(claim)})", sid)
+    return Hello(sid, channels, model or None, claim)
 
 
 def _decode_control(m: dict) -> Control:
@@ -310,9 +322,12 @@ def _decode_control(m: dict) -> Control:
     if cmd not in CONTROL_COMMANDS:
         raise WireError("unknown_command", f"control cmd must be one of {list(CONTROL_COMMANDS)} (got {cmd[:40]!r})")
     stream = _get(m, "stream", str, "control", optional=True)
-    if cmd == "reset" and not stream:
-        raise WireError("missing_field", "control reset needs field 'stream'")
-    return Control(cmd, stream)
+    if cmd in ("reset", "release") and not stream:
+        raise WireError("missing_field", f"control {cmd} needs field 'stream'")
+    limit = _get(m, "limit", int, "control", optional=True)
+    if limit is not None and not 0 <= limit <= 100000:
+        raise WireError("bad_length", f"control field 'limit' must be 0..100000 (got {limit})")
+    return Control(cmd, stream, limit)
 
 
 def _decode_fill(m: dict) -> FillMsg:
@@ -477,9 +492,9 @@ def unpack(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> dict:
         m = msgpack.unpackb(
             data, raw=False, strict_map_key=False, use_list=True,
             max_str_len=max_bytes, max_bin_len=max_bytes, max_array_len=MAX_CHANNELS + 16,
-            # requests are small maps; a client reading a status reply (one entry per stream)
-            # passes a larger max_bytes, and the byte cap still bounds what a map can hold
-            max_map_len=64 if max_bytes <= MAX_MESSAGE_BYTES else max_bytes // 2, max_ext_len=0,
+            # any number of (unknown, ignored) keys up to the byte cap: a key and its value take
+            # at least a byte each, so a map declaring more than max_bytes // 2 cannot be real
+            max_map_len=max_bytes // 2, max_ext_len=0,
         )
     except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError,
             UnicodeDecodeError, OverflowError) as e:
@@ -555,6 +570,8 @@ def to_map(msg: Message) -> dict[str, Any]:
         d = {"v": 1, "type": "hello", "stream": msg.stream, "channels": list(msg.channels)}
         if msg.model:
             d["model"] = msg.model
+        if msg.claim:
+            d["claim"] = msg.claim
         return d
     if isinstance(msg, HelloAck):
         return {"v": 1, "type": "hello-ack", "stream": msg.stream, "model": msg.model,
@@ -565,6 +582,8 @@ def to_map(msg: Message) -> dict[str, Any]:
         d = {"v": 1, "type": "control", "cmd": msg.cmd}
         if msg.stream:
             d["stream"] = msg.stream
+        if msg.limit is not None:
+            d["limit"] = msg.limit
         return d
     if isinstance(msg, ControlReply):
         d = {"v": 1, "type": "control-reply", "cmd": msg.cmd, "ok": msg.ok, "result": msg.result}

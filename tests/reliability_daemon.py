@@ -288,6 +288,7 @@ class LockStep(threading.Thread):
         self.problems: list[str] = []
         self.t_of: dict[int, float] = {}  # capture timestamp sent with each seq
         self.t_fn = lambda seq: seq / 120.0
+        self.claim = f"lockstep-{sid}-{os.getpid()}-{id(self):x}"
 
     def _socket(self, ctx: zmq.Context) -> zmq.Socket:
         s = ctx.socket(zmq.DEALER)
@@ -300,7 +301,7 @@ class LockStep(threading.Thread):
         s = self._socket(ctx)
         try:
             if self.hello is not None:
-                s.send(wire.encode(wire.Hello(self.sid, self.hello)))
+                s.send(wire.encode(wire.Hello(self.sid, self.hello, claim=self.claim)))
                 if not s.poll(self.timeout_ms) or not isinstance(wire.decode(s.recv()), wire.HelloAck):
                     self.problems.append("hello not acknowledged")
                     return
@@ -326,8 +327,8 @@ class LockStep(threading.Thread):
                         return
                     s.close(0)
                     s = self._socket(ctx)
-                    if self.hello is not None:
-                        s.send(wire.encode(wire.Hello(self.sid, self.hello)))
+                    if self.hello is not None:  # (the claim takes the stream over from the old socket)
+                        s.send(wire.encode(wire.Hello(self.sid, self.hello, claim=self.claim)))
                     s.send(body)
                     self.retries += 1
                     self.retried.add(seq)

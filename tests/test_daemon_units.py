@@ -274,7 +274,8 @@ def test_observed_mask_wins_over_values_and_passthrough_channels_untouched():
     s = t.sessions["s"]
     [(sess, fill, status)] = sched.run({id(model): (model, [s])}, 0.0)
     msg = fill_message(sess, fill, status, 0.001)
-    assert msg.angles.tolist() == [1.0, 42.0, 5.0]
+    # zz (passed through) was masked out: NaN, not the 42 sent under the mask (docs/PROTOCOL.md, issue 18 F5)
+    assert msg.angles[0] == 1.0 and np.isnan(msg.angles[1]) and msg.angles[2] == 5.0
     assert msg.filled.tolist() == [False, False, True] and msg.status == "ok"
 
 
@@ -530,7 +531,8 @@ def _burst(rng, C: int, turn: int) -> list[tuple[bytes, tuple, float]]:
         else:
             vals[rng.random(C) < 0.3] = np.nan
             data = wire.encode(wire.Frame(sid, max(seqs[sid], 0), 0.0, vals))
-        items.append((data, ("router", [f"peer{k % 3}".encode()]), time.perf_counter()))  # (fresh: none is late)
+        # (fresh: none is late; each stream from its own peer, which owns it: docs/PROTOCOL.md)
+        items.append((data, ("router", [f"peer-{sid}".encode()]), time.perf_counter()))
     return items
 
 
@@ -543,7 +545,7 @@ def test_burst_answers_equal_in_order_handling(seed):
     fast, ref = _Recording.make(3), _Recording.make(10**9)
     for d in (fast, ref):
         for sid in ("a", "b"):
-            d.sessions.hello(wire.Hello(sid, [f"ch{i}" for i in range(C)]))
+            d.sessions.hello(wire.Hello(sid, [f"ch{i}" for i in range(C)]), ("conn", f"peer-{sid}".encode()))
     set_aside = 0
     for turn in range(10):
         items = _burst(rng, C, turn)
@@ -598,7 +600,9 @@ def test_burst_sets_superseded_frames_aside_until_the_fills_are_out():
     items = [(wire.encode(wire.Frame("a", s, 0.0, np.zeros(C, np.float32))), ("router", [b"p"]), 0.0) for s in (20, 21, 22)]
     items.append((_osc("/lacuna/hello", ("a", "s"), ("", "s"), *[(f"ch{i}", "s") for i in range(C)]), ("osc", ("127.0.0.1", 9)), 0.0))
     d._batch(items)
-    assert d._superseded == [] and d.sessions.sessions["a"].pending is None  # (the hello reset the stream: 22 dropped, reset)
+    # (nothing set aside; the OSC sender does not own "a", so its hello is refused and 22 waits)
+    assert d._superseded == [] and d.sessions.sessions["a"].pending.frame.seq == 22
+    assert [m.reason for _, m in d.sent if isinstance(m, wire.ErrorMsg)] == ["not_owner"]
 
 
 def test_hold_of_a_group_as_arrays_equals_holding_stream_by_stream():

@@ -19,7 +19,7 @@ import zmq
 
 import fuzzgen
 from daemon import security, wire
-from reliability_daemon import Daemon, Sockets, control, free_port, recv_msg, write_config
+from reliability_daemon import Daemon, Sockets, control, free_port, recv_msg, status, write_config
 
 NO_ANSWER_MS = 1500  # "gets nothing": a CURVE handshake on loopback takes ~1 ms
 ROOT = Path(__file__).resolve().parents[1]
@@ -76,6 +76,25 @@ def test_lacuna_keys_writes_a_0600_secret_and_refuses_to_overwrite(tmp_path):
     assert os.stat(sec).st_mode & 0o777 == 0o600
     bad = lacuna("keys", str(tmp_path / "k"), "--name", "../escape")
     assert bad.returncode == 2 and "--name" in bad.stderr
+
+
+def test_lacuna_keys_never_writes_through_a_symlink(tmp_path):
+    """Issue 18 F13: a (dangling) symlink at the secret key's path was followed and the key
+    written to its target.  Now refused, the target never created; with --force the link
+    itself is replaced by a fresh 0600 file."""
+    kd = tmp_path / "k"
+    kd.mkdir()
+    target = tmp_path / "elsewhere" / "stolen"
+    (tmp_path / "elsewhere").mkdir()
+    (kd / "cam2.key_secret").symlink_to(target)  # dangling
+    r = lacuna("keys", str(kd), "--name", "cam2")
+    assert r.returncode == 2 and "symlink" in r.stderr and "refusing" in r.stderr, r.stderr
+    assert not target.exists() and not (kd / "cam2.key").exists()
+    forced = lacuna("keys", str(kd), "--name", "cam2", "--force")
+    assert forced.returncode == 0, forced.stderr
+    sec = kd / "cam2.key_secret"
+    assert not sec.is_symlink() and not target.exists() and os.stat(sec).st_mode & 0o777 == 0o600
+    assert zmq.auth.load_certificate(str(sec))[1] is not None
 
 
 # ---- CURVE --------------------------------------------------------------------------------------------
@@ -164,6 +183,47 @@ def test_daemon_refuses_to_bind_a_non_loopback_address_without_keys(tmp_path):
     osc_open.write_text(f'[models.floor]\nbuiltin = "passthrough"\n[osc]\nlisten = "0.0.0.0:{port}"\n')
     r = lacuna("serve", "--config", str(osc_open))
     assert r.returncode == 2 and "osc_allow" in r.stderr
+
+
+def _scrape(port: int, source: str) -> bytes:
+    with socket.socket() as s:
+        s.settimeout(10)
+        s.bind((source, 0))
+        s.connect(("127.0.0.1", port))
+        buf = b""
+        try:
+            s.sendall(b"GET /metrics HTTP/1.0\r\n\r\n")
+            while (b := s.recv(65536)):
+                buf += b
+        except ConnectionResetError:  # (closed with the request unread: a reset)
+            pass
+        return buf
+
+
+def test_metrics_endpoint_off_loopback_needs_an_allow_list(tmp_path):
+    """Issue 18 F8: metrics.http on 0.0.0.0 started with no keys and no allow list, exposing
+    stream and model names.  Now refused (exit 2, port never bound) unless metrics.allow lists
+    the scrapers; then others are closed unanswered and counted."""
+    port = free_port()
+    cfg = tmp_path / "m.toml"
+    base = f'[models.floor]\nbuiltin = "passthrough"\n[zmq]\nrouter = "tcp://127.0.0.1:{free_port()}"\n'
+    cfg.write_text(base + f'[metrics]\nhttp = "0.0.0.0:{port}"\n')
+    r = lacuna("serve", "--config", str(cfg))
+    assert r.returncode == 2 and "metrics.allow" in r.stderr and "not a loopback address" in r.stderr, r.stderr
+    with socket.socket() as s:  # it never bound the port
+        s.bind(("0.0.0.0", port))
+    ep = write_config(tmp_path / "ok.toml", {"floor": {"builtin": "passthrough"}},
+                      extra=f'[metrics]\nhttp = "0.0.0.0:{port}"\nallow = ["127.0.0.2"]\n')
+    d = Daemon(tmp_path / "ok.toml", tmp_path / "daemon.log").start()
+    S = Sockets()
+    try:
+        assert b"lacuna_up 1" in _scrape(port, "127.0.0.2")
+        assert _scrape(port, "127.0.0.1") == b""  # not on the list: closed, nothing said
+        st = status(S, ep["router"])
+        assert st["metrics_http"]["denied"] == 1 and st["metrics_http"]["served"] == 1
+    finally:
+        S.close()
+        d.stop()
 
 
 def test_exposed_bind_with_keys_serves_only_listed_clients(tmp_path, keys):

@@ -133,8 +133,11 @@ def test_fuzz_100k_malformed_messages_over_zmq_and_osc_while_a_good_stream_is_se
         good.start()
         ctl = S.make(zmq.DEALER, ep["router"])
         victim = S.make(zmq.DEALER, ep["router"])
-        victim.send(wire.encode(wire.Hello("victim", channels)))
-        assert isinstance(recv_msg(victim), wire.HelloAck)
+        # the fuzzing socket owns "victim" (streams belong to the connection that opened them):
+        # its session-level errors (width, unknown model) are then what it must be told
+        fz = S.make(zmq.DEALER, ep["router"])
+        fz.send(wire.encode(wire.Hello("victim", channels)))
+        assert isinstance(recv_msg(fz), wire.HelloAck)
         deadline = time.monotonic() + 10
         while good.sent < 5 and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -167,7 +170,6 @@ def test_fuzz_100k_malformed_messages_over_zmq_and_osc_while_a_good_stream_is_se
         assert n_total >= 100_000
 
         # ---- send, all three transports interleaved
-        fz = S.make(zmq.DEALER, ep["router"])
         push = S.make(zmq.PUSH, ep["pull"])
         udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         udp.bind(("127.0.0.1", 0))
