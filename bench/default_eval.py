@@ -57,6 +57,8 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=None)
     ap.add_argument("--extra", nargs="*", default=[], help="more causal model files to score beside it")
     ap.add_argument("--json")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="override a run-time setting of the default model (exploration on validation only)")
     args = ap.parse_args()
     seeds = args.seeds or ([100, 101, 102] if args.split == "validation" else [0, 1, 2, 3, 4])
     takes = splits.SPLITS[args.split]
@@ -65,6 +67,10 @@ def main() -> int:
     ch = first.channels
     hold = HoldModel.fit(train, ch)
     methods = {"hold": hold, "interp": InterpModel(ch, hold.mean_, hold.std_), "default": load_model(args.model)}
+    for kv in args.set:
+        k, v = kv.split("=", 1)
+        setattr(methods["default"].settings, k, float(v))
+        methods["default"] = methods["default"].with_weights(methods["default"].weights)  # re-derive per-frame constants
     for p in args.extra:
         methods[Path(p).stem] = load_model(p)
     ang = np.array([is_angle(c) for c in ch])

@@ -36,7 +36,7 @@ def offline_fill(model: DefaultModel, data, w: Weights) -> np.ndarray:
     g = data["g"]
     H = data["H"]
     return H + np.sum(Phi * (w.wv[g] * (data["V"] - H)[:, None] + w.wl[g] * (data["W"] - H)[:, None]
-                             + w.wr[g] * (data["R"] - H)[:, None]), 1)
+                             + (w.wr[g] * data["weak"][:, None] + w.wg[g] * data["gate"][:, None]) * (data["R"] - H)[:, None]), 1)
 
 
 def subset(data, sel):
@@ -76,17 +76,25 @@ def main() -> int:
     for a in sorted({x[2] for x in val}):
         for i, (t, _, aa) in enumerate([v for v in val if v[2] == a]):
             fold[t] = i % 2
-    grid = {"lag_s": [0.05, 0.1], "damp_s": [0.2], "damp2_s": [1.0], "offset_s": [1.0, 1e9], "vel_s": [0.02]} if args.quick else \
-        {"lag_s": [0.05, 0.1, 0.2], "damp_s": [0.1, 0.3], "damp2_s": [0.5, 2.0], "offset_s": [0.3, 0.6, 1.2, 1e9],
-         "vel_s": [0.02]}
+    # round 1 (bench/results/default_tune_round1.log, before lags became a tuple): lag 0.05-0.2 s, damping 0.1-0.3 s,
+    # damp2 0.5/2 s, offset 0.3-1e9 s; longer lag and a short offset won.  Round 2 (default_tune_round2.log):
+    # lags (0.1,)...(0.1, 0.3), offset 0.15-0.6; (0.3,), damp 0.3, offset 0.3 won.  Round 3 (round3.log, the gate
+    # as the only regression weight): lag 0.5 and offset 0.5 lost, gate_rho 2 won.  Round 4: this grid, with
+    # the gated and the ungated regression both stacked (round4.log): gate_rho 4, gate_decay 0.97 won.  Round 5:
+    # the ungated part gets a weaker gate of its own (round5.log): gate_rho_weak 16 won.  --quick refits the
+    # weights of the chosen setting (after the shadow check stopped reading the ring before it held the stream).
+    grid = {"lags_s": [(0.3,)], "damp_s": [0.3], "damp2_s": [1.0], "offset_s": [0.3], "vel_s": [0.02], "gate_rho": [4.0],
+            "gate_decay": [0.97], "gate_rho_weak": [16.0]} if args.quick else \
+        {"lags_s": [(0.3,)], "damp_s": [0.3], "damp2_s": [1.0], "offset_s": [0.3], "vel_s": [0.02],
+         "gate_rho": [1.0, 4.0], "gate_decay": [0.97], "gate_rho_weak": [16.0, 64.0, 1e9]}
     rows = []
     gauss_cache = {}
     for vals in itertools.product(*grid.values()):
         s = Settings(**dict(zip(grid, vals)))
         t0 = time.perf_counter()
-        if s.lag_s not in gauss_cache:
-            gauss_cache[s.lag_s] = fit_gaussian(train, ch, s)
-        model = DefaultModel(ch, *gauss_cache[s.lag_s], s, Weights.initial())
+        if s.lags_s not in gauss_cache:
+            gauss_cache[s.lags_s] = fit_gaussian(train, ch, s)
+        model = DefaultModel(ch, *gauss_cache[s.lags_s], s, Weights.initial())
         parts = [collect(model, [v for v in val if fold[v[0]] == f], SEEDS) for f in (0, 1)]
         pers, worsts = [], []
         for f in (0, 1):
@@ -106,8 +114,8 @@ def main() -> int:
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"grid": grid, "rows": rows, "chosen": best}, indent=1) + "\n")
     if not args.no_write:
-        s = Settings(**best["settings"])
-        model = DefaultModel(ch, *gauss_cache[s.lag_s], s, Weights.initial())
+        s = Settings(**best["settings"])  # lags_s stays a tuple: rows keep the grid's values
+        model = DefaultModel(ch, *gauss_cache[s.lags_s], s, Weights.initial())
         w = fit_weights(model, collect(model, val, SEEDS))
         write_shipped(s, w, {"validation_takes": list(splits.VALIDATION), "seeds": list(SEEDS),
                              "score": "mean over activities of MSE/hold, 2 folds by take",

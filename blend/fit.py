@@ -25,21 +25,22 @@ LEAD = 0.25
 
 
 def fit_gaussian(sequences: Sequence[np.ndarray], channels: Sequence[str], settings: Settings):
-    """mean, std (C,), reg_idx (R,), mu (2R,), cov (2R, 2R) over [pose deviation, lag velocity]."""
+    """mean, std (C,), reg_idx (R,), mu (nb R,), cov (nb R, nb R) over [pose deviation, change over each lag]."""
     X = np.vstack(sequences)
     ang = np.array([is_angle(c) for c in channels])
     mean = np.where(ang, circular_mean_deg(X), X.mean(0))
     dev = np.where(ang[None], wrap(X - mean), X - mean)
     std = np.sqrt(np.mean(dev**2, 0))
     reg = np.array([i for i, c in enumerate(channels) if ang[i] and group_of(c) not in NO_REGRESSION and std[i] > 1e-3], int)
-    L = settings.per_frame()["L"]
+    Ls = settings.per_frame()["L"]
+    Lm = max(Ls)
     feats = []
     for s in sequences:
-        if s.shape[0] <= L:
+        if s.shape[0] <= Lm:
             continue
-        p = wrap(s[L:, reg] - mean[reg])
-        v = wrap(s[L:, reg] - s[:-L, reg])
-        feats.append(np.hstack([p, v]))
+        x = s[Lm:, reg]
+        parts = [wrap(x - mean[reg])] + [wrap(x - s[Lm - L:s.shape[0] - L, reg]) for L in Ls]
+        feats.append(np.hstack(parts))
     Z = np.vstack(feats)
     mu = Z.mean(0)
     cov = np.cov(Z, rowvar=False)
@@ -73,7 +74,7 @@ def occlusion(name: str, T: int, channels: Sequence[str], fps: float, seed: int,
 
 def collect(model: DefaultModel, takes: Sequence[tuple[str, np.ndarray, str]], seeds: Sequence[int]) -> dict[str, np.ndarray]:
     """Run the stream over (name, frames, activity) with occlusions; one row per erased value."""
-    rows: dict[str, list] = {k: [] for k in ("k", "g", "H", "V", "W", "R", "amp", "y", "act", "ch")}
+    rows: dict[str, list] = {k: [] for k in ("k", "g", "H", "V", "W", "R", "amp", "gate", "weak", "y", "act", "ch")}
     acts = sorted({a for _, _, a in takes})
     for seed in seeds:
         for name, frames, act in takes:
@@ -89,7 +90,7 @@ def collect(model: DefaultModel, takes: Sequence[tuple[str, np.ndarray, str]], s
                 H = c.H
                 y = np.where(model.ang[c.idx], H + wrap(truth - H), truth)  # truth unwrapped near H
                 rows["k"].append(c.k); rows["g"].append(model.group[c.idx]); rows["H"].append(H)
-                rows["V"].append(c.V); rows["W"].append(c.W); rows["R"].append(c.R); rows["amp"].append(c.amp); rows["y"].append(y)
+                rows["V"].append(c.V); rows["W"].append(c.W); rows["R"].append(c.R); rows["amp"].append(c.amp); rows["gate"].append(c.gate); rows["weak"].append(c.weak); rows["y"].append(y)
                 rows["act"].append(np.full(len(c.idx), acts.index(act))); rows["ch"].append(c.idx)
     out = {k: np.concatenate(v) if v else np.zeros(0) for k, v in rows.items()}
     out["activities"] = np.array(acts)
@@ -107,45 +108,68 @@ def _hat(model: DefaultModel, t: np.ndarray) -> np.ndarray:
     return Phi
 
 
+CELL_EDGES = (0.0, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 1e9)  # seconds since onset: the cells kept <= hold
+
+
 def fit_weights(model: DefaultModel, data: dict[str, np.ndarray], ridge: float = 1e-2, smooth: float = 1.0,
-                coverage: float = 0.95) -> Weights:
+                coverage: float = 0.95, rounds: int = 8) -> Weights:
+    """Stacking weights by weighted least squares; then, while some (activity, time-since-onset)
+    cell is worse than hold, that cell's values weigh more (up to ``rounds`` refits)."""
     G, K = len(GROUP_NAMES), len(model.knots)
-    w = Weights.initial(G, K)
     t = data["k"] / model.settings.fps
     Phi = _hat(model, t)
-    dV = data["V"] - data["H"]
-    dW = data["W"] - data["H"]
-    dR = data["R"] - data["H"]
-    y = data["y"] - data["H"]
-    # each activity counts as much as the others, relative to what hold costs on it
+    H = data["H"]
+    dV, dW, dR, y = data["V"] - H, data["W"] - H, data["R"] - H, data["y"] - H
+    dG = dR * data["gate"]
+    dR = dR * data["weak"]
     sw = np.zeros(len(y))
     for a in np.unique(data["act"]):
         sel = data["act"] == a
         sw[sel] = 1.0 / max(np.mean(y[sel] ** 2), 1e-9) / sel.sum()
-    for g in range(G):
-        sel = data["g"] == g
-        if not sel.any():
-            continue
-        feats = [Phi[sel] * dV[sel, None], Phi[sel] * dW[sel, None]]
-        if g not in NO_REGRESSION:
-            feats.append(Phi[sel] * dR[sel, None])
-        A = np.hstack(feats)
-        s = np.sqrt(sw[sel])
-        As, ys = A * s[:, None], y[sel] * s
-        AtA = As.T @ As
-        # ridge towards hold, plus a penalty on second differences across knots (no steps in a gap)
-        D = np.diff(np.eye(K), 2, axis=0)
-        P = np.kron(np.eye(len(feats)), D.T @ D)
-        scale = np.trace(AtA) / A.shape[1] + 1e-12
-        coef = np.linalg.solve(AtA + scale * (ridge * np.eye(A.shape[1]) + smooth * P), As.T @ ys)
-        w.wv[g], w.wl[g] = coef[:K], coef[K:2 * K]
-        if g not in NO_REGRESSION:
-            w.wr[g] = coef[2 * K:]
-    gg = data["g"]
-    fill = data["H"] + np.sum(Phi * (w.wv[gg] * dV[:, None] + w.wl[gg] * dW[:, None] + w.wr[gg] * dR[:, None]), 1)
+    cell = data["act"] * 100 + np.searchsorted(CELL_EDGES, t, side="right")
+    cells = np.unique(cell)
+    boost = np.ones(len(y))
+    for _ in range(rounds):
+        w = Weights.initial(G, K)
+        for g in range(G):
+            sel = data["g"] == g
+            if sel.any():
+                _solve(w, g, Phi[sel], dV[sel], dW[sel], dR[sel], dG[sel], y[sel], sw[sel] * boost[sel], ridge, smooth)
+        gg = data["g"]
+        fill = H + np.sum(Phi * (w.wv[gg] * dV[:, None] + w.wl[gg] * dW[:, None] + w.wr[gg] * dR[:, None]
+                                 + w.wg[gg] * dG[:, None]), 1)
+        e2, h2 = (data["y"] - fill) ** 2, y**2
+        worst = 0.0
+        for c in cells:
+            sel = cell == c
+            r = e2[sel].sum() / max(h2[sel].sum(), 1e-12)
+            worst = max(worst, r)
+            if r > 1.0:
+                boost[sel] *= r**8
+        if worst <= 1.0:
+            break
     ratio = np.abs(data["y"] - fill) / np.maximum(data["amp"], 1e-9)
     w.sc[:] = _scale(ratio, data["g"], Phi, G, K, coverage)
     return w
+
+
+def _solve(w: Weights, g: int, Phi, dV, dW, dR, dG, y, sw, ridge, smooth) -> None:
+    K = Phi.shape[1]
+    feats = [Phi * dV[:, None], Phi * dW[:, None]]
+    if g not in NO_REGRESSION:
+        feats += [Phi * dR[:, None], Phi * dG[:, None]]
+    A = np.hstack(feats)
+    s = np.sqrt(sw)
+    As, ys = A * s[:, None], y * s
+    AtA = As.T @ As
+    # ridge towards hold, plus a penalty on second differences across knots (no steps in a gap)
+    D = np.diff(np.eye(K), 2, axis=0)
+    P = np.kron(np.eye(len(feats)), D.T @ D)
+    scale = np.trace(AtA) / A.shape[1] + 1e-12
+    coef = np.linalg.solve(AtA + scale * (ridge * np.eye(A.shape[1]) + smooth * P), As.T @ ys)
+    w.wv[g], w.wl[g] = coef[:K], coef[K:2 * K]
+    if g not in NO_REGRESSION:
+        w.wr[g], w.wg[g] = coef[2 * K:3 * K], coef[3 * K:]
 
 
 def _scale(ratio, g, Phi, G, K, coverage):

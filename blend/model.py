@@ -9,34 +9,43 @@ observed value:
             long one comes to rest; W the same with the longer ``damp2_s`` (the root keeps
             travelling);
 * regress   R = mean_j + E[x_j | observed] + o_j(t): the conditional Gaussian of the missing
-            joint angles given the observed ones and their velocities over ``lag_s`` (one
-            Gaussian over pose and velocity fitted on training takes), plus an offset o that
+            joint angles given the observed ones and their changes over each lag of ``lags_s``
+            (one Gaussian over pose and changes fitted on training takes), plus an offset o that
             makes R start at h_j (no pop) and decays with time constant ``offset_s``.  When the
             set of observed channels changes mid-gap the offset is re-set so R stays continuous.
 
-The fill is H + w_v(g, t) (V - H) + w_l(g, t) (W - H) + w_r(g, t) (R - H): stacking weights per joint group g and
+The fill is H + w_v(g, t) (V - H) + w_l(g, t) (W - H) + (w_r(g, t) gamma'_g + w_g(g, t) gamma_g) (R - H): stacking weights per joint group g and
 time since onset t (piecewise linear over ``knots`` seconds), fitted by least squares on the
 VALIDATION split (blend.fit); w = 0 is hold, so on the data they were fitted on the blend
 cannot be worse than hold in any group or time bin.  Root channels take no regression (their
 values are heading- and place-dependent), only hold and velocity: heading continues at its
 yaw rate, so a fill follows a turn.
 
-The std of a filled value is c(g, t) * a_j, with a_j the channel's own recent spread (an
+The regression is gated per stream by how well it predicts channels that are still observed:
+every frame one regression group that is observed is predicted from the others as if it were
+missing, and rho_g = sum (error of that prediction)^2 / sum (the group's own change over the
+longest lag)^2, decayed, and gamma_g = 1 / (1 + (rho_g / gate_rho)^2) weighs the gated part
+w_g of the regression (gamma'_g, the same with ``gate_rho_weak``, its other part), so a stream whose body does not move the way the training takes did
+falls back on hold and velocity.
+
+The std of a filled value is c(g, t) * a_j * s, with a_j the channel's own recent spread (an
 exponentially weighted std over ``amp_s`` seconds while it was observed) so that a still
 performer gets a tight band and a basketball player a wide one; c is fitted on validation
-errors so that 2 std hold 95% of them.  The model is a handful of arrays; a step is O(C) plus
+errors so that 2 std hold 95% of them; s is the stream's own calibration, learnt online: each
+time a gap ends the filler sees how far its last fill was from the returning value, in units of
+the std it gave, and s = sqrt(mean z^2) over those values (with ``cal_prior`` pseudo-values of 1).  The model is a handful of arrays; a step is O(C) plus
 one small matrix-vector product, with the regression matrix cached per pattern of missing
 channels (masks recur: a joint group drops out again and again).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
 from lacuna import modelfile
-from lacuna.filler import Fill, FillerState, Model, check_frame
+from lacuna.filler import Model
 from mocap.representation import is_angle
 
 GROUPS = {
@@ -71,7 +80,7 @@ class Settings:
     """Hyperparameters (chosen on VALIDATION, see docs/BENCHMARKS.md ## default)."""
 
     fps: float = 120.0
-    lag_s: float = 0.05       # velocity features of the regression: x_t - x_{t - lag}
+    lags_s: tuple = (0.05,)   # change features of the regression: x_t - x_{t - lag} for each lag
     vel_s: float = 0.02       # smoothing time constant of the onset velocity
     damp_s: float = 0.15      # damping time constant of the velocity extrapolation
     damp2_s: float = 1.0      # the second, slower one
@@ -79,11 +88,17 @@ class Settings:
     amp_s: float = 1.0        # window of the channel spread that scales the std
     ridge: float = 1e-3       # relative ridge on the observed covariance block
     amp_floor: float = 0.05   # share of the training std added to the spread (a still channel's floor)
+    cal_prior: float = 5.0    # online std calibration: pseudo-count of z^2 = 1 (chosen on validation: 5, 15, off)
+    cal_decay: float = 0.995  # ... and the decay per value seen at a gap's end
+    gate_rho: float = 1e9     # regression gate gamma = 1 / (1 + (rho / gate_rho)^2), rho the stream's shadow
+                              # error ratio (1e9: gamma = 1)
+    gate_decay: float = 0.9   # decay of the shadow error sums per check (one group checked per frame)
+    gate_rho_weak: float = 1e9  # the same gate, weaker, on w_r (1e9: w_r ungated)
     knots: tuple = KNOTS
 
     def per_frame(self) -> dict[str, float]:
         f = self.fps
-        return {"L": max(1, int(round(self.lag_s * f))), "beta": 1.0 - np.exp(-1.0 / max(self.vel_s * f, 1e-9)),
+        return {"L": tuple(max(1, int(round(lag * f))) for lag in self.lags_s), "beta": 1.0 - np.exp(-1.0 / max(self.vel_s * f, 1e-9)),
                 "d": float(np.exp(-1.0 / max(self.damp_s * f, 1e-9))), "d2": float(np.exp(-1.0 / max(self.damp2_s * f, 1e-9))), "a": float(np.exp(-1.0 / max(self.offset_s * f, 1e-9))),
                 "eta": 1.0 - np.exp(-1.0 / max(self.amp_s * f, 1e-9))}
 
@@ -95,12 +110,13 @@ class Weights:
     wv: np.ndarray
     wl: np.ndarray
     wr: np.ndarray
+    wg: np.ndarray
     sc: np.ndarray
 
     @classmethod
     def initial(cls, n_groups: int = len(GROUP_NAMES), n_knots: int = len(KNOTS)) -> "Weights":
         z = np.zeros((n_groups, n_knots))
-        return cls(z, z.copy(), z.copy(), np.full((n_groups, n_knots), 1.0))
+        return cls(z, z.copy(), z.copy(), z.copy(), np.full((n_groups, n_knots), 1.0))
 
 
 class DefaultModel(Model):
@@ -128,6 +144,42 @@ class DefaultModel(Model):
         self._is_reg[self.reg_idx] = True
         self._ridge = settings.ridge * np.mean(np.diag(self.cov_)) if R else 0.0
         self._cache: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        pf = self._pf
+        self._par = np.array([pf["beta"], pf["d"], pf["d2"], pf["a"], pf["eta"], settings.fps, settings.amp_floor,
+                              settings.cal_prior, settings.cal_decay, settings.gate_rho, settings.gate_decay, settings.gate_rho_weak])
+        self._Ls = np.array(pf["L"], np.int64)
+        self._none_i = np.zeros(0, np.int64)
+        self._none_B = np.zeros((0, 0))
+        self._shadow()
+        from lacuna import jit
+
+        self.compiled = jit.enabled()
+
+    def _shadow(self) -> None:
+        """Per regression group g: the matrix predicting g's channels from every other regression
+        channel (pose and changes), for the stream's shadow check (padded arrays for the kernel)."""
+        ri = self.reg_idx
+        gs = sorted({int(g) for g in self.group[ri]})
+        mats = []
+        for g in gs:
+            miss = self.group[ri] == g
+            mats.append((g,) + self.regression(miss))
+        self._cache.clear()
+        G = len(mats)
+        mx_m = max((len(m) for _, m, _, _ in mats), default=0)
+        mx_o = max((len(o) for _, _, o, _ in mats), default=0)
+        self.sh_g = np.array([g for g, _, _, _ in mats], np.int64)
+        self.sh_m = np.zeros((G, mx_m), np.int64)
+        self.sh_nm = np.zeros(G, np.int64)
+        self.sh_O = np.zeros((G, mx_o), np.int64)
+        self.sh_nO = np.zeros(G, np.int64)
+        self.sh_B = np.zeros((G, mx_m, mx_o))
+        for i, (g, m, O, B) in enumerate(mats):
+            self.sh_m[i, :len(m)] = m
+            self.sh_nm[i] = len(m)
+            self.sh_O[i, :len(O)] = O
+            self.sh_nO[i] = len(O)
+            self.sh_B[i, :len(m), :len(O)] = B
 
     # ---- regression matrices, cached per missing pattern -------------------------------------
     def regression(self, miss_reg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -140,7 +192,7 @@ class DefaultModel(Model):
         R = len(self.reg_idx)
         m = np.flatnonzero(miss_reg)
         o = np.flatnonzero(~miss_reg)
-        O = np.concatenate([o, o + R])
+        O = np.concatenate([o + b * R for b in range(1 + len(self.settings.lags_s))])
         if len(O):
             S_oo = self.cov_[np.ix_(O, O)] + self._ridge * np.eye(len(O))
             B = np.linalg.solve(S_oo, self.cov_[np.ix_(O, m)]).T
@@ -158,7 +210,9 @@ class DefaultModel(Model):
         f = p - i
         return W[g, i] * (1.0 - f) + W[g, i + 1] * f
 
-    def stream(self) -> "DefaultState":
+    def stream(self):
+        from blend.state import DefaultState
+
         return DefaultState(self)
 
     def with_weights(self, weights: Weights) -> "DefaultModel":
@@ -174,7 +228,7 @@ class DefaultModel(Model):
                 "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self.settings).items()},
                 "groups": GROUP_NAMES}
         arrays = {"mean": self.mean_, "std": self.std_, "reg_idx": self.reg_idx, "mu": self.mu_, "cov": self.cov_,
-                  "wv": self.weights.wv, "wl": self.weights.wl, "wr": self.weights.wr, "sc": self.weights.sc}
+                  "wv": self.weights.wv, "wl": self.weights.wl, "wr": self.weights.wr, "wg": self.weights.wg, "sc": self.weights.sc}
         modelfile.save_arrays(path, meta, arrays)
 
     @classmethod
@@ -184,145 +238,18 @@ class DefaultModel(Model):
         if not isinstance(s, dict):
             raise modelfile.ModelFileError(f"{path}: default model without 'settings' in its metadata")
         try:
-            settings = Settings(**{**s, "knots": tuple(float(k) for k in s.get("knots", KNOTS))})
+            settings = Settings(**{**s, "knots": tuple(float(k) for k in s.get("knots", KNOTS)),
+                                   "lags_s": tuple(float(k) for k in s.get("lags_s", (0.05,)))})
         except TypeError as e:
             raise modelfile.ModelFileError(f"{path}: default model settings are malformed ({e})") from None
         K = len(settings.knots)
         G = len(GROUP_NAMES)
         reg = modelfile.require(path, arrays, "reg_idx", (None,))
         R = reg.shape[0]
+        nb = 1 + len(settings.lags_s)
         if R and (reg.min() < 0 or reg.max() >= C):
             raise modelfile.ModelFileError(f"{path}: reg_idx points outside the {C} channels")
-        w = Weights(*(modelfile.require(path, arrays, k, (G, K)) for k in ("wv", "wl", "wr", "sc")))
+        w = Weights(*(modelfile.require(path, arrays, k, (G, K)) for k in ("wv", "wl", "wr", "wg", "sc")))
         return cls(meta["channels"], modelfile.require(path, arrays, "mean", (C,)), modelfile.require(path, arrays, "std", (C,)),
-                   reg, modelfile.require(path, arrays, "mu", (2 * R,)), modelfile.require(path, arrays, "cov", (2 * R, 2 * R)),
+                   reg, modelfile.require(path, arrays, "mu", (nb * R,)), modelfile.require(path, arrays, "cov", (nb * R, nb * R)),
                    settings, w, {k: v for k, v in meta.items() if k not in ("settings", "groups")})
-
-
-@dataclass
-class Components:
-    """What one step computed for its missing channels (blend.fit stacks these)."""
-
-    idx: np.ndarray
-    k: np.ndarray
-    H: np.ndarray
-    V: np.ndarray
-    W: np.ndarray
-    R: np.ndarray
-    amp: np.ndarray
-    extra: dict = field(default_factory=dict)
-
-
-class DefaultState(FillerState):
-    def __init__(self, model: DefaultModel):
-        self.m = model
-        C = model.n_channels
-        L = model._pf["L"]
-        self.last = model.mean_.copy()      # last output (observed or filled), raw units
-        self.h = model.mean_.copy()         # last observed value
-        self.vel = np.zeros(C)              # smoothed per-frame velocity while observed
-        self.v0 = np.zeros(C)               # velocity frozen at the gap's onset
-        self.k = np.zeros(C, np.int64)      # frames since onset (0 = observed)
-        self.R = model.mean_.copy()         # regression component (continuous across mask changes)
-        self.off = np.zeros(C)              # anchoring offset of R
-        self.amean = model.mean_.copy()
-        self.avar = (model.std_ * 0.5) ** 2
-        self.hist = np.repeat(model.mean_[None], L + 2, 0)  # ring of outputs, newest at index pos
-        self.pos = 0
-        self.miss_key: bytes | None = None
-        self.seen = False
-        self.collect = False                 # blend.fit sets it and reads ``comp`` after each step
-        self.comp: Components | None = None
-
-    def _features(self, x: np.ndarray, x_lag: np.ndarray, O: np.ndarray) -> np.ndarray:
-        m = self.m
-        ri = m.reg_idx
-        R = len(ri)
-        po = O[O < R]
-        z = np.concatenate([wrap(x[ri[po]] - m.mean_[ri[po]]), wrap(x[ri[O[O >= R] - R]] - x_lag[ri[O[O >= R] - R]])])
-        return z - m.mu_[O]
-
-    def step(self, frame, observed=None) -> Fill:
-        m = self.m
-        pf = m._pf
-        f, obs = check_frame(frame, observed, m.n_channels)
-        miss = ~obs
-        C = m.n_channels
-        L = pf["L"]
-        n = self.hist.shape[0]
-        prev = self.hist[self.pos]
-        if obs.any():
-            # observed channels: velocity (only across consecutive observations), spread, anchors
-            was = (self.k == 0) & obs & self.seen
-            dx = np.where(m.ang, wrap(f - self.h), f - self.h)
-            self.vel = np.where(was, self.vel + pf["beta"] * (dx - self.vel), self.vel)
-            da = np.where(m.ang, wrap(f - self.amean), f - self.amean)
-            self.amean = np.where(obs, self.amean + pf["eta"] * da, self.amean)
-            self.avar = np.where(obs, (1 - pf["eta"]) * self.avar + pf["eta"] * da * da, self.avar)
-            self.h = np.where(obs, f, self.h)
-            self.seen = True
-        out = np.where(obs, f, 0.0)
-        std = np.zeros(C)
-        if miss.any():
-            onset = miss & (self.k == 0)
-            self.v0 = np.where(onset, self.vel, self.v0)
-            self.R = np.where(onset, self.h, self.R)
-            self.k = np.where(miss, self.k + 1, 0)
-            idx = np.flatnonzero(miss)
-            kk = self.k[idx]
-            d = pf["d"]
-            H = self.h[idx]
-            V = H + self.v0[idx] * (d * (1.0 - d ** kk) / (1.0 - d))
-            d2 = pf["d2"]
-            W = H + self.v0[idx] * (d2 * (1.0 - d2 ** kk) / (1.0 - d2))
-            Rv = self._regress(f, obs, miss, prev, idx)
-            t = kk / m.settings.fps
-            g = m.group[idx]
-            wv = m.knot_weights(m.weights.wv, g, t)
-            wl = m.knot_weights(m.weights.wl, g, t)
-            wr = m.knot_weights(m.weights.wr, g, t)
-            out[idx] = H + wv * (V - H) + wl * (W - H) + wr * (Rv - H)
-            amp = np.sqrt(self.avar[idx] + (m.settings.amp_floor * m.std_[idx]) ** 2)
-            std[idx] = m.knot_weights(m.weights.sc, g, t) * amp
-            if self.collect:
-                self.comp = Components(idx, kk, H, V, W, Rv, amp)
-        else:
-            self.k[:] = 0
-            self.miss_key = None
-            self.comp = None
-        self.pos = (self.pos + 1) % n
-        self.hist[self.pos] = out
-        self.last = out
-        return Fill(out, std, miss)
-
-    def _regress(self, f, obs, miss, prev, idx) -> np.ndarray:
-        """R for the missing channels idx (root and non-angle channels: R = h)."""
-        m = self.m
-        ri = m.reg_idx
-        Rout = self.h[idx].copy()
-        miss_reg = miss[ri]
-        if not miss_reg.any():
-            self.miss_key = None
-            return Rout
-        mm, O, B = m.regression(miss_reg)
-        L = m._pf["L"]
-        n = self.hist.shape[0]
-        x = np.where(obs, f, self.last)
-        x_lag = self.hist[(self.pos - L + 1) % n]       # the output L frames before this one
-        r = m.mu_[mm] + B @ self._features(x, x_lag, O)
-        cols = ri[mm]
-        key = miss_reg.tobytes()
-        a = m._pf["a"]
-        if key != self.miss_key:
-            # the pattern changed: re-anchor so R continues from where it was on the previous frame
-            prev = self.hist[self.pos]
-            prev_lag = self.hist[(self.pos - L) % n]
-            r_prev = m.mu_[mm] + B @ self._features(prev, prev_lag, O)
-            self.off[cols] = self.R[cols] - (m.mean_[cols] + r_prev)
-            self.miss_key = key
-        self.off[cols] *= a
-        val = m.mean_[cols] + r + self.off[cols]
-        self.R[cols] = val
-        pos = np.searchsorted(idx, cols)
-        Rout[pos] = val
-        return Rout

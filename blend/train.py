@@ -23,8 +23,8 @@ def shipped() -> tuple[Settings, Weights | None, dict[str, Any]]:
     if not SHIPPED.exists():
         return Settings(), None, {}
     d = json.loads(SHIPPED.read_text())
-    s = Settings(**{**d["settings"], "knots": tuple(d["settings"]["knots"])})
-    w = Weights(*(np.array(d[k], float) for k in ("wv", "wl", "wr", "sc")))
+    s = Settings(**{**d["settings"], "knots": tuple(d["settings"]["knots"]), "lags_s": tuple(d["settings"]["lags_s"])})
+    w = Weights(*(np.array(d[k], float) for k in ("wv", "wl", "wr", "wg", "sc")))
     if w.wv.shape != (len(GROUP_NAMES), len(s.knots)):
         raise ValueError(f"{SHIPPED}: weights of shape {w.wv.shape} do not match {len(GROUP_NAMES)} groups x {len(s.knots)} knots")
     return s, w, d.get("chosen", {})
@@ -32,7 +32,7 @@ def shipped() -> tuple[Settings, Weights | None, dict[str, Any]]:
 
 def write_shipped(settings: Settings, weights: Weights, chosen: dict[str, Any], path: Path = SHIPPED) -> None:
     d = {"settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in settings.__dict__.items()},
-         "wv": weights.wv.round(6).tolist(), "wl": weights.wl.round(6).tolist(), "wr": weights.wr.round(6).tolist(), "sc": weights.sc.round(6).tolist(),
+         "wv": weights.wv.round(6).tolist(), "wl": weights.wl.round(6).tolist(), "wr": weights.wr.round(6).tolist(), "wg": weights.wg.round(6).tolist(), "sc": weights.sc.round(6).tolist(),
          "chosen": chosen}
     path.write_text(json.dumps(d, indent=1) + "\n")
 
