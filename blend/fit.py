@@ -20,7 +20,7 @@ from mocap.representation import circular_mean_deg, is_angle
 
 GAP_RANGE = (0.1, 2.0)
 RATE = 0.6        # bursts per second per group
-ROOT_RATE = 0.25  # the root drops out less often (a solver keeps it longest)
+ROOT_RATE = 0.6   # the root drops out as often as a limb (as in the gaps protocol)
 LEAD = 0.25
 
 
@@ -45,6 +45,13 @@ def fit_gaussian(sequences: Sequence[np.ndarray], channels: Sequence[str], setti
     mu = Z.mean(0)
     cov = np.cov(Z, rowvar=False)
     return mean, std, reg, mu, cov
+
+
+def velocity_rms(sequences: Sequence[np.ndarray], channels: Sequence[str]) -> np.ndarray:
+    """(C,) RMS change per frame of each channel over the takes (wrapped for angles)."""
+    ang = np.array([is_angle(c) for c in channels])
+    d = np.vstack([np.where(ang[None], wrap(np.diff(s, axis=0)), np.diff(s, axis=0)) for s in sequences if len(s) > 1])
+    return np.sqrt(np.mean(d**2, 0)) + 1e-6
 
 
 def occlusion(name: str, T: int, channels: Sequence[str], fps: float, seed: int, root: bool = True):

@@ -94,6 +94,7 @@ class Settings:
                               # error ratio (1e9: gamma = 1)
     gate_decay: float = 0.9   # decay of the shadow error sums per check (one group checked per frame)
     gate_rho_weak: float = 1e9  # the same gate, weaker, on w_r (1e9: w_r ungated)
+    vcap_mult: float = 1e9    # onset velocity capped at this many training RMS changes per frame (1e9: no cap)
     knots: tuple = KNOTS
 
     def per_frame(self) -> dict[str, float]:
@@ -124,11 +125,15 @@ class DefaultModel(Model):
 
     def __init__(self, channels: list[str], mean: np.ndarray, std: np.ndarray, reg_idx: np.ndarray,
                  mu: np.ndarray, cov: np.ndarray, settings: Settings, weights: Weights,
-                 meta: dict[str, Any] | None = None):
+                 meta: dict[str, Any] | None = None, vrms: np.ndarray | None = None):
         self.channels = list(channels)
         C = len(self.channels)
         self.mean_ = np.asarray(mean, float)
         self.std_ = np.asarray(std, float)
+        # RMS per-frame change of each channel in training: the onset velocity is capped at vcap_mult of it
+        # (Euler angles of the root swing through gimbal flips faster than any limb; a fill must not follow)
+        self.vrms_ = np.full(C, 1e9) if vrms is None else np.asarray(vrms, float)
+        self.vcap = settings.vcap_mult * self.vrms_
         self.reg_idx = np.asarray(reg_idx, int)
         self.mu_ = np.asarray(mu, float)
         self.cov_ = np.asarray(cov, float)
@@ -217,7 +222,7 @@ class DefaultModel(Model):
 
     def with_weights(self, weights: Weights) -> "DefaultModel":
         return DefaultModel(self.channels, self.mean_, self.std_, self.reg_idx, self.mu_, self.cov_, self.settings,
-                            weights, self.meta)
+                            weights, self.meta, self.vrms_)
 
     def info(self) -> dict[str, Any]:
         return {**super().info(), "fps": self.settings.fps, "regression_channels": int(len(self.reg_idx))}
@@ -227,7 +232,7 @@ class DefaultModel(Model):
         meta = {**self.meta, "method": self.method, "channels": self.channels,
                 "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self.settings).items()},
                 "groups": GROUP_NAMES}
-        arrays = {"mean": self.mean_, "std": self.std_, "reg_idx": self.reg_idx, "mu": self.mu_, "cov": self.cov_,
+        arrays = {"mean": self.mean_, "std": self.std_, "reg_idx": self.reg_idx, "mu": self.mu_, "cov": self.cov_, "vrms": self.vrms_,
                   "wv": self.weights.wv, "wl": self.weights.wl, "wr": self.weights.wr, "wg": self.weights.wg, "sc": self.weights.sc}
         modelfile.save_arrays(path, meta, arrays)
 
@@ -252,4 +257,5 @@ class DefaultModel(Model):
         w = Weights(*(modelfile.require(path, arrays, k, (G, K)) for k in ("wv", "wl", "wr", "wg", "sc")))
         return cls(meta["channels"], modelfile.require(path, arrays, "mean", (C,)), modelfile.require(path, arrays, "std", (C,)),
                    reg, modelfile.require(path, arrays, "mu", (nb * R,)), modelfile.require(path, arrays, "cov", (nb * R, nb * R)),
-                   settings, w, {k: v for k, v in meta.items() if k not in ("settings", "groups")})
+                   settings, w, {k: v for k, v in meta.items() if k not in ("settings", "groups")},
+                   modelfile.require(path, arrays, "vrms", (C,)))
