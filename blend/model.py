@@ -220,6 +220,24 @@ class DefaultModel(Model):
 
         return DefaultState(self)
 
+    def step_batch(self, states, frames, observed):
+        """Many streams: one check of the whole batch, then each stream's compiled step."""
+        from blend.state import DefaultState
+        from lacuna.filler import FillerError
+
+        if not self.compiled or not states or not all(isinstance(s, DefaultState) and s.m is self and not s.collect
+                                                      for s in states):
+            return super().step_batch(states, frames, observed)
+        F = np.ascontiguousarray(frames, dtype=np.float64)
+        O = np.ascontiguousarray(observed, dtype=bool)
+        if F.shape != (len(states), self.n_channels) or O.shape != F.shape:
+            raise FillerError(f"a batch of {len(states)} streams needs frames and masks of shape "
+                              f"({len(states)}, {self.n_channels}) (got {F.shape} and {O.shape})")
+        if (O & ~np.isfinite(F)).any():
+            i, j = np.argwhere(O & ~np.isfinite(F))[0]
+            raise FillerError(f"observed values must be finite (got NaN/inf in stream {i} at channel {j})")
+        return [s._step_fast(F[i], O[i]) for i, s in enumerate(states)]
+
     def with_weights(self, weights: Weights) -> "DefaultModel":
         return DefaultModel(self.channels, self.mean_, self.std_, self.reg_idx, self.mu_, self.cov_, self.settings,
                             weights, self.meta, self.vrms_)
