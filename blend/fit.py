@@ -145,7 +145,8 @@ def _hat(model: DefaultModel, t: np.ndarray) -> np.ndarray:
     return Phi
 
 
-CELL_EDGES = (0.0, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 1e9)  # seconds since onset: the cells kept <= hold
+CELL_EDGES = (0.0, 1.5 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 1e9)  # seconds since onset: the cells kept <= hold
+# (the first erased frame is a cell of its own)
 
 
 def fit_weights(model: DefaultModel, data: dict[str, np.ndarray], ridge: float = 1e-2, smooth: float = 1.0,

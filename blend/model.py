@@ -60,7 +60,9 @@ GROUPS = {
 GROUP_NAMES = list(GROUPS) + ["other", "root-pos"]  # root rotations and root translation weigh apart
 ROOT_POS = len(GROUP_NAMES) - 1
 NO_REGRESSION = (0, ROOT_POS)
-KNOTS = (0.0, 1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 4.0)  # seconds since the gap began
+# seconds since the gap began; beyond the last knot the weights stay as they are there (the calibration gaps
+# end at 2 s: a knot further out would only be extrapolated)
+KNOTS = (0.0, 1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0)
 
 
 def group_of(channel: str) -> int:
