@@ -114,7 +114,7 @@ def add_commands(cli) -> None:
     p.add_argument("--out", default="lacuna-demo", metavar="DIR", help="where models, plots and JSON go (default ./lacuna-demo)")
     p.add_argument("--source", choices=["auto", "data", "synthetic"], default="auto",
                    help="motion: auto (data dir, else fetch, else synthetic), data, synthetic")
-    p.add_argument("--methods", help="comma-separated model methods to train (default hlm,crbm)")
+    p.add_argument("--methods", help="comma-separated model methods to train; the first is served by default (default default,hlm,crbm)")
     p.add_argument("--speed", type=float, default=1.0, help="replay speed, times real time (default 1)")
     p.add_argument("--budget-ms", type=float, default=8.0, help="the daemon's per-frame budget (default 8: one 120 Hz period)")
     p.add_argument("--seed", type=int, default=0)

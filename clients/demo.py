@@ -37,7 +37,7 @@ from mocap.protocols import TrainingSet
 TRAIN_TRIALS = ["35_01", "35_06", "35_07", "35_08", "35_09", "35_10", "35_11", "35_12"]
 TEST_TRIAL = "35_29"
 DROP = "gaps:right-arm,head-neck"
-MODELS = ("hlm", "crbm")
+MODELS = ("default", "hlm", "crbm")  # the first one registered is what the daemon serves by default
 BASELINES = ("hold", "nn")
 # Small models so that both train in well under two minutes on two cores; a method ignores
 # the options it does not know (lacuna.registry.MethodSpec).
