@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 # Modules that register methods when imported.  Missing ones (a package not built yet) are skipped.
-METHOD_MODULES = ["mocap.baselines", "hlm.methods", "crbm.methods"]
+METHOD_MODULES = ["mocap.baselines", "hlm.methods", "crbm.methods", "blend.methods"]
 
 
 @dataclass

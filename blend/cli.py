@@ -1,0 +1,65 @@
+"""`lacuna train default`: fit the recommended filler on motion files and write a model file."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def add_commands(cli) -> None:
+    p = cli.train("default", help="train the recommended causal filler (blend of hold, damped velocity and a "
+                                  "regression on the observed channels) on motion files")
+    p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it, .bvh, .csv)")
+    p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    p.add_argument("--calibrate", nargs="+", metavar="FILE", default=None,
+                   help="held-out takes to fit the stacking weights and the std on (default: the weights shipped "
+                        "in blend/weights.json, fitted on the validation split)")
+    p.add_argument("--fps", type=float, help="resample every file to this rate first")
+    p.add_argument("--quiet", "-q", action="store_true")
+    p.set_defaults(func=_run)
+
+
+def _load(paths: list[str], fps: float | None):
+    from hlm.cli import _read
+    from lacuna.errors import LacunaError
+    from mocap.representation import resample
+
+    motions = [_read(p) for p in paths]
+    ch = motions[0].channels
+    rate = fps or motions[0].fps
+    seqs = []
+    for p, m in zip(paths, motions):
+        if m.channels != ch:
+            raise LacunaError(f"{p}: channels differ from {paths[0]} ({len(m.channels)} vs {len(ch)}); "
+                              "train on takes of one skeleton")
+        if abs(m.fps - rate) > 1e-6:
+            if not fps:
+                raise LacunaError(f"{p}: {m.fps} fps differs from {motions[0].fps} fps; pass --fps to resample")
+            seqs.append(resample(m.frames, m.fps, rate, ch))
+        else:
+            seqs.append(m.frames)
+        if seqs[-1].shape[0] < 10:
+            raise LacunaError(f"{p}: has {seqs[-1].shape[0]} frames; need at least 10")
+    return seqs, ch, rate
+
+
+def _run(args: argparse.Namespace) -> int:
+    from blend.train import train_model
+
+    seqs, ch, rate = _load(args.data, args.fps)
+    cal = None
+    if args.calibrate:
+        cseqs, cch, _ = _load(args.calibrate, rate)
+        if cch != ch:
+            from lacuna.errors import LacunaError
+
+            raise LacunaError(f"{args.calibrate[0]}: channels differ from the training takes'")
+        cal = [(os.path.basename(p), s, "take") for p, s in zip(args.calibrate, cseqs)]
+    model = train_model(seqs, ch, [os.path.basename(p) for p in args.data], calibrate=cal, fps=rate)
+    model.save(args.output)
+    if not args.quiet:
+        print(f"default: {len(seqs)} takes, {sum(s.shape[0] for s in seqs)} frames at {rate:g} fps, "
+              f"{len(model.reg_idx)} regression channels, weights "
+              f"{'fitted on ' + str(len(cal)) + ' takes' if cal else 'shipped (validation split)'}; wrote {args.output}",
+              file=sys.stderr)
+    return 0

@@ -1,0 +1,207 @@
+"""``default``'s step compiled with numba: the same arithmetic as ``DefaultState.step_numpy``,
+channel by channel in one call (tests/test_default.py checks them against each other on real
+motion).  The regression matrix of the current missing pattern comes from the model's cache;
+only the per-frame work is here.  Used where ``lacuna.jit.enabled()``; else the numpy step serves.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from lacuna.jit import jit
+
+
+@jit
+def _wrap(x):
+    return (x + 180.0) % 360.0 - 180.0
+
+
+@jit
+def _knot(W, g, t, knots):
+    K = knots.shape[0]
+    if t <= knots[0]:
+        p = 0.0
+    elif t >= knots[K - 1]:
+        p = K - 1.0
+    else:
+        s = 0
+        while knots[s + 1] <= t:
+            s += 1
+        p = (t - knots[s]) * (1.0 / (knots[s + 1] - knots[s])) + s
+    i = min(int(p), K - 2)
+    f = p - i
+    return W[g, i] * (1.0 - f) + W[g, i + 1] * f
+
+
+@jit
+def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, mm, O, B, has_reg, changed,
+                last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
+                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH):
+    beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
+                                                                 par[6], par[7], par[8])
+    gate_rho, gate_decay, gate_weak = par[9], par[10], par[11]
+    C = f.shape[0]
+    n = hist.shape[0]
+    pos = int(sv[3])
+    seen = sv[2] > 0.0
+    Rn = ri.shape[0]
+    if not seen:
+        for j in range(C):
+            if obs[j]:
+                for rr in range(n):
+                    hist[rr, j] = f[j]
+    Lm = 0
+    for b in range(Ls.shape[0]):
+        Lm = max(Lm, Ls[b])
+    # the shadow check: one observed regression group predicted from the others
+    G = sh_g.shape[0]
+    cnt = int(sv[4])
+    if G > 0:
+        sv[4] += 1
+    if G > 0 and cnt > Lm:
+        q = cnt % G
+        nm = sh_nm[q]
+        allobs = True
+        for i in range(nm):
+            if not obs[ri[sh_m[q, i]]]:
+                allobs = False
+        if allobs:
+            nO = sh_nO[q]
+            z = np.empty(nO)
+            for qq in range(nO):
+                o = sh_O[q, qq]
+                b = o // Rn
+                c = ri[o % Rn]
+                x = f[c] if obs[c] else last[c]
+                if b == 0:
+                    v = x - mean[c]
+                else:
+                    v = x - hist[(pos - Ls[b - 1] + 1 + n) % n, c]
+                z[qq] = _wrap(v) - mu[o]
+            eR = 0.0
+            eH = 0.0
+            for i in range(nm):
+                mi = sh_m[q, i]
+                c = ri[mi]
+                r = 0.0
+                for qq in range(nO):
+                    r += sh_B[q, i, qq] * z[qq]
+                r += mu[mi]
+                e = _wrap(f[c] - mean[c] - r)
+                eR += e * e
+                e = _wrap(f[c] - hist[(pos - Lm + 1 + n) % n, c])
+                eH += e * e
+            g = sh_g[q]
+            ER[g] = gate_decay * ER[g] + eR
+            EH[g] = gate_decay * EH[g] + eH
+    anyobs = False
+    anymiss = False
+    for j in range(C):
+        if obs[j]:
+            anyobs = True
+        else:
+            anymiss = True
+    if anyobs:
+        nback = 0
+        zsum = 0.0
+        for j in range(C):
+            if not obs[j]:
+                continue
+            if k[j] == 0 and seen:
+                dx = f[j] - h[j]
+                if ang[j]:
+                    dx = _wrap(dx)
+                vel[j] = vel[j] + beta * (dx - vel[j])
+            da = f[j] - amean[j]
+            if ang[j]:
+                da = _wrap(da)
+            amean[j] = amean[j] + eta * da
+            avar[j] = (1 - eta) * avar[j] + eta * da * da
+            h[j] = f[j]
+            if k[j] > 0:
+                e = f[j] - last[j]
+                if ang[j]:
+                    e = _wrap(e)
+                z = e / max(lstd[j], 1e-9)
+                zsum += min(z * z, 25.0)
+                nback += 1
+        if nback:
+            lam = cal_decay ** nback
+            sv[0] = lam * sv[0] + zsum
+            sv[1] = lam * sv[1] + nback
+        seen = True
+    for j in range(C):
+        out[j] = f[j] if obs[j] else 0.0
+        std[j] = 0.0
+    if anymiss:
+        for j in range(C):
+            if obs[j]:
+                k[j] = 0
+            else:
+                if k[j] == 0:
+                    v0[j] = min(max(vel[j], -vcap[j]), vcap[j])
+                    R[j] = h[j]
+                k[j] += 1
+                Rv[j] = h[j]
+        if has_reg:
+            nO = O.shape[0]
+            z = np.empty(nO)
+            zp = np.empty(nO)
+            for q in range(nO):
+                o = O[q]
+                b = o // Rn
+                c = ri[o % Rn]
+                x = f[c] if obs[c] else last[c]
+                xp = hist[pos, c]
+                if b == 0:
+                    v = x - mean[c]
+                    vp = xp - mean[c]
+                else:
+                    L = Ls[b - 1]
+                    v = x - hist[(pos - L + 1 + n) % n, c]
+                    vp = xp - hist[(pos - L + n) % n, c]
+                z[q] = _wrap(v) - mu[o]
+                zp[q] = _wrap(vp) - mu[o]
+            for i in range(mm.shape[0]):
+                r = 0.0
+                for q in range(nO):
+                    r += B[i, q] * z[q]
+                r += mu[mm[i]]
+                c = ri[mm[i]]
+                if changed:
+                    rp = 0.0
+                    for q in range(nO):
+                        rp += B[i, q] * zp[q]
+                    off[c] = R[c] - (mean[c] + (rp + mu[mm[i]]))
+                off[c] *= a
+                val = mean[c] + r + off[c]
+                R[c] = val
+                Rv[c] = val
+        scale = 1.0
+        if sv[1] != 0.0:
+            scale = min(max(np.sqrt((cal_prior + sv[0]) / (cal_prior + sv[1])), 0.33), 3.0)
+        for j in range(C):
+            if obs[j]:
+                continue
+            kk = k[j]
+            H = h[j]
+            V = H + v0[j] * (d * (1.0 - d ** kk) / (1.0 - d))
+            W = H + v0[j] * (d2 * (1.0 - d2 ** kk) / (1.0 - d2))
+            t = kk / fps
+            g = group[j]
+            rho = (ER[g] + 1e-9) / (EH[g] + 1e-9)
+            gate = 1.0 / (1.0 + (rho / gate_rho) ** 2)
+            weak = 1.0 / (1.0 + (rho / gate_weak) ** 2)
+            wrj = _knot(wr, g, t, knots) * weak + _knot(wg, g, t, knots) * gate
+            out[j] = H + _knot(wv, g, t, knots) * (V - H) + _knot(wl, g, t, knots) * (W - H) + wrj * (Rv[j] - H)
+            amp = np.sqrt(avar[j] + (amp_floor * std0[j]) ** 2)
+            std[j] = _knot(sc, g, t, knots) * amp * scale
+    else:
+        for j in range(C):
+            k[j] = 0
+    pos = (pos + 1) % n
+    for j in range(C):
+        hist[pos, j] = out[j]
+        last[j] = out[j]
+        lstd[j] = std[j]
+    sv[2] = 1.0 if seen else 0.0
+    sv[3] = pos

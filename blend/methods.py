@@ -1,0 +1,22 @@
+"""Registers ``default`` with ``lacuna.registry`` and the model-file loader."""
+from __future__ import annotations
+
+from typing import Any
+
+from blend.model import DefaultModel
+from lacuna.modelfile import register_loader
+from lacuna.registry import MethodSpec, register_method
+
+
+def _train(training_set: Any, **options: Any) -> DefaultModel:
+    from blend.train import train_model
+
+    return train_model(training_set.sequences, training_set.channels, list(getattr(training_set, "names", []) or []),
+                       fps=options.get("fps") or getattr(training_set, "fps", None))
+
+
+register_method(MethodSpec("default", _train,
+                           "the recommended causal filler: hold, damped velocity and a regression on the observed "
+                           "channels, anchored at the last value and stacked by weights chosen on validation (blend)",
+                           None, True))
+register_loader("default", DefaultModel.load)

@@ -1,0 +1,279 @@
+"""The ``default`` filler: three causal predictions of each missing channel, stacked.
+
+For a channel j missing for k frames (k = 1 on the first erased frame), with h_j its last
+observed value:
+
+* hold      H = h_j
+* velocity  V = h_j + v_j d (1 - d^k) / (1 - d): the channel's smoothed velocity at the gap's
+            onset, damped (time constant ``damp_s``), so a short gap continues the motion and a
+            long one comes to rest; W the same with the longer ``damp2_s`` (the root keeps
+            travelling);
+* regress   R = mean_j + E[x_j | observed] + o_j(t): the conditional Gaussian of the missing
+            joint angles given the observed ones and their changes over each lag of ``lags_s``
+            (one Gaussian over pose and changes fitted on training takes), plus an offset o that
+            makes R start at h_j (no pop) and decays with time constant ``offset_s``.  When the
+            set of observed channels changes mid-gap the offset is re-set so R stays continuous.
+
+The fill is H + w_v(g, t) (V - H) + w_l(g, t) (W - H) + (w_r(g, t) gamma'_g + w_g(g, t) gamma_g) (R - H): stacking weights per joint group g and
+time since onset t (piecewise linear over ``knots`` seconds), fitted by least squares on the
+VALIDATION split (blend.fit); w = 0 is hold, so on the data they were fitted on the blend
+cannot be worse than hold in any group or time bin.  Root channels take no regression (their
+values are heading- and place-dependent), only hold and velocity: heading continues at its
+yaw rate, so a fill follows a turn.
+
+The regression is gated per stream by how well it predicts channels that are still observed:
+every frame one regression group that is observed is predicted from the others as if it were
+missing, and rho_g = sum (error of that prediction)^2 / sum (the group's own change over the
+longest lag)^2, decayed, and gamma_g = 1 / (1 + (rho_g / gate_rho)^2) weighs the gated part
+w_g of the regression (gamma'_g, the same with ``gate_rho_weak``, its other part), so a stream whose body does not move the way the training takes did
+falls back on hold and velocity.
+
+The std of a filled value is c(g, t) * a_j * s, with a_j the channel's own recent spread (an
+exponentially weighted std over ``amp_s`` seconds while it was observed) so that a still
+performer gets a tight band and a basketball player a wide one; c is fitted on validation
+errors so that 2 std hold 95% of them; s is the stream's own calibration, learnt online: each
+time a gap ends the filler sees how far its last fill was from the returning value, in units of
+the std it gave, and s = sqrt(mean z^2) over those values (with ``cal_prior`` pseudo-values of 1).  The model is a handful of arrays; a step is O(C) plus
+one small matrix-vector product, with the regression matrix cached per pattern of missing
+channels (masks recur: a joint group drops out again and again).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from lacuna import modelfile
+from lacuna.filler import Model
+from mocap.representation import is_angle
+
+GROUPS = {
+    "root": ("root",),
+    "torso": ("lowerback", "upperback", "thorax"),
+    "head-neck": ("lowerneck", "upperneck", "head"),
+    "left-arm": ("lclavicle", "lhumerus", "lradius", "lwrist", "lhand", "lfingers", "lthumb"),
+    "right-arm": ("rclavicle", "rhumerus", "rradius", "rwrist", "rhand", "rfingers", "rthumb"),
+    "left-leg": ("lfemur", "ltibia", "lfoot", "ltoes"),
+    "right-leg": ("rfemur", "rtibia", "rfoot", "rtoes"),
+}
+GROUP_NAMES = list(GROUPS) + ["other", "root-pos"]  # root rotations and root translation weigh apart
+ROOT_POS = len(GROUP_NAMES) - 1
+NO_REGRESSION = (0, ROOT_POS)
+KNOTS = (0.0, 1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 4.0)  # seconds since the gap began
+
+
+def group_of(channel: str) -> int:
+    bone = channel.split(".", 1)[0]
+    for i, bones in enumerate(GROUPS.values()):
+        if bone in bones or (i == 0 and bone.lower() in ("root", "hips")):
+            return ROOT_POS if i == 0 and not is_angle(channel) else i
+    return len(GROUPS)
+
+
+def wrap(x: np.ndarray) -> np.ndarray:
+    return (x + 180.0) % 360.0 - 180.0
+
+
+@dataclass
+class Settings:
+    """Hyperparameters (chosen on VALIDATION, see docs/BENCHMARKS.md ## default)."""
+
+    fps: float = 120.0
+    lags_s: tuple = (0.05,)   # change features of the regression: x_t - x_{t - lag} for each lag
+    vel_s: float = 0.02       # smoothing time constant of the onset velocity
+    damp_s: float = 0.15      # damping time constant of the velocity extrapolation
+    damp2_s: float = 1.0      # the second, slower one
+    offset_s: float = 1e9     # decay of the regression's anchoring offset (1e9: never)
+    amp_s: float = 1.0        # window of the channel spread that scales the std
+    ridge: float = 1e-3       # relative ridge on the observed covariance block
+    amp_floor: float = 0.05   # share of the training std added to the spread (a still channel's floor)
+    cal_prior: float = 5.0    # online std calibration: pseudo-count of z^2 = 1 (chosen on validation: 5, 15, off)
+    cal_decay: float = 0.995  # ... and the decay per value seen at a gap's end
+    gate_rho: float = 1e9     # regression gate gamma = 1 / (1 + (rho / gate_rho)^2), rho the stream's shadow
+                              # error ratio (1e9: gamma = 1)
+    gate_decay: float = 0.9   # decay of the shadow error sums per check (one group checked per frame)
+    gate_rho_weak: float = 1e9  # the same gate, weaker, on w_r (1e9: w_r ungated)
+    vcap_mult: float = 1e9    # onset velocity capped at this many training RMS changes per frame (1e9: no cap)
+    knots: tuple = KNOTS
+
+    def per_frame(self) -> dict[str, float]:
+        f = self.fps
+        return {"L": tuple(max(1, int(round(lag * f))) for lag in self.lags_s), "beta": 1.0 - np.exp(-1.0 / max(self.vel_s * f, 1e-9)),
+                "d": float(np.exp(-1.0 / max(self.damp_s * f, 1e-9))), "d2": float(np.exp(-1.0 / max(self.damp2_s * f, 1e-9))), "a": float(np.exp(-1.0 / max(self.offset_s * f, 1e-9))),
+                "eta": 1.0 - np.exp(-1.0 / max(self.amp_s * f, 1e-9))}
+
+
+@dataclass
+class Weights:
+    """Stacking weights and std scale per group (G) and knot (K)."""
+
+    wv: np.ndarray
+    wl: np.ndarray
+    wr: np.ndarray
+    wg: np.ndarray
+    sc: np.ndarray
+
+    @classmethod
+    def initial(cls, n_groups: int = len(GROUP_NAMES), n_knots: int = len(KNOTS)) -> "Weights":
+        z = np.zeros((n_groups, n_knots))
+        return cls(z, z.copy(), z.copy(), z.copy(), np.full((n_groups, n_knots), 1.0))
+
+
+class DefaultModel(Model):
+    method = "default"
+
+    def __init__(self, channels: list[str], mean: np.ndarray, std: np.ndarray, reg_idx: np.ndarray,
+                 mu: np.ndarray, cov: np.ndarray, settings: Settings, weights: Weights,
+                 meta: dict[str, Any] | None = None, vrms: np.ndarray | None = None):
+        self.channels = list(channels)
+        C = len(self.channels)
+        self.mean_ = np.asarray(mean, float)
+        self.std_ = np.asarray(std, float)
+        # RMS per-frame change of each channel in training: the onset velocity is capped at vcap_mult of it
+        # (Euler angles of the root swing through gimbal flips faster than any limb; a fill must not follow)
+        self.vrms_ = np.full(C, 1e9) if vrms is None else np.asarray(vrms, float)
+        self.vcap = settings.vcap_mult * self.vrms_
+        self.reg_idx = np.asarray(reg_idx, int)
+        self.mu_ = np.asarray(mu, float)
+        self.cov_ = np.asarray(cov, float)
+        self.settings = settings
+        self.weights = weights
+        self.meta = dict(meta or {})
+        self.ang = np.array([is_angle(c) for c in self.channels])
+        self.group = np.array([group_of(c) for c in self.channels])
+        self.knots = np.asarray(settings.knots, float)
+        self._pf = settings.per_frame()
+        R = len(self.reg_idx)
+        self._is_reg = np.zeros(C, bool)
+        self._is_reg[self.reg_idx] = True
+        self._ridge = settings.ridge * np.mean(np.diag(self.cov_)) if R else 0.0
+        self._cache: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        pf = self._pf
+        self._par = np.array([pf["beta"], pf["d"], pf["d2"], pf["a"], pf["eta"], settings.fps, settings.amp_floor,
+                              settings.cal_prior, settings.cal_decay, settings.gate_rho, settings.gate_decay, settings.gate_rho_weak])
+        self._Ls = np.array(pf["L"], np.int64)
+        self._none_i = np.zeros(0, np.int64)
+        self._none_B = np.zeros((0, 0))
+        self._shadow()
+        from lacuna import jit
+
+        self.compiled = jit.enabled()
+
+    def _shadow(self) -> None:
+        """Per regression group g: the matrix predicting g's channels from every other regression
+        channel (pose and changes), for the stream's shadow check (padded arrays for the kernel)."""
+        ri = self.reg_idx
+        gs = sorted({int(g) for g in self.group[ri]})
+        mats = []
+        for g in gs:
+            miss = self.group[ri] == g
+            mats.append((g,) + self.regression(miss))
+        self._cache.clear()
+        G = len(mats)
+        mx_m = max((len(m) for _, m, _, _ in mats), default=0)
+        mx_o = max((len(o) for _, _, o, _ in mats), default=0)
+        self.sh_g = np.array([g for g, _, _, _ in mats], np.int64)
+        self.sh_m = np.zeros((G, mx_m), np.int64)
+        self.sh_nm = np.zeros(G, np.int64)
+        self.sh_O = np.zeros((G, mx_o), np.int64)
+        self.sh_nO = np.zeros(G, np.int64)
+        self.sh_B = np.zeros((G, mx_m, mx_o))
+        for i, (g, m, O, B) in enumerate(mats):
+            self.sh_m[i, :len(m)] = m
+            self.sh_nm[i] = len(m)
+            self.sh_O[i, :len(O)] = O
+            self.sh_nO[i] = len(O)
+            self.sh_B[i, :len(m), :len(O)] = B
+
+    # ---- regression matrices, cached per missing pattern -------------------------------------
+    def regression(self, miss_reg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For a (R,) bool pattern of missing regression channels: (m, O, B) with m the missing
+        positions in reg space, O the observed feature indices (pose and velocity), B (|m|, |O|)."""
+        key = miss_reg.tobytes()
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        R = len(self.reg_idx)
+        m = np.flatnonzero(miss_reg)
+        o = np.flatnonzero(~miss_reg)
+        O = np.concatenate([o + b * R for b in range(1 + len(self.settings.lags_s))])
+        if len(O):
+            S_oo = self.cov_[np.ix_(O, O)] + self._ridge * np.eye(len(O))
+            B = np.linalg.solve(S_oo, self.cov_[np.ix_(O, m)]).T
+        else:
+            B = np.zeros((len(m), 0))
+        if len(self._cache) > 512:
+            self._cache.clear()
+        self._cache[key] = (m, O, np.ascontiguousarray(B))
+        return self._cache[key]
+
+    def knot_weights(self, W: np.ndarray, g: np.ndarray, t: np.ndarray) -> np.ndarray:
+        K = len(self.knots)
+        p = np.interp(t, self.knots, np.arange(K, dtype=float))
+        i = np.minimum(p.astype(int), K - 2)
+        f = p - i
+        return W[g, i] * (1.0 - f) + W[g, i + 1] * f
+
+    def stream(self):
+        from blend.state import DefaultState
+
+        return DefaultState(self)
+
+    def step_batch(self, states, frames, observed):
+        """Many streams: one check of the whole batch, then each stream's compiled step."""
+        from blend.state import DefaultState
+        from lacuna.filler import FillerError
+
+        if not self.compiled or not states or not all(isinstance(s, DefaultState) and s.m is self and not s.collect
+                                                      for s in states):
+            return super().step_batch(states, frames, observed)
+        F = np.ascontiguousarray(frames, dtype=np.float64)
+        O = np.ascontiguousarray(observed, dtype=bool)
+        if F.shape != (len(states), self.n_channels) or O.shape != F.shape:
+            raise FillerError(f"a batch of {len(states)} streams needs frames and masks of shape "
+                              f"({len(states)}, {self.n_channels}) (got {F.shape} and {O.shape})")
+        if (O & ~np.isfinite(F)).any():
+            i, j = np.argwhere(O & ~np.isfinite(F))[0]
+            raise FillerError(f"observed values must be finite (got NaN/inf in stream {i} at channel {j})")
+        return [s._step_fast(F[i], O[i]) for i, s in enumerate(states)]
+
+    def with_weights(self, weights: Weights) -> "DefaultModel":
+        return DefaultModel(self.channels, self.mean_, self.std_, self.reg_idx, self.mu_, self.cov_, self.settings,
+                            weights, self.meta, self.vrms_)
+
+    def info(self) -> dict[str, Any]:
+        return {**super().info(), "fps": self.settings.fps, "regression_channels": int(len(self.reg_idx))}
+
+    # ---- persistence (npz + JSON; no component model files are referenced: all arrays inline) -
+    def save(self, path: str) -> None:
+        meta = {**self.meta, "method": self.method, "channels": self.channels,
+                "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self.settings).items()},
+                "groups": GROUP_NAMES}
+        arrays = {"mean": self.mean_, "std": self.std_, "reg_idx": self.reg_idx, "mu": self.mu_, "cov": self.cov_, "vrms": self.vrms_,
+                  "wv": self.weights.wv, "wl": self.weights.wl, "wr": self.weights.wr, "wg": self.weights.wg, "sc": self.weights.sc}
+        modelfile.save_arrays(path, meta, arrays)
+
+    @classmethod
+    def load(cls, path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> "DefaultModel":
+        C = len(meta["channels"])
+        s = meta.get("settings")
+        if not isinstance(s, dict):
+            raise modelfile.ModelFileError(f"{path}: default model without 'settings' in its metadata")
+        try:
+            settings = Settings(**{**s, "knots": tuple(float(k) for k in s.get("knots", KNOTS)),
+                                   "lags_s": tuple(float(k) for k in s.get("lags_s", (0.05,)))})
+        except TypeError as e:
+            raise modelfile.ModelFileError(f"{path}: default model settings are malformed ({e})") from None
+        K = len(settings.knots)
+        G = len(GROUP_NAMES)
+        reg = modelfile.require(path, arrays, "reg_idx", (None,))
+        R = reg.shape[0]
+        nb = 1 + len(settings.lags_s)
+        if R and (reg.min() < 0 or reg.max() >= C):
+            raise modelfile.ModelFileError(f"{path}: reg_idx points outside the {C} channels")
+        w = Weights(*(modelfile.require(path, arrays, k, (G, K)) for k in ("wv", "wl", "wr", "wg", "sc")))
+        return cls(meta["channels"], modelfile.require(path, arrays, "mean", (C,)), modelfile.require(path, arrays, "std", (C,)),
+                   reg, modelfile.require(path, arrays, "mu", (nb * R,)), modelfile.require(path, arrays, "cov", (nb * R, nb * R)),
+                   settings, w, {k: v for k, v in meta.items() if k not in ("settings", "groups")},
+                   modelfile.require(path, arrays, "vrms", (C,)))

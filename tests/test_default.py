@@ -1,0 +1,208 @@
+"""``default`` (blend/): trained on real takes, checked on held-out ones; the model file; the CLI."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from blend.fit import occlusion
+from blend.model import DefaultModel, wrap
+from blend.train import train_model
+from lacuna import modelfile, registry
+from lacuna.cli import main as cli_main
+from mocap import splits
+from mocap.baselines import HoldModel
+from mocap.representation import is_angle
+
+pytestmark = pytest.mark.realdata
+
+TRAIN = ["07_02", "35_01", "35_06", "walking_13", "walking_14", "basketball_1", "soccer_1", "basketball_signal_1"]
+
+
+@pytest.fixture(scope="module")
+def small(data):
+    """``default`` as shipped: the Gaussian on the TRAIN split (a second), the weights chosen on validation."""
+    seqs = [splits.load_take(t).frames for t in splits.TRAIN]
+    ch = splits.load_take(splits.TRAIN[0]).channels
+    return train_model(seqs, ch, splits.TRAIN), HoldModel.fit(seqs, ch)
+
+
+def _erased(truth, fill, obs, channels):
+    ang = np.array([is_angle(c) for c in channels])
+    e = wrap(fill - truth)
+    return e[~obs & ang[None]]
+
+
+def test_first_erased_frame_starts_where_the_performer_was(small):
+    """Every gap of a validation walk (left leg, 0.3 s every 0.6 s): the first filled frame is
+    within 2x the truth's own step, and the first 100 ms beat hold."""
+    model, hold = small
+    truth = splits.load_take("walking_20").frames
+    ch = model.channels
+    cols = np.array([c.split(".")[0] in ("lfemur", "ltibia", "lfoot", "ltoes") for c in ch])
+    obs = np.ones(truth.shape, bool)
+    starts = list(range(60, truth.shape[0] - 40, 72))
+    for s in starts:
+        obs[s:s + 36, cols] = False
+    given = np.where(obs, truth, np.nan)
+    fill, std = model.fill_offline(given, obs)
+    hfill, _ = hold.fill_offline(given, obs)
+    first = np.array(starts)
+    err1 = np.abs(wrap(fill[np.ix_(first, np.flatnonzero(cols))] - truth[np.ix_(first, np.flatnonzero(cols))]))
+    step = np.abs(wrap(truth[np.ix_(first, np.flatnonzero(cols))] - truth[np.ix_(first - 1, np.flatnonzero(cols))]))
+    assert np.median(err1) <= 2 * np.median(step)
+    early = np.zeros(truth.shape, bool)
+    for s in starts:
+        early[s:s + 12, cols] = True
+    e_def = wrap(fill - truth)[early]
+    e_hold = wrap(hfill - truth)[early]
+    assert np.sqrt(np.mean(e_def**2)) < np.sqrt(np.mean(e_hold**2))
+    assert (std[~obs] > 0).all() and (std[obs] == 0).all()
+    np.testing.assert_array_equal(fill[obs], truth[obs])  # observed values come back exactly
+
+
+@pytest.mark.parametrize("take", ["walking_21", "soccer_4", "basketball_signal_4"])
+def test_not_worse_than_hold_and_calibrated_on_held_out_takes(small, take):
+    """Validation takes (a walk of another performer, non-locomotion) with the gaps-like occlusion."""
+    model, hold = small
+    truth = splits.load_take(take).frames
+    obs, _ = occlusion(take, truth.shape[0], model.channels, 120.0, seed=100)
+    given = np.where(obs, truth, np.nan)
+    fill, std = model.fill_offline(given, obs)
+    hfill, _ = hold.fill_offline(given, obs)
+    ang = np.array([c.split(".")[0] != "root" and is_angle(c) for c in model.channels])
+    m = ~obs & ang[None]
+    e, eh = wrap(fill - truth)[m], wrap(hfill - truth)[m]
+    assert np.sqrt(np.mean(e**2)) <= np.sqrt(np.mean(eh**2))
+    share = np.mean(np.abs(e) <= 2 * std[m])
+    assert 0.85 <= share <= 0.995, share
+
+
+def test_weights_fitted_on_given_takes_beat_hold(data):
+    """The calibration path: weights fitted on two held-out takes are not all zero and beat hold there."""
+    seqs = [splits.load_take(t).frames for t in TRAIN[:4]]
+    ch = splits.load_take(TRAIN[0]).channels
+    cal = [(t, splits.load_take(t).frames, "walk") for t in ("07_10", "walking_21")]
+    model = train_model(seqs, ch, TRAIN[:4], calibrate=cal)
+    assert np.abs(model.weights.wv).max() > 0.05 and np.abs(model.weights.wr).max() > 0.05
+    assert model.meta["calibration"]["data"] == ["07_10", "walking_21"]
+    truth = cal[0][1]
+    obs, _ = occlusion("07_10", truth.shape[0], ch, 120.0, seed=100)
+    given = np.where(obs, truth, np.nan)
+    e = wrap(model.fill_offline(given, obs)[0] - truth)[~obs]
+    eh = wrap(HoldModel.fit(seqs, ch).fill_offline(given, obs)[0] - truth)[~obs]
+    assert np.mean(e**2) < np.mean(eh**2)
+
+
+def test_model_file_round_trip_gives_identical_fills_and_bad_files_are_refused(small, tmp_path):
+    model, _ = small
+    p = tmp_path / "default.npz"
+    model.save(str(p))
+    again = modelfile.load_model(str(p))
+    assert isinstance(again, DefaultModel) and again.method == "default"
+    truth = splits.load_take("soccer_4").frames[:400]
+    obs, _ = occlusion("soccer_4", 400, model.channels, 120.0, seed=101)
+    given = np.where(obs, truth, np.nan)
+    a, sa = model.fill_offline(given, obs)
+    b, sb = again.fill_offline(given, obs)
+    assert np.array_equal(a, b) and np.array_equal(sa, sb)
+    raw = p.read_bytes()
+    bad = tmp_path / "cut.npz"
+    bad.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(modelfile.ModelFileError, match="truncated or corrupt"):
+        modelfile.load_model(str(bad))
+    meta, arrays = modelfile.load_arrays(str(p))
+    arrays["cov"] = arrays["cov"][:-1]
+    modelfile.save_arrays(str(tmp_path / "shape.npz"), meta, arrays)
+    with pytest.raises(modelfile.ModelFileError, match="'cov' has shape"):
+        modelfile.load_model(str(tmp_path / "shape.npz"))
+
+
+def test_batched_step_matches_one_stream_at_a_time(small):
+    model, _ = small
+    truth = splits.load_take("07_10").frames[:200]
+    masks = [occlusion(f"s{i}", 200, model.channels, 120.0, seed=i)[0] for i in range(3)]
+    solo = [model.stream() for _ in masks]
+    batch = [model.stream() for _ in masks]
+    for t in range(200):
+        O = np.stack([m[t] for m in masks])
+        F = np.where(O, truth[t][None], np.nan)
+        fills = model.step_batch(batch, F, O)
+        for i in range(3):
+            f = solo[i].step(F[i], O[i])
+            assert np.array_equal(f.frame, fills[i].frame) and np.array_equal(f.std, fills[i].std)
+    assert solo[0].predict().filled.all()  # a frame that never arrived: everything is filled
+
+
+def test_compiled_step_matches_the_numpy_step_with_the_gate_on(small):
+    """blend.fast against DefaultState.step_numpy on real motion, with the regression gate active."""
+    from dataclasses import replace
+
+    from lacuna import jit
+
+    if not jit.enabled():
+        pytest.skip("numba unavailable or LACUNA_NO_JIT set: only the numpy step runs here")
+    model, _ = small
+    gated = DefaultModel(model.channels, model.mean_, model.std_, model.reg_idx, model.mu_, model.cov_,
+                         replace(model.settings, gate_rho=0.7), model.weights, model.meta, model.vrms_)
+    for take in ("walking_23", "basketball_4"):
+        truth = splits.load_take(take).frames[:300]
+        obs, _ = occlusion(take, 300, model.channels, 120.0, seed=102)
+        a, b = gated.stream(), gated.stream()
+        for t in range(300):
+            fr = np.where(obs[t], truth[t], np.nan)
+            fa = a.step(fr, obs[t])
+            fb = b.step_numpy(fr.copy(), obs[t].copy())
+            np.testing.assert_allclose(fa.frame, fb.frame, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(fa.std, fb.std, rtol=0, atol=1e-9)
+        assert (b.ER > 0).any() and np.isfinite(b.gate(np.arange(len(b.ER)))).all()
+
+
+def test_registered_and_trainable_from_the_command_line(data, tmp_path, capsys):
+    assert "default" in registry.methods() and registry.get_method("default").causal
+    files = [str(splits.take_path(t)) for t in ("07_02", "walking_13")]
+    out = tmp_path / "d.npz"
+    assert cli_main(["train", "default", *files, "-o", str(out)]) == 0
+    assert modelfile.load_model(str(out)).meta["training"]["data"] == ["07_02.amc", "walking_13.amc"]
+    assert cli_main(["train", "default", str(tmp_path / "missing.amc"), "-o", str(out)]) == 2
+    assert "lacuna: error:" in capsys.readouterr().err
+
+
+def test_daemon_serves_default_over_a_real_socket(small, tmp_path):
+    """A real `lacuna serve` process loads the model file and answers frames with gaps the way the
+    model does in-process (values travel as float32)."""
+    import json
+
+    import zmq
+
+    from daemon import loadgen, wire
+
+    model, _ = small
+    path = tmp_path / "default.npz"
+    model.save(str(path))
+    cfg = tmp_path / "lacuna.toml"
+    cfg.write_text("\n".join(["[daemon]", "budget_ms = 250.0", "idle_timeout_s = 60", "max_gap_frames = 5",
+                              'default_model = "default"', "[models.default]", f"file = {json.dumps(str(path))}",
+                              "[zmq]", 'router = "tcp://127.0.0.1:*"', 'pub = "tcp://127.0.0.1:*"']) + "\n")
+    d = loadgen.DaemonProcess(str(cfg)).start()
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.DEALER)
+    s.setsockopt(zmq.LINGER, 0)
+    try:
+        s.connect(d.endpoints["router"])
+        truth = splits.load_take("walking_21").frames[:120].astype(np.float32)
+        obs = np.ones(truth.shape, bool)
+        obs[40:100, 6:20] = False  # both legs drop out for half a second
+        ref = model.stream()
+        for t in range(truth.shape[0]):
+            vals = np.where(obs[t], truth[t], np.nan).astype(np.float32)
+            s.send(wire.encode(wire.Frame("p1", t, t / 120.0, vals, None)))
+            assert s.poll(10000), "no answer from the daemon"
+            m = wire.decode(s.recv_multipart()[-1], 64 << 20)
+            want = ref.step(vals.astype(np.float64), obs[t])
+            assert isinstance(m, wire.FillMsg) and m.model == "default" and m.seq == t
+            np.testing.assert_array_equal(m.filled, ~obs[t])
+            np.testing.assert_allclose(m.angles, want.frame.astype(np.float32), rtol=0, atol=1e-3)
+    finally:
+        s.close(0)
+        ctx.term()
+        d.stop()
