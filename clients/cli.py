@@ -105,12 +105,13 @@ def add_commands(cli) -> None:
     p.add_argument("--quiet", "-q", action="store_true")
     p.set_defaults(func=_bench)
 
-    p = cli.command("demo", help="train default, serve it beside hold, replay a held-out take of another performer "
-                                 "with short and long dropouts, score against hold and offline interpolation")
+    p = cli.command("demo", help="train default and a small hlm, serve them beside hold, replay a held-out take of "
+                                 "another performer with short and long dropouts, score against hold and offline "
+                                 "interpolation")
     p.add_argument("--out", default="lacuna-demo", metavar="DIR", help="where models, plots and JSON go (default ./lacuna-demo)")
     p.add_argument("--source", choices=["auto", "data", "synthetic"], default="auto",
                    help="motion: auto (data dir, else fetch, else synthetic), data, synthetic")
-    p.add_argument("--methods", help="comma-separated methods to train and serve beside hold (default: default; "
+    p.add_argument("--methods", help="comma-separated methods to train and serve beside hold (default: default,hlm; "
                                      "hlm and crbm get small settings; none = the baselines only)")
     p.add_argument("--take", metavar="NAME", help="the TEST take of mocap.splits to replay (default 02_01)")
     p.add_argument("--speed", type=float, default=1.0, help="replay speed, times real time (default 1)")

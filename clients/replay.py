@@ -212,6 +212,9 @@ def plot_fills(path: str, truth: np.ndarray, fills: dict[str, np.ndarray], erase
     return path
 
 
+LINE_COLOURS = {"hold": "tab:blue", "interp": "tab:green", "hlm": "tab:purple", "crbm": "tab:brown", "nn": "tab:olive"}
+
+
 def _spans(e: np.ndarray) -> list[tuple[int, int]]:
     edges = np.flatnonzero(np.diff(np.r_[0, e.astype(int), 0]))
     return list(zip(edges[::2], edges[1::2]))
@@ -257,7 +260,8 @@ def plot_fill_band(path: str, truth: np.ndarray, fill: np.ndarray, std: np.ndarr
             ax.annotate(f"{(b - a) / fps:.2f} s", (t[a], 1.0), xycoords=("data", "axes fraction"), fontsize=6,
                         va="bottom", color="0.35")
         for k, (oname, f) in enumerate(others.items()):
-            ax.plot(t, np.where(e, f[:, j], np.nan), lw=1.0, ls=("--", ":", "-.")[k % 3], label=oname)
+            ax.plot(t, np.where(e, f[:, j], np.nan), lw=1.0, ls=("--", ":", "-.")[k % 3], label=oname,
+                    color=LINE_COLOURS.get(oname, f"C{(k + 4) % 10}"))
         v = np.where(e, fill[:, j], np.nan)
         s = np.where(e, std[:, j], np.nan)
         line, = ax.plot(t, v, lw=1.3, color="tab:red", label=name)
