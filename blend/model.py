@@ -82,6 +82,7 @@ class Settings:
     fps: float = 120.0
     lags_s: tuple = (0.05,)   # change features of the regression: x_t - x_{t - lag} for each lag
     vel_s: float = 0.02       # smoothing time constant of the onset velocity
+    vel_root_s: float = 0.02  # the same for the root's channels (longer: the heading's rate over a gait cycle)
     damp_s: float = 0.15      # damping time constant of the velocity extrapolation
     damp2_s: float = 1.0      # the second, slower one
     offset_s: float = 1e9     # decay of the regression's anchoring offset (1e9: never)
@@ -134,6 +135,9 @@ class DefaultModel(Model):
         # (Euler angles of the root swing through gimbal flips faster than any limb; a fill must not follow)
         self.vrms_ = np.full(C, 1e9) if vrms is None else np.asarray(vrms, float)
         self.vcap = settings.vcap_mult * self.vrms_
+        root = np.array([group_of(c) in NO_REGRESSION for c in self.channels])
+        self.beta = np.where(root, 1.0 - np.exp(-1.0 / max(settings.vel_root_s * settings.fps, 1e-9)),
+                             1.0 - np.exp(-1.0 / max(settings.vel_s * settings.fps, 1e-9)))
         self.reg_idx = np.asarray(reg_idx, int)
         self.mu_ = np.asarray(mu, float)
         self.cov_ = np.asarray(cov, float)

@@ -85,7 +85,7 @@ class DefaultState(FillerState):
         out = np.empty(C)
         std = np.empty(C)
         step_kernel(f, obs, m.ang, m.group, m.mean_, m.std_, m.reg_idx, m.mu_, m.knots, m.weights.wv, m.weights.wl,
-                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, mm, O, B, has, changed, self.last, self.h, self.vel,
+                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, mm, O, B, has, changed, self.last, self.h, self.vel,
                     self.v0, self.k, self.R, self.off, self.amean, self.avar, self.lstd, self.hist, self.sv, out, std,
                     self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH)
         return Fill(out, std, ~obs)
@@ -135,7 +135,7 @@ class DefaultState(FillerState):
             # observed channels: velocity (only across consecutive observations), spread, anchors
             was = (self.k == 0) & obs & (self.sv[2] > 0)
             dx = np.where(m.ang, wrap(f - self.h), f - self.h)
-            self.vel = np.where(was, self.vel + pf["beta"] * (dx - self.vel), self.vel)
+            self.vel = np.where(was, self.vel + m.beta * (dx - self.vel), self.vel)
             da = np.where(m.ang, wrap(f - self.amean), f - self.amean)
             self.amean = np.where(obs, self.amean + pf["eta"] * da, self.amean)
             self.avar = np.where(obs, (1 - pf["eta"]) * self.avar + pf["eta"] * da * da, self.avar)
