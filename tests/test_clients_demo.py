@@ -157,3 +157,21 @@ def test_demo_ctrl_c_stops_the_daemon_it_started(tmp_path):
     assert p.returncode == 130  # lacuna: interrupted
     assert '"event": "stopped"' in log.read_text()
     assert not os.path.exists(f"/proc/{pid}") or "zombie" in open(f"/proc/{pid}/status").read().lower()
+
+
+def test_band_channels_pick_one_moving_dropped_channel_per_group(tmp_path):
+    from clients import replay as rp
+    from mocap.protocols import GAP_GROUPS, bone
+
+    g = synth.gait(4.0, seed=3)
+    obs, bursts = demo.drop_mask(demo.DROP, g, 2)
+    cols = rp.band_channels(g.frames, ~obs, g.channels, GAP_GROUPS)
+    assert 1 <= len(cols) <= 4
+    groups = [next(k for k, b in GAP_GROUPS.items() if bone(g.channels[j]) in b) for j in cols]
+    assert len(set(groups)) == len(groups)  # one per joint group
+    for j in cols:
+        assert (~obs[:, j]).any() and g.frames[:, j].std() > 0
+    std = np.full(g.frames.shape, 2.0)
+    p = rp.plot_fill_band(str(tmp_path / "f.png"), g.frames, g.frames + 1, std, ~obs, g.channels, g.fps, cols,
+                          {"hold": g.frames - 1}, "default", "t")
+    assert os.path.getsize(p) > 0
