@@ -113,7 +113,8 @@ def _from_data(take: str) -> tuple[list[Motion], list[str], Motion, str, str] | 
         test = splits.load_take(take)
     except (LacunaError, OSError):
         return None
-    who = f"subject {performer(take)}" if performer(take) else "a performer the data does not name (cmu_li)"
+    who = (f"subject {performer(take)}" if performer(take) else
+           "cmu_li: the data does not name its performer, so it may be one the training takes share")
     return (train, names, test, take,
             f"CMU motion capture from {datasets.data_dir()}: trained on {len(names)} TRAIN takes of subjects "
             f"{', '.join(sorted({performer(t) for t in names}))} ({', '.join(names)}); replaying TEST take {take} ({who})")
