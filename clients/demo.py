@@ -206,15 +206,14 @@ def run(args: Any) -> int:
     wanted = [m for m in (list(MODELS) if not args.methods else args.methods.split(",")) if m and m != "none"]
     # the models' own progress lines (EM iterations, CD epochs) go to stderr unless --quiet
     options = {k: {**v, "progress": not args.quiet} for k, v in SMALL.items()}
-    files, secs, notes = train_models(train, names, out, wanted + list(CAUSAL_BASELINES) + [OFFLINE], options)
+    files, secs, notes = train_models(train, names, out, list(dict.fromkeys(wanted + list(CAUSAL_BASELINES) + [OFFLINE])),
+                                      options)
     served = [m for m in wanted if m in files and registry.get_method(m).causal]
+    offline = list(dict.fromkeys([m for m in wanted if m in files and m not in served] + [OFFLINE]))
     for m in served:
         if m in SMALL:
             notes.append(f"{m}: small demo settings ({', '.join(f'{k}={v}' for k, v in SMALL[m].items() if k != 'progress')}), "
                          "chosen for speed, not on validation")
-    for m in wanted:
-        if m in files and m not in served:
-            notes.append(f"{m} is offline (needs the future): computed in-process, not served")
     if "default" not in served:
         notes.append("`default` is not served in this run: the table shows the baselines only" if not served else
                      "`default` is not served in this run (--methods)")
@@ -228,7 +227,7 @@ def run(args: Any) -> int:
              f"({', '.join(f'{v} {k}' for k, v in lengths.items() if v)}), {int((~obs).sum())} values missing; "
              f"the gaps protocol's generator, seed {seed}")
     say(f"held-out take {test_name}: {test.n_frames} frames at {test.fps:g} Hz; {drops}")
-    live = served + [b for b in CAUSAL_BASELINES if b in files]
+    live = list(dict.fromkeys(served + [b for b in CAUSAL_BASELINES if b in files]))
     daemon = DaemonProcess({k: str(files[k]) for k in live}, live[0], workdir=str(out / "daemon"),
                            daemon={"budget_ms": float(args.budget_ms)})
     runs: dict[str, rp.ReplayResult] = {}
@@ -254,13 +253,13 @@ def run(args: Any) -> int:
                          "latency": summ["latency"], "status": summ["status"], "dropped_frames": summ["dropped"],
                          "daemon_proc_ms_p50": summ["daemon_proc_ms_p50"], "replay_wall_s": summ["wall_s"],
                          "offline_rms_deg": demo_score.score(case, off, None)["rms_deg"]}
-    if OFFLINE in files:
-        f, s = offline_fill(OFFLINE, files[OFFLINE], test, obs)
-        fills[OFFLINE], stds[OFFLINE] = f, s
-        results[OFFLINE] = {"through_daemon": False, "causal": False, "scores": demo_score.score(case, f, s),
-                            "latency": None, "note": "offline linear interpolation, computed in-process: it needs "
-                                                     "the frame after each gap, so no live system can run it"}
-        notes.append(f"{OFFLINE} is offline (it uses the frame after each gap): a reference, not a live option")
+    for name in (m for m in offline if m in files):
+        f, s = offline_fill(name, files[name], test, obs)
+        fills[name], stds[name] = f, s
+        results[name] = {"through_daemon": False, "causal": False, "scores": demo_score.score(case, f, s),
+                         "latency": None, "note": f"{name} is offline, computed in-process: it uses frames after each "
+                                                  "gap, so no live system can run it"}
+        notes.append(f"{name} is offline (it uses frames after each gap): a reference, not a live option")
     report = {"motion": where, "train_takes": names, "train_seconds": secs, "notes": notes,
               "take": {"name": test_name, "frames": int(test.n_frames), "fps": test.fps, "split": _split(test_name, args),
                        "performer": performer(test_name) if args.source != "synthetic" else None,
@@ -300,6 +299,6 @@ def plots(out: Path, test: Motion, name: str, obs: np.ndarray, fills: dict[str, 
     fig = rp.plot_fill_band(str(out / "fills.png"), test.frames, fills[band], stds[band], erased, test.channels,
                             test.fps, cols, others, band,
                             f"{name}: dropouts of 0.1-2 s; truth, {band} through the daemon with its 2-std band, "
-                            + ", ".join(f"{k}{' (offline)' if k == OFFLINE else ''}" for k in others))
+                            + ", ".join(f"{k}{'' if registry.get_method(k).causal else ' (offline)'}" for k in others))
     hist = rp.plot_latency(str(out / "latency.png"), rtts, "round trip per frame, lacuna serve on loopback")
     return {"fills": fig, "latency": hist}

@@ -118,13 +118,15 @@ def test_demo_refuses_a_take_that_is_not_a_test_take(tmp_path, capsys):
 @pytest.mark.slow
 def test_demo_on_synthetic_motion_reports_accuracy_latency_and_plots(tmp_path, capsys):
     out = tmp_path / "demo"
-    # a method this build does not register is reported and skipped; the demo goes on
-    assert main(["demo", "--source", "synthetic", "--methods", "default,nosuch", "--speed", "0", "--out", str(out),
-                 "-q"]) == 0
+    # a method this build does not register is reported and skipped, the demo goes on; an offline
+    # method asked for is scored in-process, once
+    assert main(["demo", "--source", "synthetic", "--methods", "default,nosuch,interp", "--speed", "0", "--out",
+                 str(out), "-q"]) == 0
     rep = json.loads((out / "demo.json").read_text())
     assert rep["motion"].startswith("SYNTHETIC") and rep["take"]["split"] == "synthetic"
     assert {"default", "hold", "interp"} == set(rep["results"])
     assert any(n.startswith("nosuch: not registered") for n in rep["notes"])
+    assert sum(n.startswith("interp is offline") for n in rep["notes"]) == 1
     _check_report(rep, out)
     assert "SYNTHETIC" in capsys.readouterr().out
 
