@@ -33,7 +33,7 @@ def _knot(W, g, t, knots):
 
 
 @jit
-def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, mm, O, B, has_reg, changed,
+def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
                 last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
                 sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH):
     beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
@@ -138,7 +138,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 k[j] = 0
             else:
                 if k[j] == 0:
-                    v0[j] = min(max(vel[j], -vcap[j]), vcap[j])
+                    v0[j] = min(max(vel[j] * vgain[j], -vcap[j]), vcap[j])
                     R[j] = h[j]
                 k[j] += 1
                 Rv[j] = h[j]

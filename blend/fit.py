@@ -54,6 +54,36 @@ def velocity_rms(sequences: Sequence[np.ndarray], channels: Sequence[str]) -> np
     return np.sqrt(np.mean(d**2, 0)) + 1e-6
 
 
+def velocity_gain(sequences: Sequence[np.ndarray], channels: Sequence[str], settings: Settings,
+                  horizon_s: float = 0.1) -> np.ndarray:
+    """(C,) least-squares gain of the damped velocity extrapolation over ``horizon_s`` on the takes,
+    with the stream's own velocity filter; clipped to [0, 1]."""
+    from scipy.signal import lfilter
+
+    probe = DefaultModel(list(channels), np.zeros(len(channels)), np.ones(len(channels)), np.zeros(0, int),
+                         np.zeros(0), np.zeros((0, 0)), settings, Weights.initial())
+    ang = probe.ang
+    d = probe._pf["d"]
+    h = max(1, int(round(horizon_s * settings.fps)))
+    D = d * (1 - d**h) / (1 - d)
+    num = np.zeros(len(channels))
+    den = np.zeros(len(channels))
+    for s in sequences:
+        if s.shape[0] <= h + 2:
+            continue
+        dx = np.where(ang[None], wrap(np.diff(s, axis=0)), np.diff(s, axis=0))
+        v = np.empty_like(dx)
+        for b in np.unique(probe.beta):
+            cols = probe.beta == b
+            v[:, cols] = lfilter([b], [1.0, -(1.0 - b)], dx[:, cols], axis=0)
+        x = s[1:]
+        y = np.where(ang[None], wrap(x[h:] - x[:-h]), x[h:] - x[:-h])
+        u = v[:-h] * D
+        num += (y * u).sum(0)
+        den += (u * u).sum(0)
+    return np.clip(num / np.maximum(den, 1e-12), 0.0, 1.0)
+
+
 def occlusion(name: str, T: int, channels: Sequence[str], fps: float, seed: int, root: bool = True):
     """(T, C) observed mask and bursts [(group, start, stop)]."""
     rng = np.random.default_rng([seed, zlib.crc32(name.encode()), 7])
@@ -115,7 +145,8 @@ def _hat(model: DefaultModel, t: np.ndarray) -> np.ndarray:
     return Phi
 
 
-CELL_EDGES = (0.0, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 1e9)  # seconds since onset: the cells kept <= hold
+CELL_EDGES = (0.0, 1.5 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 1e9)  # seconds since onset: the cells kept <= hold
+# (the first erased frame is a cell of its own)
 
 
 def fit_weights(model: DefaultModel, data: dict[str, np.ndarray], ridge: float = 1e-2, smooth: float = 1.0,

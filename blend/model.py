@@ -60,7 +60,9 @@ GROUPS = {
 GROUP_NAMES = list(GROUPS) + ["other", "root-pos"]  # root rotations and root translation weigh apart
 ROOT_POS = len(GROUP_NAMES) - 1
 NO_REGRESSION = (0, ROOT_POS)
-KNOTS = (0.0, 1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 4.0)  # seconds since the gap began
+# seconds since the gap began; beyond the last knot the weights stay as they are there (the calibration gaps
+# end at 2 s: a knot further out would only be extrapolated)
+KNOTS = (0.0, 1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0)
 
 
 def group_of(channel: str) -> int:
@@ -96,6 +98,7 @@ class Settings:
     gate_decay: float = 0.9   # decay of the shadow error sums per check (one group checked per frame)
     gate_rho_weak: float = 1e9  # the same gate, weaker, on w_r (1e9: w_r ungated)
     vcap_mult: float = 1e9    # onset velocity capped at this many training RMS changes per frame (1e9: no cap)
+    vel_gain: float = 0.0     # 1: each channel's onset velocity scaled by its training gain (vgain); 0: not
     knots: tuple = KNOTS
 
     def per_frame(self) -> dict[str, float]:
@@ -126,7 +129,7 @@ class DefaultModel(Model):
 
     def __init__(self, channels: list[str], mean: np.ndarray, std: np.ndarray, reg_idx: np.ndarray,
                  mu: np.ndarray, cov: np.ndarray, settings: Settings, weights: Weights,
-                 meta: dict[str, Any] | None = None, vrms: np.ndarray | None = None):
+                 meta: dict[str, Any] | None = None, vrms: np.ndarray | None = None, vgain: np.ndarray | None = None):
         self.channels = list(channels)
         C = len(self.channels)
         self.mean_ = np.asarray(mean, float)
@@ -135,6 +138,9 @@ class DefaultModel(Model):
         # (Euler angles of the root swing through gimbal flips faster than any limb; a fill must not follow)
         self.vrms_ = np.full(C, 1e9) if vrms is None else np.asarray(vrms, float)
         self.vcap = settings.vcap_mult * self.vrms_
+        # how far each channel's smoothed velocity predicts its motion 0.1 s on (training least squares, in
+        # [0, 1]): a jittery thumb's velocity is noise and is not extrapolated
+        self.vgain_ = np.ones(C) if vgain is None or not settings.vel_gain else np.asarray(vgain, float)
         root = np.array([group_of(c) in NO_REGRESSION for c in self.channels])
         self.beta = np.where(root, 1.0 - np.exp(-1.0 / max(settings.vel_root_s * settings.fps, 1e-9)),
                              1.0 - np.exp(-1.0 / max(settings.vel_s * settings.fps, 1e-9)))
@@ -244,7 +250,7 @@ class DefaultModel(Model):
 
     def with_weights(self, weights: Weights) -> "DefaultModel":
         return DefaultModel(self.channels, self.mean_, self.std_, self.reg_idx, self.mu_, self.cov_, self.settings,
-                            weights, self.meta, self.vrms_)
+                            weights, self.meta, self.vrms_, self.vgain_)
 
     def info(self) -> dict[str, Any]:
         return {**super().info(), "fps": self.settings.fps, "regression_channels": int(len(self.reg_idx))}
@@ -254,7 +260,7 @@ class DefaultModel(Model):
         meta = {**self.meta, "method": self.method, "channels": self.channels,
                 "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self.settings).items()},
                 "groups": GROUP_NAMES}
-        arrays = {"mean": self.mean_, "std": self.std_, "reg_idx": self.reg_idx, "mu": self.mu_, "cov": self.cov_, "vrms": self.vrms_,
+        arrays = {"mean": self.mean_, "std": self.std_, "reg_idx": self.reg_idx, "mu": self.mu_, "cov": self.cov_, "vrms": self.vrms_, "vgain": self.vgain_,
                   "wv": self.weights.wv, "wl": self.weights.wl, "wr": self.weights.wr, "wg": self.weights.wg, "sc": self.weights.sc}
         modelfile.save_arrays(path, meta, arrays)
 
@@ -280,4 +286,4 @@ class DefaultModel(Model):
         return cls(meta["channels"], modelfile.require(path, arrays, "mean", (C,)), modelfile.require(path, arrays, "std", (C,)),
                    reg, modelfile.require(path, arrays, "mu", (nb * R,)), modelfile.require(path, arrays, "cov", (nb * R, nb * R)),
                    settings, w, {k: v for k, v in meta.items() if k not in ("settings", "groups")},
-                   modelfile.require(path, arrays, "vrms", (C,)))
+                   modelfile.require(path, arrays, "vrms", (C,)), modelfile.require(path, arrays, "vgain", (C,)))

@@ -85,7 +85,7 @@ class DefaultState(FillerState):
         out = np.empty(C)
         std = np.empty(C)
         step_kernel(f, obs, m.ang, m.group, m.mean_, m.std_, m.reg_idx, m.mu_, m.knots, m.weights.wv, m.weights.wl,
-                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, mm, O, B, has, changed, self.last, self.h, self.vel,
+                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, has, changed, self.last, self.h, self.vel,
                     self.v0, self.k, self.R, self.off, self.amean, self.avar, self.lstd, self.hist, self.sv, out, std,
                     self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH)
         return Fill(out, std, ~obs)
@@ -153,7 +153,7 @@ class DefaultState(FillerState):
         std = np.zeros(C)
         if miss.any():
             onset = miss & (self.k == 0)
-            self.v0 = np.where(onset, np.clip(self.vel, -m.vcap, m.vcap), self.v0)
+            self.v0 = np.where(onset, np.clip(self.vel * m.vgain_, -m.vcap, m.vcap), self.v0)
             self.R = np.where(onset, self.h, self.R)
             self.k = np.where(miss, self.k + 1, 0)
             idx = np.flatnonzero(miss)

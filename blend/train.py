@@ -11,7 +11,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from blend.fit import collect, fit_gaussian, fit_weights, velocity_rms
+from blend.fit import collect, fit_gaussian, fit_weights, velocity_gain, velocity_rms
 from blend.model import GROUP_NAMES, DefaultModel, Settings, Weights
 
 SHIPPED = Path(__file__).with_name("weights.json")
@@ -51,7 +51,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
                          "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")},
             "components": "hold, damped velocity and the conditional Gaussian are all inline in this file"}
     model = DefaultModel(list(channels), mean, std, reg, mu, cov, s, w0 or Weights.initial(len(GROUP_NAMES), len(s.knots)), meta,
-                         velocity_rms(sequences, channels))
+                         velocity_rms(sequences, channels), velocity_gain(sequences, channels, s))
     if calibrate:
         w = fit_weights(model, collect(model, calibrate, SEEDS))
         model = model.with_weights(w)

@@ -143,7 +143,7 @@ def test_compiled_step_matches_the_numpy_step_with_the_gate_on(small):
         pytest.skip("numba unavailable or LACUNA_NO_JIT set: only the numpy step runs here")
     model, _ = small
     gated = DefaultModel(model.channels, model.mean_, model.std_, model.reg_idx, model.mu_, model.cov_,
-                         replace(model.settings, gate_rho=0.7), model.weights, model.meta, model.vrms_)
+                         replace(model.settings, gate_rho=0.7), model.weights, model.meta, model.vrms_, model.vgain_)
     for take in ("walking_23", "basketball_4"):
         truth = splits.load_take(take).frames[:300]
         obs, _ = occlusion(take, 300, model.channels, 120.0, seed=102)
