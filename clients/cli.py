@@ -110,11 +110,15 @@ def add_commands(cli) -> None:
     p.add_argument("--quiet", "-q", action="store_true")
     p.set_defaults(func=_bench)
 
-    p = cli.command("demo", help="train small HLM and CRBM models, serve them, replay a held-out walk with dropouts")
+    p = cli.command("demo", help="train default and a small hlm, serve them beside hold, replay a held-out take of "
+                                 "another performer with short and long dropouts, score against hold and offline "
+                                 "interpolation")
     p.add_argument("--out", default="lacuna-demo", metavar="DIR", help="where models, plots and JSON go (default ./lacuna-demo)")
     p.add_argument("--source", choices=["auto", "data", "synthetic"], default="auto",
                    help="motion: auto (data dir, else fetch, else synthetic), data, synthetic")
-    p.add_argument("--methods", help="comma-separated model methods to train; the first is served by default (default default,hlm,crbm)")
+    p.add_argument("--methods", help="comma-separated methods to train and serve beside hold (default: default,hlm; "
+                                     "hlm and crbm get small settings; none = the baselines only)")
+    p.add_argument("--take", metavar="NAME", help="the TEST take of mocap.splits to replay (default 02_01)")
     p.add_argument("--speed", type=float, default=1.0, help="replay speed, times real time (default 1)")
     p.add_argument("--budget-ms", type=float, default=8.0, help="the daemon's per-frame budget (default 8: one 120 Hz period)")
     p.add_argument("--seed", type=int, default=0)

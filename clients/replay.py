@@ -212,6 +212,72 @@ def plot_fills(path: str, truth: np.ndarray, fills: dict[str, np.ndarray], erase
     return path
 
 
+LINE_COLOURS = {"hold": "tab:blue", "interp": "tab:green", "hlm": "tab:purple", "crbm": "tab:brown", "nn": "tab:olive"}
+
+
+def _spans(e: np.ndarray) -> list[tuple[int, int]]:
+    edges = np.flatnonzero(np.diff(np.r_[0, e.astype(int), 0]))
+    return list(zip(edges[::2], edges[1::2]))
+
+
+def band_channels(truth: np.ndarray, erased: np.ndarray, channels: list[str], groups: dict[str, tuple[str, ...]],
+                  n: int = 4) -> list[int]:
+    """Up to ``n`` angle channels to plot, one per joint group: in each group the channel that moves
+    most, groups ranked by how many values they lost and how varied their gaps are."""
+    ang = np.array([is_angle(c) for c in channels])
+    bone = np.array([c.split(".", 1)[0] for c in channels])
+    picks = []
+    for bones in groups.values():
+        cols = np.flatnonzero(ang & np.isin(bone, bones) & erased.any(0))
+        if not cols.size:
+            continue
+        j = int(cols[np.argmax(truth[:, cols].std(0))])
+        if truth[:, j].std() < 1e-6:
+            continue
+        lens = {b - a for a, b in _spans(erased[:, j])}
+        picks.append((len(lens), int(erased[:, j].sum()), j))
+    return [j for *_, j in sorted(picks, reverse=True)[:n]]
+
+
+def plot_fill_band(path: str, truth: np.ndarray, fill: np.ndarray, std: np.ndarray, erased: np.ndarray,
+                   channels: list[str], fps: float, cols: list[int], others: dict[str, np.ndarray] | None = None,
+                   name: str = "fill", title: str = "") -> str:
+    """Truth, one method's fill with its 2-std band (shaded) and other methods' fills as lines, on
+    the channels ``cols``; dropped spans greyed and labelled with their length in seconds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    others = others or {}
+    t = np.arange(truth.shape[0]) / fps
+    fig, axes = plt.subplots(len(cols), 1, figsize=(10, 2.4 * len(cols)), sharex=True, squeeze=False)
+    for ax, j in zip(axes[:, 0], cols):
+        e = erased[:, j]
+        ax.plot(t, truth[:, j], color="k", lw=1.5, label="truth")
+        for a, b in _spans(e):
+            ax.axvspan(t[a], t[min(b, len(t) - 1)], color="0.92", lw=0)
+            ax.annotate(f"{(b - a) / fps:.2f} s", (t[a], 1.0), xycoords=("data", "axes fraction"), fontsize=6,
+                        va="bottom", color="0.35")
+        for k, (oname, f) in enumerate(others.items()):
+            ax.plot(t, np.where(e, f[:, j], np.nan), lw=1.0, ls=("--", ":", "-.")[k % 3], label=oname,
+                    color=LINE_COLOURS.get(oname, f"C{(k + 4) % 10}"))
+        v = np.where(e, fill[:, j], np.nan)
+        s = np.where(e, std[:, j], np.nan)
+        line, = ax.plot(t, v, lw=1.3, color="tab:red", label=name)
+        ax.fill_between(t, v - 2 * s, v + 2 * s, color=line.get_color(), alpha=0.22, lw=0, label=f"{name} +-2 std")
+        ax.set_ylabel(f"{channels[j]} (deg)", fontsize=8)
+    axes[-1, 0].set_xlabel("time (s); grey = markers dropped out (length above each span)")
+    if title:
+        axes[0, 0].set_title(title, fontsize=9, pad=10)
+    h, lab = axes[0, 0].get_legend_handles_labels()
+    fig.legend(h, lab, loc="lower center", fontsize=7, ncol=len(lab), frameon=False)
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def plot_latency(path: str, runs: dict[str, np.ndarray], title: str = "") -> str:
     """Histogram of round trips (ms, log x) of one or more runs."""
     import matplotlib
