@@ -46,7 +46,10 @@ def daemon(tmp_path_factory, data):
     d = tmp_path_factory.mktemp("view")
     hold = HoldModel.fit([train.frames], train.channels)
     hold.save(str(d / "hold.npz"))
-    proc = DaemonProcess({"hold": str(d / "hold.npz")}, workdir=str(d / "daemon"), daemon={"budget_ms": 200.0},
+    # a small HLM, for a stream with a style posterior and a gait phase
+    assert main(["train", "hlm", "--styles", "2", "--cycle-frames", "60", "--iterations", "5", "--quiet",
+                 str(trial_path("07_02")), str(trial_path("07_09")), "-o", str(d / "hlm.npz")]) == 0
+    proc = DaemonProcess({"hold": str(d / "hold.npz"), "hlm": str(d / "hlm.npz")}, "hold", workdir=str(d / "daemon"), daemon={"budget_ms": 200.0},
                          zmq={"pub": f"tcp://127.0.0.1:{free_port()}"})
     proc.start()
     proc.hold = hold
@@ -54,16 +57,18 @@ def daemon(tmp_path_factory, data):
     proc.stop()
 
 
-def _stream_until(c: Client, take, k: int, observed, until) -> int:
-    """Send frames k, k+1, ... at 120 Hz (wall-clock capture times) until ``until(k)``; returns the next k."""
+def _stream_until(clients: list[Client], take, k: int, observed, until) -> int:
+    """Send frames k, k+1, ... of every client's stream at 120 Hz (wall-clock capture times) until
+    ``until(k)``; returns the next k."""
     t0 = time.perf_counter()
     n = 0
     while not until(k):
         due = t0 + n * PERIOD_S
         while time.perf_counter() < due:
             time.sleep(0.0005)
-        msg = c.fill(take.frames[k % take.n_frames], observed, seq=k)
-        assert isinstance(msg, wire.FillMsg), msg
+        for c in clients:
+            msg = c.fill(take.frames[k % take.n_frames], observed, seq=k)
+            assert isinstance(msg, wire.FillMsg), msg
         k += 1
         n += 1
     return k
@@ -92,14 +97,16 @@ def test_view_page_colours_the_joints_of_a_group_that_drops_out(daemon, chromium
     assert arm.sum() >= 7
     with ViewProcess(["--connect", daemon.zmq_opts["pub"], "--skeleton-file", str(trial_path("07_01")),
                       "--rate", "30"]) as view, Browser(chromium) as b, \
-            Client(daemon.endpoint, sid, channels=list(take.channels)) as c:
+            Client(daemon.endpoint, sid, channels=list(take.channels)) as c, \
+            Client(daemon.endpoint, "performer-2", channels=list(take.channels), model="hlm") as c2:
         b.goto(view.url)
         b.wait_for("window.lacunaView && lacunaView.state.connected", PAGE_TIMEOUT_S)
         c.hello()
+        assert c2.hello().model == "hlm"
         # 1. everything observed: stream until the page has drawn the stream (the view's SUB
         #    joins the PUB some time after it starts), then stop and let it draw the last frame
         seen = lambda k: k >= 60 and b.evaluate(f"!!lacunaView.joints({json.dumps(sid)})")  # noqa: E731
-        k = _stream_until(c, take, 0, np.ones(C, bool), lambda k: k % 12 == 0 and seen(k))
+        k = _stream_until([c, c2], take, 0, np.ones(C, bool), lambda k: k % 12 == 0 and seen(k))
         before = _page_joints(b, sid, k - 1)
         b.screenshot(str(tmp_path / "view_before.png"))
         observed_rgb = b.evaluate("lacunaView.colourOf(-1)")
@@ -113,8 +120,9 @@ def test_view_page_colours_the_joints_of_a_group_that_drops_out(daemon, chromium
         # 2. the right arm drops out for half a second: the daemon fills it
         obs = ~arm
         k_end = k + 60
-        k = _stream_until(c, take, k, obs, lambda k: k >= k_end)
+        k = _stream_until([c, c2], take, k, obs, lambda k: k >= k_end)
         after = _page_joints(b, sid, k - 1)
+        _page_joints(b, "performer-2", k - 1)
         shot = b.screenshot(str(tmp_path / "view_after.png"))
         # each right-arm joint is filled with the hold model's std: the largest over its channels
         std = daemon.hold.std_
@@ -135,9 +143,21 @@ def test_view_page_colours_the_joints_of_a_group_that_drops_out(daemon, chromium
         lit = b.evaluate("""Array.from(document.querySelectorAll('canvas.view')).map(cv => {
             const d = cv.getContext('2d').getImageData(0, 0, cv.width, cv.height).data; let n = 0;
             for (let i = 0; i < d.length; i += 4) if (d[i] > 100 || d[i+1] > 100) n++; return n; })""")
-        assert len(lit) == 3 and min(lit) > 50, lit
+        assert len(lit) == 6 and min(lit) > 50, lit
+        # the HLM stream's style posterior and gait phase reached the page and were drawn
+        last = b.evaluate("lacunaView.state.streams['performer-2'].last")
+        assert len(last["style"]) == 2 and abs(sum(last["style"]) - 1) < 1e-3 and 0 <= last["phase"] < 1
+        assert b.evaluate("lacunaView.state.streams['performer-1'].last.style") is None
+        bars = b.evaluate("""(() => { const cv = lacunaView.state.streams['performer-2'].styleCv;
+            const d = cv.getContext('2d').getImageData(0, 0, cv.width, 56).data; let n = 0;
+            for (let i = 0; i < d.length; i += 4) if (d[i] === 0x4f && d[i+1] === 0xc3 && d[i+2] === 0xf7) n++;
+            return n; })()""")
+        assert bars > 20, bars  # the most probable style's bar, in its colour
         stats = b.wait_for(f"(lacunaView.state.streams[{json.dumps(sid)}] || {{}}).stats", PAGE_TIMEOUT_S)
         assert stats["proc_p50_ms"] >= 0 and stats["age_p50_ms"] > 0
+        # the stream's text line catches up with the last frame (it is redrawn twice a second)
+        b.wait_for(f"document.querySelector('[data-stream=\"{sid}\"] .head').textContent.includes('seq {k - 1} ')",
+                   PAGE_TIMEOUT_S)
         assert b.console_errors() == []
     assert os.path.getsize(shot) > 10_000
     keep = os.environ.get("LACUNA_VIEW_SHOTS")

@@ -34,6 +34,9 @@ def add_commands(cli: Any) -> None:
                    help="page updates a second, each with every stream's newest frame (default 30)")
     p.add_argument("--std-max", type=float, default=20.0, metavar="DEG",
                    help="the std (degrees) at the top of the confidence colour scale (default 20)")
+    p.add_argument("--nice", type=int, default=10, metavar="N",
+                   help="lower the view's CPU priority by N (default 10), so it yields to the daemon and the "
+                        "capture software on a shared machine; 0 keeps it")
     p.add_argument("--seconds", type=float, metavar="S", help="exit after S seconds (default: until Ctrl-C)")
     p.set_defaults(func=run)
 
@@ -95,6 +98,11 @@ def run(args: argparse.Namespace) -> int:
     from view.sources import Player, Subscriber
 
     host, port = _listen(args.listen)
+    if args.nice:
+        try:
+            os.nice(args.nice)
+        except OSError as e:  # (a lower priority is always allowed; this is for a negative N)
+            raise LacunaError(f"--nice {args.nice}: {e.strerror}") from None
     if args.play and not os.path.exists(args.play):
         raise LacunaError(f"--play {args.play}: no such file")
     skel_path = args.skeleton_file

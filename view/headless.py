@@ -45,9 +45,10 @@ def find_chromium() -> str | None:
 
 
 class Browser:
-    """One headless Chromium with one page of ``width`` x ``height`` CSS pixels."""
+    """One headless Chromium with one page of ``width`` x ``height`` CSS pixels, its CPU priority
+    lowered by ``nice``."""
 
-    def __init__(self, executable: str | None = None, width: int = 1400, height: int = 900):
+    def __init__(self, executable: str | None = None, width: int = 1400, height: int = 900, nice: int = 0):
         exe = executable or find_chromium()
         if not exe:
             raise BrowserError("no Chromium found (apt-get install chromium, or set LACUNA_CHROMIUM)")
@@ -61,6 +62,8 @@ class Browser:
             os.dup2(a, 3)
             os.dup2(b, 4)
             os.closerange(5, os.sysconf("SC_OPEN_MAX"))
+            if nice:
+                os.nice(nice)
 
         self.log_path = os.path.join(self.profile, "chromium.log")
         self._log = open(self.log_path, "wb")
@@ -163,6 +166,26 @@ class Browser:
         with open(path, "wb") as fh:
             fh.write(base64.b64decode(data))
         return path
+
+    def cpu_seconds(self) -> float:
+        """User + system CPU seconds of Chromium and every process it started (Linux /proc)."""
+        from clients.daemon_proc import cpu_seconds
+
+        kids: dict[int, list[int]] = {}
+        for d in os.listdir("/proc"):
+            if d.isdigit():
+                try:
+                    with open(f"/proc/{d}/stat") as fh:
+                        ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+                except (OSError, ValueError, IndexError):
+                    continue
+                kids.setdefault(ppid, []).append(int(d))
+        total, todo = 0.0, [self.proc.pid]
+        while todo:
+            pid = todo.pop()
+            total += cpu_seconds(pid) or 0.0
+            todo += kids.get(pid, [])
+        return total
 
     def console_errors(self) -> list[str]:
         with self._cond:

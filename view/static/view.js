@@ -9,6 +9,9 @@
   const PALETTE = ["#4fc3f7", "#ffd54f", "#81c784", "#f06292", "#ba68c8", "#ff8a65", "#4db6ac", "#a1887f"];
   const VIEWS = ["front", "side", "top"];
   const LAT_WINDOW_S = 10;
+  // the skeletons are drawn at every update; text, extras and the latency plot less often, so a
+  // page of many streams costs the capture box little (software raster in a headless browser)
+  const INFO_EVERY_MS = 500, LAT_EVERY_MS = 200;
 
   const st = { connected: false, meta: null, metaVersion: -1, updates: 0, raf: 0, draws: 0, streams: {}, order: [] };
 
@@ -165,7 +168,10 @@
   }
 
   function drawExtras(s) {
-    const d = s.last, sc = s.styleCv.getContext("2d"), pc = s.phaseCv.getContext("2d");
+    const d = s.last, key = d ? JSON.stringify([d.style, d.phase]) : "";
+    if (key === s.extrasKey) return;
+    s.extrasKey = key;
+    const sc = s.styleCv.getContext("2d"), pc = s.phaseCv.getContext("2d");
     sc.fillStyle = "#101316"; sc.fillRect(0, 0, 130, 70);
     sc.font = "11px system-ui, sans-serif"; sc.fillStyle = "#93a1ad";
     if (d && d.style) {
@@ -192,9 +198,11 @@
 
   function fmt(x, n) { return (x === null || x === undefined) ? "-" : x.toFixed(n); }
 
-  function drawInfo(s) {
+  function drawInfo(s, now) {
     const d = s.last, t = s.stats;
     if (!d) return;
+    if (now - (s.infoAt || 0) < INFO_EVERY_MS) { s.infoPending = true; return; }
+    s.infoAt = now; s.infoPending = false;
     s.info.textContent = `seq ${d.seq} | ${d.status} | ${d.filled} filled` + (d.gap ? ` | gap ${d.gap}` : "") +
       (t ? ` | ${fmt(t.hz, 0)} Hz in | proc p50 ${fmt(t.proc_p50_ms, 2)} p99 ${fmt(t.proc_p99_ms, 2)} ms` +
            (t.age_p50_ms !== undefined ? ` | capture-to-view p50 ${fmt(t.age_p50_ms, 2)} p99 ${fmt(t.age_p99_ms, 2)} ms` : "") : "");
@@ -236,16 +244,18 @@
     document.getElementById("latency-text").textContent = st.order.map((id, i) => id).join(", ");
   }
 
-  function loop() {
+  function loop(now) {
     st.raf++;
     let drew = false;
     for (const id of st.order) {
       const s = st.streams[id];
-      if (!s.dirty) continue;
+      if (!s.dirty) { if (s.infoPending) drawInfo(s, now); continue; }
       s.dirty = false; drew = true;
-      drawSkeleton(s); drawExtras(s); drawInfo(s);
+      drawSkeleton(s); drawExtras(s); drawInfo(s, now);
     }
-    if (st.latDirty) { st.latDirty = false; drawLatency(); drew = true; }
+    if (st.latDirty && now - (st.latAt || 0) >= LAT_EVERY_MS) {
+      st.latDirty = false; st.latAt = now; drawLatency(); drew = true;
+    }
     if (drew) st.draws++;
     requestAnimationFrame(loop);
   }
