@@ -48,6 +48,20 @@ def _listen(s: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def _renice(n: int) -> None:
+    """Lower every thread's priority by ``n`` (Linux nice is per thread: threads a library started
+    at import keep theirs otherwise); threads started later inherit the main thread's."""
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        tids = [0]
+    try:
+        for tid in tids:
+            os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + n)
+    except OSError as e:  # (a lower priority is always allowed; this is for a negative N)
+        raise LacunaError(f"--nice {n}: {e.strerror}") from None
+
+
 def load_skeleton_motion(path: str, asf: str | None = None):
     """The motion file (or bare ASF) whose skeleton the streams are drawn on."""
     from mocap.motion import Motion
@@ -99,10 +113,7 @@ def run(args: argparse.Namespace) -> int:
 
     host, port = _listen(args.listen)
     if args.nice:
-        try:
-            os.nice(args.nice)
-        except OSError as e:  # (a lower priority is always allowed; this is for a negative N)
-            raise LacunaError(f"--nice {args.nice}: {e.strerror}") from None
+        _renice(args.nice)
     if args.play and not os.path.exists(args.play):
         raise LacunaError(f"--play {args.play}: no such file")
     skel_path = args.skeleton_file
@@ -139,6 +150,9 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
     source.start()
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"lacuna view: warning: serving on {host} without authentication: anyone who can reach it "
+              "sees the streams", file=sys.stderr, flush=True)
     print(f"lacuna view: {server.url} ({what}, skeleton {skel_path}, {args.rate:g} updates/s)", flush=True)
     try:
         stop.wait(args.seconds)

@@ -36,6 +36,7 @@ from mocap.motion import Motion
 AGE_WINDOW_S = 5.0  # a capture timestamp this close to the view's clock is taken as wall-clock time
 STATS_EVERY_S = 1.0
 STATS_WINDOW_S = 10.0  # percentiles over the last this many seconds
+FORGET_S = 30.0  # a stream without a frame for this long leaves the page (the daemon ended it, say)
 OBSERVED, HELD = -1.0, -2.0
 # the page draws y up; a file with another vertical axis is turned (right-handed) before sending
 TO_Y_UP = {"y": np.eye(3), "z": np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),
@@ -116,6 +117,7 @@ class StreamState:
     cmap: ChannelMap | None = None
     problem: str = ""  # why the stream has no skeleton, for the page
     frames: int = 0
+    last_seen: float = 0.0  # monotonic time of its newest frame
     tick_proc_ms: float | None = None
     tick_age_ms: float | None = None
     recent: deque = field(default_factory=deque)  # (recv monotonic, proc_ms, age_ms or None)
@@ -174,7 +176,7 @@ class Feed:
             if st.model != msg.model:
                 st.model = msg.model
                 self.meta_version += 1
-            st.msg, st.new = msg, True
+            st.msg, st.new, st.last_seen = msg, True, now
             st.frames += 1
             if proc is not None:
                 st.tick_proc_ms = proc if st.tick_proc_ms is None else max(st.tick_proc_ms, proc)
@@ -234,6 +236,9 @@ class Feed:
         """One page update: the streams with a new frame since the last tick (None: nothing new)."""
         now = time.monotonic()
         with self.lock:
+            for sid in [sid for sid, st in self.streams.items() if st.msg is not None and now - st.last_seen > FORGET_S]:
+                del self.streams[sid]
+                self.meta_version += 1
             fresh = [st for st in self.streams.values() if st.new and st.msg is not None]
             taken = []
             for st in fresh:

@@ -13,6 +13,7 @@ background-networking flags Chromium keeps trying to reach Google's hosts).
 from __future__ import annotations
 
 import base64
+import ctypes
 import json
 import os
 import shutil
@@ -24,6 +25,7 @@ from typing import Any
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome")
 COMMAND_TIMEOUT_S = 30.0
+PR_CAPBSET_DROP, CAP_SYS_NICE = 24, 23  # <linux/prctl.h>, <linux/capability.h>
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
          "--disable-extensions", "--mute-audio", "--hide-scrollbars"]
@@ -64,6 +66,9 @@ class Browser:
             os.closerange(5, os.sysconf("SC_OPEN_MAX"))
             if nice:
                 os.nice(nice)
+                # and no right to raise it again: as root Chromium would set its browser, GPU and
+                # compositor threads to nice -8 (an ordinary user's browser cannot)
+                ctypes.CDLL(None, use_errno=True).prctl(PR_CAPBSET_DROP, CAP_SYS_NICE, 0, 0, 0)
 
         self.log_path = os.path.join(self.profile, "chromium.log")
         self._log = open(self.log_path, "wb")

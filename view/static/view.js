@@ -92,6 +92,11 @@
     document.getElementById("source").textContent = `${m.mode === "play" ? "playing" : "live from"} ${m.source}` +
       (m.skeleton ? ` | skeleton ${m.skeleton.source} (${m.skeleton.joints.length} joints)` : "") + ` | ${m.rate} updates/s`;
     document.getElementById("error").textContent = m.error || "";
+    const keep = new Set(m.streams.map(sm => sm.id));
+    for (const id of st.order.filter(id => !keep.has(id))) {  // streams the view forgot (idle)
+      st.streams[id].card.remove(); delete st.streams[id];
+    }
+    st.order = st.order.filter(id => keep.has(id));
     for (const sm of m.streams) {
       const s = st.streams[sm.id] || makeStream(sm.id);
       s.meta = sm;
