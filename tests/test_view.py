@@ -80,8 +80,7 @@ def _page_joints(b: Browser, sid: str, seq: int) -> list[dict]:
     b.evaluate("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
     js = b.evaluate(f"lacunaView.joints({json.dumps(sid)})")
     for j in js:
-        j["pixel"] = b.evaluate(f"lacunaView.pixel({json.dumps(sid)}, 'front', {j['px']['front'][0]}, "
-                                f"{j['px']['front'][1]})")[:3]
+        j["pixel"] = b.evaluate(f"lacunaView.pixel({json.dumps(sid)}, {j['px']['front'][0]}, {j['px']['front'][1]})")[:3]
     return js
 
 
@@ -140,9 +139,10 @@ def test_view_page_colours_the_joints_of_a_group_that_drops_out(daemon, chromium
             assert after[i]["fill"] == -1 and _close(after[i]["pixel"], observed_rgb), names[i]
         # every view canvas has a skeleton on it, and the latency plot was drawn from wall-clock
         # capture times (the client stamps t with time.time())
-        lit = b.evaluate("""Array.from(document.querySelectorAll('canvas.view')).map(cv => {
-            const d = cv.getContext('2d').getImageData(0, 0, cv.width, cv.height).data; let n = 0;
-            for (let i = 0; i < d.length; i += 4) if (d[i] > 100 || d[i+1] > 100) n++; return n; })""")
+        lit = b.evaluate("""Array.from(document.querySelectorAll('canvas.views')).flatMap(cv => [0, 1, 2].map(p => {
+            const w = Math.floor(cv.width / 3);
+            const d = cv.getContext('2d').getImageData(p * w, 0, w, cv.height).data; let n = 0;
+            for (let i = 0; i < d.length; i += 4) if (d[i] > 100 || d[i+1] > 100) n++; return n; }))""")
         assert len(lit) == 6 and min(lit) > 50, lit
         # the HLM stream's style posterior and gait phase reached the page and were drawn
         last = b.evaluate("lacunaView.state.streams['performer-2'].last")

@@ -8,6 +8,7 @@
   const STOPS = [[0.0, [0x1a, 0x98, 0x50]], [0.33, [0xd9, 0xef, 0x3b]], [0.66, [0xfd, 0x8d, 0x3c]], [1.0, [0xd7, 0x19, 0x1c]]];
   const PALETTE = ["#4fc3f7", "#ffd54f", "#81c784", "#f06292", "#ba68c8", "#ff8a65", "#4db6ac", "#a1887f"];
   const VIEWS = ["front", "side", "top"];
+  const PANEL_GAP = 6;  // CSS pixels between the three views on a stream's canvas
   const LAT_WINDOW_S = 10;
   // the skeletons are drawn at every update; text, extras and the latency plot less often, so a
   // page of many streams costs the capture box little (software raster in a headless browser)
@@ -67,19 +68,17 @@
     const info = el("span", "info", head);
     const problem = el("div", "problem", card);
     const views = el("div", "views", card);
-    const cv = {};
-    for (const v of VIEWS) {
-      const f = el("figure", "", views);
-      cv[v] = el("canvas", "view", f);
-      cv[v].dataset.view = v;
-      el("figcaption", "", f, v);
-    }
+    // the three views share one canvas (one layer for the browser to raster and composite)
+    const f = el("figure", "", views);
+    const cv = el("canvas", "views", f);
+    const caps = el("div", "caps", f);
+    for (const v of VIEWS) el("span", "", caps, v);
     const side = el("div", "side", views);
     el("figcaption", "", side, "style posterior");
     const styleCv = el("canvas", "style", side); styleCv.width = 130; styleCv.height = 70;
     el("figcaption", "", side, "gait phase");
     const phaseCv = el("canvas", "phase", side); phaseCv.width = 130; phaseCv.height = 90;
-    for (const v of VIEWS) sizeCanvas(cv[v]);
+    sizeCanvas(cv);
     const s = { id, card, model, info, problem, cv, styleCv, phaseCv, last: null, pose: null, dirty: false,
                 frame: null, px: {}, rgb: [], lat: [], stats: null, meta: null };
     st.streams[id] = s;
@@ -141,8 +140,12 @@
     const rgb = F.map(v => colourOf(v, max));
     const root = par.indexOf(-1);
     s.rgb = rgb;
-    for (const v of VIEWS) {
-      const cv = s.cv[v], ctx = cv.getContext("2d"), W = cv.width, H = cv.height;
+    const cv = s.cv, ctx = cv.getContext("2d"), gap = Math.round(PANEL_GAP * (window.devicePixelRatio || 1));
+    const W = Math.floor((cv.width - 2 * gap) / 3), H = cv.height;
+    ctx.fillStyle = "#1b2126"; ctx.fillRect(0, 0, cv.width, H);
+    VIEWS.forEach((v, vi) => {
+      const ox = vi * (W + gap);
+      ctx.save(); ctx.beginPath(); ctx.rect(ox, 0, W, H); ctx.clip(); ctx.translate(ox, 0);
       const k = H / s.frame.extent;
       const hx = v === "side" ? 2 : 0, vy = v === "top" ? 2 : 1, sgn = v === "top" ? -1 : 1;
       const ch = P[3 * root + hx], cvv = v === "top" ? P[3 * root + 2] : s.frame.midY;
@@ -168,8 +171,9 @@
           ctx.beginPath(); ctx.arc(px[j][0], px[j][1], r * (window.devicePixelRatio || 1), 0, 2 * Math.PI); ctx.fill();
         }
       }
-      s.px[v] = px;
-    }
+      ctx.restore();
+      s.px[v] = px.map(([x, y]) => [x + ox, y]);
+    });
   }
 
   function drawExtras(s) {
@@ -246,7 +250,13 @@
       }
       ctx.setLineDash([]);
     });
-    document.getElementById("latency-text").textContent = st.order.map((id, i) => id).join(", ");
+    const key = st.order.join("\n");
+    if (key !== st.legendKey) {  // the streams' colours, as in the plot
+      st.legendKey = key;
+      const box = document.getElementById("latency-text");
+      box.textContent = "";
+      st.order.forEach((id, i) => { const e = el("span", "", box, ` \u25a0 ${id}`); e.style.color = PALETTE[i % PALETTE.length]; });
+    }
   }
 
   function loop(now) {
@@ -284,8 +294,8 @@
       return sk.joints.map((name, j) => ({ name, fill: s.pose.fill[j], rgb: s.rgb[j], seq: s.pose.seq,
         px: Object.fromEntries(VIEWS.map(v => [v, [Math.floor(s.px[v][j][0]), Math.floor(s.px[v][j][1])]])) }));
     },
-    pixel(id, view, x, y) {
-      const cv = st.streams[id].cv[view];
+    pixel(id, x, y) {  // x, y: canvas pixels, as joints() gives them
+      const cv = st.streams[id].cv;
       return Array.from(cv.getContext("2d").getImageData(x, y, 1, 1).data);
     },
   };
