@@ -112,6 +112,8 @@ def run(args: argparse.Namespace) -> int:
     from view.sources import Player, Subscriber
 
     host, port = _listen(args.listen)
+    if args.connect and (args.loop or args.speed != 1.0):
+        raise LacunaError("--speed and --loop apply to --play")
     if args.nice:
         _renice(args.nice)
     if args.play and not os.path.exists(args.play):
