@@ -62,7 +62,12 @@ def add_commands(cli) -> None:
     p.add_argument("--stream", default="replay", help="stream id (default replay)")
     p.add_argument("--json", dest="json_out", metavar="OUT")
     p.add_argument("--plot", metavar="OUT.png", help="truth vs fill on the most-erased channels")
+    p.add_argument("--positions", action="store_true",
+                   help="with --out FILE.csv: write joint positions (metres, forward kinematics) instead of angles")
     p.add_argument("--quiet", "-q", action="store_true")
+    from mocap import skelmap
+
+    skelmap.add_argument(p)
     p.set_defaults(func=_replay)
 
     p = cli.command("bench", help="latency of the daemon under N streams at R Hz (p50..max, drops, CPU)")
@@ -165,7 +170,7 @@ def _replay(args: argparse.Namespace) -> int:
     if args.serve and args.connect:
         raise LacunaError("give --connect ADDR or --serve MODEL.npz, not both")
     motion, captured = read_take(args.file, args.asf)
-    keep, bursts = drop_mask(args.drop, motion, args.seed)
+    keep, bursts = drop_mask(args.drop, motion, args.seed, args.skeleton)
     known = np.isfinite(motion.frames) if captured is None else captured & np.isfinite(motion.frames)
     observed = keep & known
     p = Path(args.file)
@@ -189,9 +194,27 @@ def _replay(args: argparse.Namespace) -> int:
 
     filled = Motion(res.filled, list(motion.channels), motion.fps, motion.skeleton, out, dict(motion.meta))
     is_rec = p.suffix.lower() == ".lrec"
-    write_take(out, filled, args.asf, observed=observed if is_rec else None,
-               fills=rp.fill_messages(res, args.stream) if is_rec else None)
+    kin = None
+    if motion.skeleton is not None:
+        from mocap.fk import Kinematics
+
+        kin = Kinematics.from_motion(motion, skeleton=args.skeleton)
+    if args.positions:
+        if Path(out).suffix.lower() != ".csv" or kin is None:
+            raise LacunaError("--positions writes joint positions as CSV of a take with a skeleton (AMC, BVH): "
+                              "give --out FILE.csv")
+        from mocap.csvio import write_csv
+        from mocap.fkerror import positions_motion
+
+        write_csv(out, positions_motion(kin, res.filled, motion.fps, out))
+    else:
+        write_take(out, filled, args.asf, observed=observed if is_rec else None,
+                   fills=rp.fill_messages(res, args.stream) if is_rec else None)
     summ = rp.summary(res, known)
+    if kin is not None:
+        from mocap.fkerror import joint_position_error
+
+        summ["joint_positions"] = joint_position_error(kin, motion.frames, res.filled, known & ~observed)
     summ["drop"] = args.drop
     summ["output"] = out
     acc, lat = summ["accuracy"], summ["latency"]
@@ -199,6 +222,10 @@ def _replay(args: argparse.Namespace) -> int:
     print(f"filled take: {out}")
     print(f"model {summ['model']}: RMS error on {acc['erased_angle_values']} erased angle values {rms} deg; "
           f"status {summ['status']}; dropped {summ['dropped']}; held {summ['held_values']} values")
+    jp = summ.get("joint_positions")
+    if jp and jp["n"]:
+        print(f"joint positions of filled joints (forward kinematics): mean {jp['mean_cm']:.2f} cm, "
+              f"p95 {jp['p95_cm']:.2f} cm, max {jp['max_cm']:.2f} cm over {jp['n']} joint-frames")
     if lat["p50_ms"] is not None:
         print(f"round trip ms: p50 {lat['p50_ms']:.3f}  p90 {lat['p90_ms']:.3f}  p99 {lat['p99_ms']:.3f}  "
               f"p99.9 {lat['p999_ms']:.3f}  max {lat['max_ms']:.3f}")

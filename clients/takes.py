@@ -3,13 +3,17 @@
 Formats: ``.lrec`` recordings (clients/recording.py), ``.amc`` (mocap.asf), and ``.bvh`` /
 ``.csv`` through ``mocap.io`` when that module is present in this build.
 
-Erasure patterns (``--drop``), all from ``mocap/protocols.py``:
+Erasure patterns (``--drop``), from ``mocap/protocols.py``, over the take's joint groups as its
+skeleton map (``mocap.skelmap``, recognised by bone names or ``--skeleton``) names them:
 
 * ``none``                              nothing erased
-* ``gaps``                              the gaps protocol's seeded bursts on every joint group
-* ``gaps:left-arm,head-neck``           the same bursts, on the named joint groups only
-* ``pan2009``                           second half, everything but the 14 leg channels
+* ``gaps``                              the gaps protocol's seeded bursts on the six joint groups
+* ``gaps:left-arm,head-neck,root``      the same bursts, on the named groups only
+* ``pan2009``                           second half, everything but the legs
 * ``taylor2007:right-leg``              from the middle on, the right leg (or ``upper-body``)
+
+A pattern that would erase nothing (a skeleton without the groups it names) is an error naming
+the skeleton and the bones it looked for.
 """
 from __future__ import annotations
 
@@ -21,7 +25,9 @@ import numpy as np
 from clients import recording
 from lacuna.errors import LacunaError
 from mocap.motion import Motion
-from mocap.protocols import JOINT_GROUPS, LEG_BONES, RIGHT_LEG, Gaps, bone
+from mocap import skelmap
+from mocap.protocols import GAP_GROUPS, Gaps
+from mocap.tpose import skip_tpose
 
 
 def _io():
@@ -47,7 +53,7 @@ def read_take(path: str | os.PathLike, asf: str | None = None) -> tuple[Motion, 
         return m, obs
     mio = _io()
     if mio is not None:
-        return mio.read_motion(p, asf=asf), None
+        return skip_tpose(mio.read_motion(p, asf=asf)), None
     if ext == ".amc":
         from mocap.asf import read_amc
 
@@ -75,42 +81,46 @@ def write_take(path: str | os.PathLike, motion: Motion, asf: str | None = None, 
     raise LacunaError(f"{p}: this build writes .amc and {recording.SUFFIX} (mocap.io for BVH/CSV is not installed)")
 
 
-def drop_mask(pattern: str, motion: Motion, seed: int = 0) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
+def drop_mask(pattern: str, motion: Motion, seed: int = 0,
+              skeleton: str | None = None) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
     """The observed mask (T, C) a pattern leaves, and the bursts (group, start, stop) it erased.
 
-    Raises LacunaError naming the pattern when it is unknown.
+    Raises LacunaError naming the pattern when it is unknown or would erase nothing.
     """
     T, C = motion.frames.shape
     ch = motion.channels
     obs = np.ones((T, C), bool)
     name, _, arg = pattern.partition(":")
+    what = f"--drop {pattern}"
     if name == "none":
         return obs, []
+    if name not in ("gaps", "pan2009", "taylor2007"):
+        raise LacunaError(f"--drop {pattern!r}: unknown pattern (none, gaps[:GROUP,...], pan2009, "
+                          "taylor2007:right-leg|upper-body)")
+    sk = skelmap.Binding.of(ch, skeleton, motion.source)
     if name == "gaps":
-        groups = [g for g in arg.split(",") if g] if arg else list(JOINT_GROUPS)
-        bad = [g for g in groups if g not in JOINT_GROUPS]
+        groups = [g for g in arg.split(",") if g] if arg else list(skelmap.GROUPS)
+        bad = [g for g in groups if g not in GAP_GROUPS]
         if bad:
-            raise LacunaError(f"--drop {pattern}: unknown joint group {bad[0]!r} (known: {', '.join(JOINT_GROUPS)})")
-        gobs, bursts = Gaps(seed).occlusion(Path(motion.source).stem or "take", T, ch, motion.fps)
+            raise LacunaError(f"{what}: unknown joint group {bad[0]!r} (known: {', '.join(GAP_GROUPS)})")
+        sk.mask(groups, what)
+        gaps = Gaps(seed)
+        gaps.skeleton = skeleton
+        _, bursts = gaps.occlusion(Path(motion.source).stem or "take", T, ch, motion.fps)
         keep = [b for b in bursts if b[0] in groups]
         for g, a, b in keep:
-            cols = np.array([bone(c) in JOINT_GROUPS[g] for c in ch])
-            obs[a:b, cols] = False
+            obs[a:b, sk.mask(g, require=False)] = False
+        if obs.all():
+            raise LacunaError(f"{what}: no burst falls in this take's {T} frames ({T / motion.fps:.2f} s); "
+                              "try another --seed or a longer take")
         return obs, keep
     if name == "pan2009":
-        cols = np.array([bone(c) not in LEG_BONES for c in ch])
-        obs[T // 2:, cols] = False
+        legs = sk.mask("legs", what)
+        sk.mask(["root", "upper-body"], what)
+        obs[T // 2:, ~legs] = False
         return obs, [("all-but-legs", T // 2, T)]
-    if name == "taylor2007":
-        which = arg or "right-leg"
-        if which == "right-leg":
-            cols = np.array([bone(c) in RIGHT_LEG for c in ch])
-        elif which == "upper-body":
-            first = [bone(c) for c in ch].index("lowerback") if any(bone(c) == "lowerback" for c in ch) else C
-            cols = np.zeros(C, bool)
-            cols[first:] = True
-        else:
-            raise LacunaError(f"--drop {pattern}: taylor2007 erases right-leg or upper-body (got {which!r})")
-        obs[T // 2:, cols] = False
-        return obs, [(which, T // 2, T)]
-    raise LacunaError(f"--drop {pattern!r}: unknown pattern (none, gaps[:GROUP,...], pan2009, taylor2007:right-leg|upper-body)")
+    which = arg or "right-leg"
+    if which not in ("right-leg", "upper-body"):
+        raise LacunaError(f"{what}: taylor2007 erases right-leg or upper-body (got {which!r})")
+    obs[T // 2:, sk.mask(which, what)] = False
+    return obs, [(which, T // 2, T)]

@@ -12,7 +12,7 @@ from lacuna.errors import LacunaError
 
 def add_commands(cli) -> None:
     p = cli.train("crbm", help="train a conditional RBM filler (Taylor, Hinton & Roweis 2006)")
-    p.add_argument("data", nargs="*", metavar="DATA", help="AMC files to train on (resampled to --fps)")
+    p.add_argument("data", nargs="*", metavar="DATA", help="motion files to train on (.amc, .bvh, .csv; resampled to --fps)")
     p.add_argument("--protocol", help="train on a protocol's training set instead (e.g. taylor2007)")
     p.add_argument("--asf", help="ASF skeleton when it is not beside the AMC files")
     p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
@@ -38,27 +38,33 @@ def add_commands(cli) -> None:
     p.add_argument("--bias-rate", type=float, default=0.0,
                    help="fill: per-stream bias adaptation rate per frame (0 = the paper; crbm-imp uses 0.02)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+    from mocap import skelmap
+
+    skelmap.add_argument(p)
     p.set_defaults(func=_run_train)
 
     g = cli.generate("crbm", help="generate motion from a trained CRBM, seeded with real frames")
     g.add_argument("model", help="CRBM model file (.npz)")
-    g.add_argument("--seed-frames", required=True, metavar="FILE", help="AMC file whose frames seed the model")
+    g.add_argument("--seed-frames", required=True, metavar="FILE", help="motion file (.amc, .bvh) whose frames seed the model")
     g.add_argument("--start", type=int, default=0, help="first seed frame (at the model's frame rate)")
     g.add_argument("--seed-length", type=int, default=None, help="seed frames (default order + 1)")
     g.add_argument("--frames", type=int, required=True, help="frames to generate (at the model's frame rate)")
     g.add_argument("--asf", help="ASF skeleton when it is not beside the seed AMC")
     g.add_argument("--seed", type=int, default=0, help="sampler seed")
     g.add_argument("--out-fps", type=float, default=None, help="resample the output (default: the seed file's rate)")
-    g.add_argument("-o", "--output", required=True, help="AMC file to write")
+    g.add_argument("-o", "--output", required=True, help="motion file to write (.amc, .bvh, .csv: as the seed's skeleton allows)")
     g.set_defaults(func=_run_generate)
 
 
-def _read_amc(path: str, asf: str | None):
-    from mocap.asf import read_amc
+def _read_amc(path: str, asf: str | None, quiet: bool = False):
+    """Any motion file (the name is kept for callers): AMC with its ASF, BVH, CSV; a leading
+    T-pose (CMU's BVH) skipped."""
+    from mocap.io import read_motion
+    from mocap.tpose import skip_tpose
 
     if not Path(path).exists():
         raise LacunaError(f"{path}: no such file")
-    return read_amc(path, asf)
+    return skip_tpose(read_motion(path, asf=asf), quiet)
 
 
 def _run_train(args: argparse.Namespace) -> int:
@@ -73,8 +79,11 @@ def _run_train(args: argparse.Namespace) -> int:
         ts = get_protocol(args.protocol).training_set()
         seqs, channels, names, fps = ts.sequences, ts.channels, ts.names, ts.fps
     else:
-        ms = [_read_amc(p, args.asf) for p in args.data]
+        from mocap import skelmap
+
+        ms = [_read_amc(p, args.asf, args.quiet) for p in args.data]
         channels = ms[0].channels
+        skelmap.Binding.of(channels, args.skeleton, args.data[0])  # relative root: the map must fit
         for m in ms[1:]:
             if m.channels != channels:
                 raise LacunaError(f"{m.source}: channels differ from {ms[0].source}")
@@ -87,8 +96,14 @@ def _run_train(args: argparse.Namespace) -> int:
                         history_noise=args.history_noise, positive_hidden=args.positive_hidden,
                         average_last=args.average_last, levels=args.levels, members=args.members,
                         n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, bias_rate=args.bias_rate,
-                        names=names, fps=fps,
+                        names=names, fps=fps, skeleton=args.skeleton,
                         progress=not args.quiet)
+    if not args.protocol:
+        from mocap.fk import skeleton_record
+
+        rec = skeleton_record(ms[0])  # for FK wherever the model goes (mocap.fk.from_record)
+        if rec:
+            model.meta.setdefault("training", {})["skeleton"] = rec
     model.save(args.output)
     tr = model.meta["training"]
     print(f"wrote {args.output}: {tr['epochs']} epochs in {tr['seconds']:.1f} s, "
@@ -99,7 +114,7 @@ def _run_train(args: argparse.Namespace) -> int:
 def _run_generate(args: argparse.Namespace) -> int:
     from crbm.generate import generate
     from crbm.persist import load
-    from mocap.asf import write_amc
+    from mocap.io import write_motion
     from mocap.motion import Motion
     from mocap.representation import resample
 
@@ -120,7 +135,7 @@ def _run_generate(args: argparse.Namespace) -> int:
     full[:, m.index(model.channels)] = out
     if abs(out_fps - fps) > 1e-9:
         full = resample(full, fps, out_fps, m.channels)
-    write_amc(args.output, Motion(full, list(m.channels), out_fps, m.skeleton, args.output))
+    write_motion(args.output, Motion(full, list(m.channels), out_fps, m.skeleton, args.output))
     print(f"wrote {args.output}: {n_seed} seed + {args.frames} generated frames at {fps:g} Hz, "
           f"written at {out_fps:g} Hz")
     return 0

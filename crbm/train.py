@@ -47,7 +47,8 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
                 level2_epochs: int | None = None, members: int = 1, n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs",
                 bias_rate: float = 0.0,
                 method: str | None = None, names: Sequence[str] = (), fps: float | None = None,
-                root_mode: str = "relative", progress: bool = False, progress_every: int = 100) -> CRBMModel:
+                root_mode: str = "relative", progress: bool = False, progress_every: int = 100,
+                skeleton: str | None = None) -> CRBMModel:
     """sequences: raw (n_i, C) frames in ``channels``.  Returns a trained CRBMModel.
 
     ``epochs=None`` picks ``auto_epochs`` (2000 on the taylor2007 split, fewer on bigger sets).
@@ -63,7 +64,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
     if levels not in (1, 2):
         raise ValueError(f"levels must be 1 or 2 (got {levels!r})")
     t0 = time.perf_counter()
-    rep = Representation.fit(sequences, channels, root_mode=root_mode, normalize=True)
+    rep = Representation.fit(sequences, channels, root_mode=root_mode, normalize=True, skeleton=skeleton)
     Z = [rep.transform(s) for s in sequences]
     n_cases = sum(max(0, z.shape[0] - order) for z in Z)
     ep = auto_epochs(n_cases) if epochs is None else int(epochs)

@@ -13,7 +13,7 @@ from lacuna.errors import LacunaError
 
 def add_commands(cli) -> None:
     p = cli.train("hlm", help="train a Hierarchical Locomotion Model (Pan & Torresani 2009) on locomotion takes")
-    p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it)")
+    p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it, .bvh, .csv)")
     p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     p.add_argument("--styles", "-C", type=int, default=4, help="number of styles C (default 4)")
     p.add_argument("--cycle-frames", "-N", type=int, default=140,
@@ -41,29 +41,31 @@ def add_commands(cli) -> None:
                         "takes; see docs/BENCHMARKS.md)")
     p.add_argument("--lag", type=int, default=15, help="frames of look-ahead of the fixed-lag filler (default 15)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines on stderr")
+    from mocap import skelmap
+
+    skelmap.add_argument(p)
     p.set_defaults(func=_run_train)
 
 
-def _read(path: str):
+def _read(path: str, quiet: bool = False):
     if not os.path.exists(path):
         raise LacunaError(f"{path}: no such file")
-    if path.lower().endswith(".amc"):
-        from mocap.asf import read_amc
+    from mocap.io import read_motion
+    from mocap.tpose import skip_tpose
 
-        return read_amc(path)
-    try:
-        from mocap.io import read_motion
-    except ModuleNotFoundError:
-        raise LacunaError(f"{path}: only .amc motion files can be read in this build") from None
-    return read_motion(path)
+    return skip_tpose(read_motion(path), quiet)
 
 
 def _run_train(args: argparse.Namespace) -> int:
     from hlm.methods import train_model
     from mocap.representation import resample
 
-    motions = [_read(p) for p in args.data]
+    motions = [_read(p, args.quiet) for p in args.data]
     ch = motions[0].channels
+    if args.skeleton or args.root_mode == "relative":
+        from mocap import skelmap
+
+        skelmap.Binding.of(ch, args.skeleton, args.data[0])  # an unknown map or bones: a clear error now
     for p, m in zip(args.data[1:], motions[1:]):
         if m.channels != ch:
             raise LacunaError(f"{p}: channels differ from {args.data[0]} ({len(m.channels)} vs {len(ch)}); "
@@ -89,8 +91,13 @@ def _run_train(args: argparse.Namespace) -> int:
                         n_iter=args.iterations, n_var=args.sweeps, restarts=args.restarts, seed=args.seed,
                         root_mode=args.root_mode, normalize=args.normalize, kappa=args.kappa, width=args.width,
                         kappa_global=args.kappa_global, style_switch=args.style_switch,
-                        lag=args.lag)
+                        lag=args.lag, skeleton=args.skeleton)
     model.meta["training"]["fps"] = fps
+    from mocap.fk import skeleton_record
+
+    rec = skeleton_record(motions[0])  # for FK wherever the model goes (mocap.fk.from_record)
+    if rec:
+        model.meta["training"]["skeleton"] = rec
     model.save(args.output)
     psi = np.array(model.meta["training"]["psi"])
     print(f"hlm: trained in {time.perf_counter() - t0:.1f} s, bound {model.meta['training']['bounds'][-1]:.8g}; "

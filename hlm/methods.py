@@ -49,6 +49,7 @@ DEFAULTS: dict[str, Any] = {
     # default: on the single-style test takes it costs up to 40% (docs/BENCHMARKS.md); a studio
     # whose takes change gait turns it on (lacuna train hlm --style-switch 1e-3)
     "style_switch": 0.0,
+    "skeleton": None,      # skeleton map (name or file) of the channels; None: recognised from their names
 }
 FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0}
 
@@ -58,7 +59,8 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
     """Fit the representation and the HLM on raw sequences [(n_k, n_channels)] -> HLMModel."""
     o = {**DEFAULTS, **{k: v for k, v in options.items() if k in DEFAULTS and v is not None}}
     t0 = time.perf_counter()
-    rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]))
+    rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]),
+                             skeleton=o["skeleton"])
     feats = [rep.transform(s) for s in sequences]
     res = fit(feats, int(o["styles"]), int(o["cycle_frames"]), n_restarts=int(o["restarts"]), seed=int(o["seed"]),
               n_iter=int(o["n_iter"]), n_var=int(o["n_var"]), progress=progress,

@@ -100,8 +100,9 @@ class HLMModel(FeatureModel):
     def step_one(self, slot: int, frame: np.ndarray, observed: np.ndarray) -> Fill | None:
         # encoder, compiled filter and decoder in one call (hlm.fast.step_slot), where the compiled
         # step serves this filter at all
-        if not fast.usable(self.tables):
-            return None
+        rep = self.representation
+        if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative"):
+            return None  # another skeleton's root frame is numpy's (mocap.rootframe), not compiled
         tabs = self.__dict__.get("_slot_tables")
         if tabs is None:
             tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, self.representation)

@@ -132,7 +132,9 @@ class FeatureModel(Model):
         """One vectorised step over n streams.  frames, observed: (n, C).  Returns (completed, std, extras)."""
         # the representation's compiled code (mocap.fastrepr), stream by stream, where it may run:
         # the same arithmetic as ReprState's numpy in two calls instead of about a hundred and fifty
-        compiled = jit.enabled()
+        # (CMU ASF's root convention only: another skeleton's root frame is numpy's, mocap.rootframe)
+        rep = self.representation
+        compiled = jit.enabled() and (rep.root is None or rep.root_mode != "relative")
         z, zobs = fastrepr.encode(repr_state, frames, observed) if compiled else repr_state.encode(frames, observed)
         out = self.core_step(core_state, z, zobs) if rows is None else self.core_step(core_state, z, zobs, rows=rows)
         if compiled:

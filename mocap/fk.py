@@ -21,7 +21,7 @@ Conventions (column vectors, ``R @ v``):
 
 Length units: ASF files say theirs (``:units length 0.45`` means one unit is 1/0.45 inch,
 0.0254 / 0.45 = 0.05644 m, CMU's documentation).  BVH files do not; pass ``length_unit``
-(metres per file unit), else the skeleton map's (``mocap.skeletons``), else the unit among
+(metres per file unit), else the skeleton map's (``mocap/skeletons/*.toml``), else the unit among
 mm, cm, inch, CMU's 1/0.45 inch and m that makes the rest skeleton nearest 1.7 m tall.
 """
 from __future__ import annotations
@@ -122,17 +122,22 @@ class Kinematics:
                 dep[j, [c for c, _ in rot[j] if c >= 0]] = True
             dep[j, [c for c, _ in trans[j]]] = True
         self.depends = dep
+        self._fast: tuple | None = None  # mocap.fastfk tables, built on the first compiled call
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
-    def from_motion(cls, motion: Motion, length_unit: float | None = None, up_axis: str | None = None) -> "Kinematics":
-        """FK for ``motion.frames`` (its channels, its skeleton).  ValueError for a CSV motion."""
+    def from_motion(cls, motion: Motion, length_unit: float | None = None, up_axis: str | None = None,
+                    skeleton: Any = None) -> "Kinematics":
+        """FK for ``motion.frames`` (its channels, its skeleton).  ValueError for a CSV motion.
+        ``skeleton``: the skeleton map (name, file or map) whose length unit and up axis a BVH
+        file takes when not given (default: recognised from the bone names)."""
         return cls.from_skeleton(motion.skeleton, motion.channels, length_unit, up_axis,
-                                 source=motion.source, frames=motion.frames)
+                                 source=motion.source, frames=motion.frames, skeleton_map=skeleton)
 
     @classmethod
     def from_skeleton(cls, skeleton: Any, channels: Sequence[str] | None = None, length_unit: float | None = None,
-                      up_axis: str | None = None, source: str = "", frames: np.ndarray | None = None) -> "Kinematics":
+                      up_axis: str | None = None, source: str = "", frames: np.ndarray | None = None,
+                      skeleton_map: Any = None) -> "Kinematics":
         """FK for an ``mocap.asf.Skeleton`` or ``mocap.bvh.Hierarchy`` over ``channels`` (default:
         the skeleton's own).  Channels the skeleton has but ``channels`` lacks are taken as 0."""
         from mocap.asf import Skeleton
@@ -141,7 +146,20 @@ class Kinematics:
         if isinstance(skeleton, Skeleton):
             return _from_asf(skeleton, list(channels or skeleton.channels), length_unit, up_axis)
         if isinstance(skeleton, Hierarchy):
-            return _from_bvh(skeleton, list(channels or skeleton.channels), length_unit, up_axis, frames)
+            ch = list(channels or skeleton.channels)
+            if length_unit is None or up_axis is None:
+                from mocap import skelmap
+
+                try:
+                    m = skelmap.resolve(skeleton_map, ch, source)
+                except skelmap.SkeletonError:
+                    if skeleton_map is not None:
+                        raise
+                    m = None  # no map knows these bones: guess the unit and the up axis
+                if m is not None and m.format == "bvh":
+                    length_unit = length_unit if length_unit is not None else m.length_unit
+                    up_axis = up_axis or m.up
+            return _from_bvh(skeleton, ch, length_unit, up_axis, frames)
         raise ValueError(f"{source or 'this motion'} has no skeleton (a CSV file?): forward kinematics needs "
                          "an ASF/AMC or BVH skeleton (pass --asf for a CSV of ASF channels)")
 
@@ -178,9 +196,26 @@ class Kinematics:
         return P
 
     def position(self, frame: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """(C,) one frame -> (J, 3) metres."""
-        o = None if out is None else out.reshape(1, *out.shape)
-        return self.positions(np.asarray(frame, dtype=np.float64).reshape(1, -1), o)[0]
+        """(C,) one frame -> (J, 3) metres; into ``out`` (J, 3) when given.  Compiled
+        (mocap.fastfk) where lacuna.jit allows, else ``positions`` of a batch of one."""
+        f = np.asarray(frame, dtype=np.float64).reshape(-1)
+        if f.shape[0] != len(self.channels):
+            raise ValueError(f"a frame has {len(self.channels)} values (got {f.shape[0]})")
+        from lacuna import jit
+
+        if jit.enabled():
+            from mocap import fastfk
+
+            if self._fast is None:
+                self._fast = fastfk.tables(self)
+                self._scratch = np.empty((len(self.joints), 3, 3))
+            o = np.empty((len(self.joints), 3)) if out is None else out
+            fastfk.position1(f, *self._fast, self.length_unit, self._scratch, o)
+            return o
+        if out is None:
+            return self.positions(f.reshape(1, -1))[0]
+        self.positions(f.reshape(1, -1), out.reshape(1, *out.shape))
+        return out
 
     def rest_positions(self) -> np.ndarray:
         """(J, 3) metres with every channel 0."""
@@ -306,3 +341,33 @@ def guess_up_axis(kin: Kinematics, frames: np.ndarray, n: int = 32) -> str:
     sel = F[np.linspace(0, len(F) - 1, min(n, len(F))).astype(int)]
     ext = np.median(_extent(kin.positions(sel)), 0)
     return _AXES[int(np.argmax(ext))]
+
+
+def skeleton_record(motion: Motion) -> dict[str, Any] | None:
+    """The motion's skeleton as JSON-ready text (``{"format": "bvh"|"asf", "text": ...}``), for a
+    model file to carry, so whoever serves or shows the model can run FK; None without one."""
+    from mocap.asf import Skeleton
+    from mocap.bvh import Hierarchy, format_bvh
+
+    sk = motion.skeleton
+    if isinstance(sk, Hierarchy):
+        empty = Motion(np.zeros((0, len(sk.channels))), list(sk.channels), motion.fps, sk, motion.source)
+        return {"format": "bvh", "text": format_bvh(empty)}
+    if isinstance(sk, Skeleton) and sk.text:
+        return {"format": "asf", "text": sk.text}
+    return None
+
+
+def from_record(record: dict[str, Any], channels: Sequence[str] | None = None, **kw: Any) -> Kinematics:
+    """Kinematics of a ``skeleton_record`` (a model file's ``meta["training"]["skeleton"]``)."""
+    from mocap.asf import parse_asf
+    from mocap.bvh import parse_bvh
+
+    fmt = record.get("format")
+    if fmt == "bvh":
+        sk = parse_bvh(record["text"], "<model skeleton>").skeleton
+    elif fmt == "asf":
+        sk = parse_asf(record["text"], "<model skeleton>")
+    else:
+        raise ValueError(f"skeleton record format {fmt!r} is not bvh or asf")
+    return Kinematics.from_skeleton(sk, list(channels) if channels is not None else None, **kw)

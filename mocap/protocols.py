@@ -5,17 +5,26 @@ pan2009     Pan & Torresani 2009 section 4.3: train on CMU 07_02, 07_09, 07_10 a
             subject-35 trial (120 Hz); test 07_01; over its second half erase every channel
             except the 14 leg channels; metric: mean squared wrapped error per erased angle
             channel (degrees^2), root translation scored separately.
+            ``Pan2009(split="validation")`` scores the same erasure on the walks of the
+            validation split (07_10, 35_28, walking_20, walking_21) with a model trained on the
+            paper's training set minus every validation and test take (``train_split``, implied);
+            ``Pan2009(train_split=True)`` trains on that reduced set for ``--test`` files too.
 taylor2007  Taylor, Hinton & Roweis 2006 section 5 on the split in cmu35_taylor (30 Hz): tests
             35_29 (walk) and 35_18 (jog); from the middle on erase the right leg (7 channels)
             or the upper body (36); metric: cumulative scaled error and RMS degrees.
 gaps        Seeded random occlusion that looks like a real take: bursts of dropout of 0.1-2 s on
-            joint groups (arms, legs, head and neck, torso), several at once, on held-out
-            locomotion; RMS degrees by gap length.
+            joint groups (arms, legs, head and neck, torso, root), several at once.  Trained on
+            ``splits.TRAIN`` (locomotion and non-locomotion), scored on ``splits.VALIDATION``
+            (default) or ``splits.TEST``.
 
-Any protocol scores another recording with ``cases(test_file=..., asf=...)``.
+Any protocol scores other recordings with ``cases(test_files=[...], asf=...)``.  Every case
+carries ``info["cm_per_unit"]`` (from the ASF's ``:units length``; see mocap.metrics) and the
+common scoring of ``mocap.metrics`` applies to all; ``Protocol.score`` adds the protocol's own
+figures (pan2009's MSE, taylor2007's cumulative scaled error).
 """
 from __future__ import annotations
 
+import functools
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,25 +33,69 @@ from typing import Any, Callable
 import numpy as np
 
 from lacuna.errors import DataError
-from mocap import datasets
+from mocap import datasets, skelmap, splits
+from mocap.metrics import cm_per_unit
 from mocap.motion import Motion
-from mocap.representation import is_angle, resample, wrap180
+from mocap.representation import CONST_TOL, is_angle, resample, wrap180
 
-LEG_BONES = ("lfemur", "ltibia", "lfoot", "ltoes", "rfemur", "rtibia", "rfoot", "rtoes")
-RIGHT_LEG = ("rfemur", "rtibia", "rfoot", "rtoes")
-JOINT_GROUPS = {
-    "left-arm": ("lclavicle", "lhumerus", "lradius", "lwrist", "lhand", "lfingers", "lthumb"),
-    "right-arm": ("rclavicle", "rhumerus", "rradius", "rwrist", "rhand", "rfingers", "rthumb"),
-    "left-leg": ("lfemur", "ltibia", "lfoot", "ltoes"),
-    "right-leg": ("rfemur", "rtibia", "rfoot", "rtoes"),
-    "head-neck": ("lowerneck", "upperneck", "head"),
-    "torso": ("lowerback", "upperback", "thorax"),
-}
+# Joint groups come from the skeleton maps (mocap/skeletons/*.toml); these are CMU ASF's, for
+# callers that name bones of the protocols' own data.
+_CMU = skelmap.load("cmu-asf")
+JOINT_GROUPS = {g: tuple(b for b, i in _CMU.bones.items() if i.part == g and b != "lhipjoint" and b != "rhipjoint")
+                for g in skelmap.GROUPS}
+LEG_BONES = JOINT_GROUPS["left-leg"] + JOINT_GROUPS["right-leg"]
+RIGHT_LEG = JOINT_GROUPS["right-leg"]
+# the gaps protocol also drops the root (pelvis markers occluded: its rotation and translation)
+GAP_GROUPS = {**JOINT_GROUPS, "root": ("root",)}
 GAP_BINS = ((0.1, 0.25), (0.25, 0.5), (0.5, 1.0), (1.0, 2.0))
+
+
+@functools.lru_cache(maxsize=None)
+def load_take(name: str) -> Motion:
+    """A named take (``splits.load_take``), parsed once per process; its frames are read-only."""
+    m = splits.load_take(name)
+    m.frames.flags.writeable = False
+    return m
+
+
+def _as_list(test_files: str | list[str] | None) -> list[str]:
+    if test_files is None:
+        return []
+    return [test_files] if isinstance(test_files, (str, Path)) else [str(f) for f in test_files]
+
+
+def _training_set(names: list[str]) -> TrainingSet:
+    ms = [load_take(t) for t in names]
+    labels = [splits.ACTIVITY.get(t, "walk") for t in names]
+    return TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, list(names), labels)
 
 
 def bone(ch: str) -> str:
     return ch.split(".", 1)[0]
+
+
+def _cm_per_unit(m: Motion, b: skelmap.Binding) -> float | None:
+    """cm per file length unit: the ASF's, else the skeleton map's (CMU BVH) or mocap.fk's guess."""
+    u = cm_per_unit(m.skeleton)
+    if u is None and m.skeleton is not None:
+        from mocap.fk import Kinematics
+
+        u = 100.0 * (b.map.length_unit or Kinematics.from_motion(m).length_unit)
+    return u
+
+
+def _skeleton_info(b: skelmap.Binding, skeleton: Any = None) -> dict[str, Any]:
+    """A case's joint groups (group -> the take's bone names), root translation channels, and
+    forward kinematics (``fk``, for the joint-position error) when the take has a skeleton."""
+    from mocap.fk import Kinematics
+
+    spec = b.root_spec()
+    out: dict[str, Any] = {"groups": {g: tuple(b.bones(g)) for g in GAP_GROUPS}, "skeleton": b.map.name}
+    if spec:
+        out["root_translation"] = tuple(spec["pos"])
+    if skeleton is not None:
+        out["fk"] = Kinematics.from_skeleton(skeleton, b.channels, skeleton_map=b.map)
+    return out
 
 
 @dataclass
@@ -98,29 +151,68 @@ class Protocol:
     name = "?"
     description = ""
     options: dict[str, Any] = {}
+    skeleton: str | None = None  # --skeleton NAME|FILE for test files (else recognised by bone names)
+
+    def binding(self, m: Motion) -> skelmap.Binding:
+        """The skeleton map applied to a take's channels (its joint groups and root)."""
+        return skelmap.Binding.of(m.channels, self.skeleton, m.source)
 
     def training_set(self) -> TrainingSet:
         raise NotImplementedError
 
-    def cases(self, test_file: str | None = None, asf: str | None = None) -> list[Case]:
+    def cases(self, test_files: str | list[str] | None = None, asf: str | None = None) -> list[Case]:
         raise NotImplementedError
 
     def score(self, case: Case, filled: np.ndarray) -> list[dict[str, Any]]:
-        raise NotImplementedError
+        """The protocol's own figures (the common ones are mocap.metrics')."""
+        return []
 
     # shared helper
     def _load_file(self, path: str, asf: str | None, fps: float, channels: list[str]) -> Motion:
         from mocap.io import read_motion
+        from mocap.tpose import skip_tpose
 
         p = str(path)
-        m = read_motion(p, asf=asf)
+        if not Path(p).is_file():
+            raise DataError(f"{p}: no such file")
+        m = skip_tpose(read_motion(p, asf=asf))
         missing = [c for c in channels if c not in m.channels]
+        if missing and self.binding(m).map.name != _CMU.name:
+            # another skeleton (a BVH take): its own channels, erased through its map; the model
+            # must have been trained on that skeleton
+            frames = m.frames if abs(m.fps - fps) <= 1e-6 else resample(m.frames, m.fps, fps, m.channels)
+            return Motion(frames, list(m.channels), fps, m.skeleton, p, dict(m.meta))
         if missing:
             raise DataError(f"{p}: lacks channels the protocol needs, e.g. {missing[:3]}")
         frames = m.frames[:, m.index(channels)]
         if abs(m.fps - fps) > 1e-6:
             frames = resample(frames, m.fps, fps, channels)
         return Motion(frames, list(channels), fps, m.skeleton, p)
+
+    def _load_files(self, test_files, asf: str | None, fps: float, channels: list[str]) -> list[Motion]:
+        return [self._load_file(f, asf, fps, channels) for f in _as_list(test_files)]
+
+    def files_training_set(self, files: list[str], asf: str | None = None) -> TrainingSet:
+        """A training set of the given takes (any one skeleton; a leading T-pose skipped), at the
+        protocol's frame rate, labelled by activity where ``splits`` knows the take."""
+        from mocap.io import read_motion
+        from mocap.tpose import skip_tpose
+
+        fps = float(self.options.get("fps", 120.0))
+        seqs, names, ch = [], [], None
+        for f in _as_list(files):
+            if not Path(f).is_file():
+                raise DataError(f"{f}: no such file")
+            m = skip_tpose(read_motion(f, asf=asf))
+            if ch is None:
+                ch = m.channels
+            elif m.channels != ch:
+                raise DataError(f"{f}: channels differ from {files[0]}'s: train on takes of one skeleton")
+            seqs.append(m.frames if abs(m.fps - fps) <= 1e-6 else resample(m.frames, m.fps, fps, m.channels))
+            names.append(Path(f).stem)
+        if ch is None:
+            raise DataError("no training files given")
+        return TrainingSet(seqs, list(ch), fps, names, [splits.ACTIVITY.get(n, "walk") for n in names])
 
 
 # ---- pan2009 ------------------------------------------------------------------------------------
@@ -131,33 +223,48 @@ class Pan2009(Protocol):
     TEST = ["07_01"]
     options = {"fps": 120.0, "cycle_frames": 140}
 
-    def training_set(self) -> TrainingSet:
-        ms = [datasets.load_trial(t) for t in self.TRAIN]
-        labels = ["run" if t in datasets.SUBJECT35_RUNS else "walk" for t in self.TRAIN]
-        return TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, list(self.TRAIN), labels)
+    def __init__(self, split: str | None = None, train_split: bool = False):
+        if split not in (None, "validation", "test"):
+            raise ValueError(f"pan2009 scores the paper's test, or the walks of --split validation|test (got {split!r})")
+        self.split = split
+        self.train_split = train_split or split is not None
 
-    def cases(self, test_file: str | None = None, asf: str | None = None) -> list[Case]:
-        if test_file:
-            ch = datasets.load_trial(self.TEST[0]).channels
-            motions = [self._load_file(test_file, asf, 120.0, ch)]
-        else:
-            motions = [datasets.load_trial(t) for t in self.TEST]
+    def training_names(self) -> list[str]:
+        """The paper's training set; with ``train_split``, minus every validation and test take."""
+        if self.train_split:
+            return [t for t in self.TRAIN if t in splits.TRAIN]
+        return list(self.TRAIN)
+
+    def test_names(self) -> list[str]:
+        if self.split is None:
+            return list(self.TEST)
+        return [t for t in splits.SPLITS[self.split] if splits.ACTIVITY.get(t) == "walk"]
+
+    def training_set(self) -> TrainingSet:
+        return _training_set(self.training_names())
+
+    def cases(self, test_files: str | list[str] | None = None, asf: str | None = None) -> list[Case]:
+        ch = load_take(self.TEST[0]).channels
+        motions = self._load_files(test_files, asf, 120.0, ch) or [load_take(t) for t in self.test_names()]
         out = []
         for m in motions:
             T, C = m.frames.shape
-            keep = np.array([bone(c) in LEG_BONES for c in m.channels])
+            b = self.binding(m)
+            keep = b.mask("legs", "pan2009")
+            b.mask(["root", "upper-body"], "pan2009")  # something to erase
             obs = np.ones((T, C), bool)
             obs[T // 2 :, ~keep] = False
             rot = np.array([is_angle(c) for c in m.channels]) & ~keep
             out.append(Case(Path(m.source).stem, "all-but-legs", m.frames, obs, m.channels, m.fps, rot,
-                            {"first_erased": T // 2}))
+                            {"first_erased": T // 2, "cm_per_unit": _cm_per_unit(m, b), **_skeleton_info(b, m.skeleton)}))
         return out
 
     def score(self, case: Case, filled: np.ndarray) -> list[dict[str, Any]]:
         err = wrapped_error(case, filled)
         t0 = case.info["first_erased"]
         e = err[t0:, case.scored]
-        trans = np.array([c in ("root.tx", "root.ty", "root.tz") for c in case.channels])
+        trans = np.array([c in case.info.get("root_translation", ("root.tx", "root.ty", "root.tz"))
+                          for c in case.channels])
         et = err[t0:, trans]
         return [
             _row(case, "mse_deg2", np.mean(e**2)),
@@ -182,10 +289,15 @@ def _split_by_labels(Y: np.ndarray, lbls: np.ndarray) -> list[np.ndarray]:
     return [Y[idx == k] for k in range(lbls.shape[1]) if (idx == k).any()]
 
 
-def taylor_channels() -> list[str]:
+def taylor_skeleton() -> Any:
+    """Subject 35's ASF: Taylor's arrays are its AMC channels."""
     from mocap.asf import read_asf
 
-    return read_asf(Path(datasets.data_dir(required=True)) / "cmu" / "35" / "35.asf").channels
+    return read_asf(Path(datasets.data_dir(required=True)) / "cmu" / "35" / "35.asf")
+
+
+def taylor_channels() -> list[str]:
+    return taylor_skeleton().channels
 
 
 class Taylor2007(Protocol):
@@ -211,35 +323,47 @@ class Taylor2007(Protocol):
         va = np.mean(wrap180(allf - circular_mean_deg(allf))**2, 0)
         return np.where(ang, va, v)
 
-    def patterns(self, channels: list[str]) -> dict[str, np.ndarray]:
-        var = self.train_variance()
+    def patterns(self, channels: list[str], var: np.ndarray | None = None, source: str = "") -> dict[str, np.ndarray]:
+        """Erasure masks over ``channels``: the right leg, and the upper body (torso, head and
+        neck, arms: CMU ASF's channels from lowerback on), less constant channels."""
+        var = self.train_variance() if var is None else var
         const = var < 1e-10
-        order = [bone(c) for c in channels]
-        first_upper = order.index("lowerback")
-        upper = np.zeros(len(channels), bool)
-        upper[first_upper:] = True
+        b = skelmap.Binding.of(channels, self.skeleton, source)
         return {
-            "right-leg": np.array([bone(c) in RIGHT_LEG for c in channels]),
-            "upper-body": upper & ~const,
+            # constant channels are left out of both (CMU BVH's RHipJoint; CMU ASF's right leg has none)
+            "right-leg": b.mask("right-leg", "taylor2007") & ~const,
+            "upper-body": b.mask("upper-body", "taylor2007") & ~const,
         }
 
-    def cases(self, test_file: str | None = None, asf: str | None = None) -> list[Case]:
+    def cases(self, test_files: str | list[str] | None = None, asf: str | None = None) -> list[Case]:
+        from mocap.asf import read_asf
+
         ch = taylor_channels()
-        if test_file:
-            m = self._load_file(test_file, asf, 30.0, ch)
-            tests = [(Path(test_file).stem, m.frames)]
+        files = _as_list(test_files)
+        if files:
+            tests = [(Path(f).stem, m, _cm_per_unit(m, self.binding(m)))
+                     for f, m in zip(files, self._load_files(files, asf, 30.0, ch))]
         else:
             mat = _taylor_mat()
             seqs = _split_by_labels(np.asarray(mat["Ytest"], dtype=np.float64), mat["lblstest"])
-            tests = list(zip(self.TEST_NAMES, seqs))
+            # Taylor's arrays are subject 35's AMC channels: that ASF's length unit
+            unit = cm_per_unit(read_asf(Path(datasets.data_dir(required=True)) / "cmu" / "35" / "35.asf"))
+            tests = [(n, Motion(f, ch, 30.0), unit) for n, f in zip(self.TEST_NAMES, seqs)]
         var = self.train_variance()
         out = []
-        for name, frames in tests:
+        for name, m, unit in tests:
+            frames, mch = m.frames, m.channels
+            # another skeleton's take: scaled by its own variance (the training set is CMU ASF's)
+            # (a channel moving less than CONST_TOL, 0.01 degree, counts as constant: left out)
+            v = var if mch == ch else np.where(np.std(frames, 0) < CONST_TOL, 0.0, np.var(frames, 0))
+            skel = m.skeleton if m.skeleton is not None else taylor_skeleton()
             T = frames.shape[0]
-            for pname, mask in self.patterns(ch).items():
+            for pname, mask in self.patterns(mch, v, m.source).items():
                 obs = np.ones(frames.shape, bool)
                 obs[T // 2 :, mask] = False
-                out.append(Case(name, pname, frames, obs, ch, 30.0, mask, {"first_erased": T // 2, "var": var}))
+                out.append(Case(name, pname, frames, obs, mch, m.fps, mask,
+                                {"first_erased": T // 2, "var": v, "cm_per_unit": unit,
+                                 **_skeleton_info(skelmap.Binding.of(mch, self.skeleton, m.source), skel)}))
         return out
 
     def score(self, case: Case, filled: np.ndarray) -> list[dict[str, Any]]:
@@ -254,29 +378,36 @@ class Taylor2007(Protocol):
 # ---- gaps ---------------------------------------------------------------------------------------
 class Gaps(Protocol):
     name = "gaps"
-    description = "seeded bursts of dropout (0.1-2 s) on joint groups, several at once, on held-out locomotion"
-    HELD_OUT = ["07_01", "02_01", "35_29", "35_25"]
+    description = ("seeded bursts of dropout (0.1-2 s) on joint groups and the root, several at once; "
+                   "trained on splits.TRAIN, scored on splits.VALIDATION (default) or TEST")
     options = {"fps": 120.0, "cycle_frames": 140}
     RATE_PER_GROUP = 0.6  # bursts per second per joint group
     CLEAN_LEAD = 0.25  # seconds at the start with every marker present
 
-    def __init__(self, seed: int = 0):
+    def __init__(self, seed: int = 0, split: str = "validation"):
+        if split not in ("validation", "test"):
+            raise ValueError(f"gaps scores --split validation or test (got {split!r})")
         self.seed = seed
+        self.split = split
 
     def training_set(self) -> TrainingSet:
-        names = [t for t in Pan2009.TRAIN if t not in self.HELD_OUT]
-        ms = [datasets.load_trial(t) for t in names]
-        labels = ["run" if t in datasets.SUBJECT35_RUNS else "walk" for t in names]
-        return TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, names, labels)
+        return _training_set(list(splits.TRAIN))
+
+    def test_names(self) -> list[str]:
+        return list(splits.SPLITS[self.split])
 
     def occlusion(self, name: str, T: int, channels: list[str], fps: float) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
-        """Seeded mask (T, C) and the bursts (group, start, stop); the first CLEAN_LEAD seconds stay clean."""
+        """Seeded mask (T, C) and the bursts (group, start, stop); the first CLEAN_LEAD seconds stay clean.
+
+        The root group is drawn last, so the other groups' bursts are those of JOINT_GROUPS alone."""
         rng = np.random.default_rng([self.seed, zlib.crc32(name.encode())])
         obs = np.ones((T, len(channels)), bool)
         bursts = []
         lo, hi = GAP_BINS[0][0], GAP_BINS[-1][1]
-        for g, bones in JOINT_GROUPS.items():
-            cols = np.array([bone(c) in bones for c in channels])
+        sk = skelmap.Binding.of(channels, self.skeleton, name)
+        sk.mask(list(GAP_GROUPS), "gaps")  # a skeleton with none of the groups would erase nothing
+        for g in GAP_GROUPS:
+            cols = sk.mask(g, require=False)
             t = fps * (self.CLEAN_LEAD + rng.exponential(1.0 / self.RATE_PER_GROUP))
             while t < T:
                 dur = np.exp(rng.uniform(np.log(lo), np.log(hi)))
@@ -287,43 +418,19 @@ class Gaps(Protocol):
                 t = b + fps * rng.exponential(1.0 / self.RATE_PER_GROUP)
         return obs, bursts
 
-    def cases(self, test_file: str | None = None, asf: str | None = None) -> list[Case]:
-        ch = datasets.load_trial(self.HELD_OUT[0]).channels
-        if test_file:
-            motions = [self._load_file(test_file, asf, 120.0, ch)]
-        else:
-            motions = [datasets.load_trial(t) for t in self.HELD_OUT]
+    def cases(self, test_files: str | list[str] | None = None, asf: str | None = None) -> list[Case]:
+        ch = load_take(splits.TRAIN[0]).channels
+        motions = self._load_files(test_files, asf, 120.0, ch) or [load_take(t) for t in self.test_names()]
         out = []
         for m in motions:
             name = Path(m.source).stem
             obs, bursts = self.occlusion(name, m.n_frames, m.channels, m.fps)
             scored = np.array([is_angle(c) for c in m.channels])
-            out.append(Case(name, "gaps", m.frames, obs, m.channels, m.fps, scored, {"bursts": bursts}))
+            b = self.binding(m)
+            out.append(Case(name, "gaps", m.frames, obs, m.channels, m.fps, scored,
+                            {"bursts": bursts, "seed": self.seed, "cm_per_unit": _cm_per_unit(m, b),
+                             **_skeleton_info(b, m.skeleton)}))
         return out
-
-    def score(self, case: Case, filled: np.ndarray) -> list[dict[str, Any]]:
-        err = wrapped_error(case, filled)
-        fps = case.fps
-        pos = {c: i for i, c in enumerate(case.channels)}
-        by_bin: list[list[np.ndarray]] = [[] for _ in GAP_BINS]
-        allv = []
-        for g, a, b in case.info["bursts"]:
-            cols = [pos[c] for c in case.channels if bone(c) in JOINT_GROUPS[g] and case.scored[pos[c]]]
-            e = err[a:b, cols].ravel()
-            # a burst overlapping an earlier one in the same group is scored once per frame by its own span
-            dur = (b - a) / fps
-            k = next((i for i, (lo, hi) in enumerate(GAP_BINS) if dur < hi), len(GAP_BINS) - 1)
-            by_bin[k].append(e)
-            allv.append(e)
-        rows = []
-        for (lo, hi), es in zip(GAP_BINS, by_bin):
-            if es:
-                v = np.concatenate(es)
-                rows.append(_row(case, f"rms_deg[{lo:g}-{hi:g}s]", np.sqrt(np.mean(v**2))))
-        if allv:
-            v = np.concatenate(allv)
-            rows.append(_row(case, "rms_deg", np.sqrt(np.mean(v**2))))
-        return rows
 
 
 PROTOCOLS: dict[str, Callable[[], Protocol]] = {"pan2009": Pan2009, "taylor2007": Taylor2007, "gaps": Gaps}

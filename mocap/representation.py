@@ -20,7 +20,10 @@ observed raw channels through exactly, and commits the completed frame as the ne
 ``transform`` (whole recording, everything observed) equals running the stream, tested.
 
 Conventions for the root (CMU ASF, Y up): orientation matrix R = Rz(rz) Ry(ry) Rx(rx) and the
-heading decomposition R = Ry(yaw) Rx(pitch) Rz(roll).
+heading decomposition R = Ry(yaw) Rx(pitch) Rz(roll).  Another skeleton's root (BVH ``Hips``, z
+up, ``Zrotation Xrotation Yrotation``...) is described by ``root`` (``mocap.skelmap``'s root
+spec, found from the channel names by the skeleton map) and brought into that frame by
+``mocap.rootframe``; ``root`` None is CMU ASF's ``root.*``, as in model files written before.
 """
 from __future__ import annotations
 
@@ -114,12 +117,15 @@ class Representation:
     mean: list[float] = field(default_factory=list)   # per feature
     std: list[float] = field(default_factory=list)    # per feature
     features: list[str] = field(default_factory=list)
+    root: dict[str, Any] | None = None    # root spec (mocap.rootframe); None = CMU ASF's root.*
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
     def fit(cls, sequences: Sequence[np.ndarray], channels: Sequence[str], root_mode: str = "relative",
-            normalize: bool = True, drop_constant: bool = True) -> "Representation":
-        """sequences: list of (n_frames, n_channels) raw frames."""
+            normalize: bool = True, drop_constant: bool = True, skeleton: Any = None) -> "Representation":
+        """sequences: list of (n_frames, n_channels) raw frames.  ``skeleton``: a skeleton map
+        (name, file or ``mocap.skelmap.SkeletonMap``) naming the root; else recognised from the
+        channel names."""
         if root_mode not in ("relative", "raw"):
             raise ValueError(f"root_mode must be 'relative' or 'raw' (got {root_mode!r})")
         channels = list(channels)
@@ -129,14 +135,16 @@ class Representation:
         ang = np.array([is_angle(c) for c in channels])
         rng = np.where(ang, np.abs(wrap180(allf - allf[:1])).max(0), np.ptp(allf, 0))
         keep = (rng > CONST_TOL) if drop_constant else np.ones(len(channels), bool)
+        root = _root_spec(channels, skeleton) if root_mode == "relative" else None
         if root_mode == "relative":
-            missing = [c for c in ROOT_ROT + ROOT_POS if c not in channels]
+            want = root["rot"] + root["pos"] if root else list(ROOT_ROT + ROOT_POS)
+            missing = [c for c in want if c not in channels]
             if missing:
                 raise ValueError(f"root_mode 'relative' needs channels {missing}")
-            for c in ROOT_ROT + ROOT_POS:
+            for c in want:
                 keep[channels.index(c)] = True
         center = np.where(ang, circular_mean_deg(allf), 0.0)
-        rep = cls(channels, keep.tolist(), allf[0].tolist(), center.tolist(), root_mode, normalize)
+        rep = cls(channels, keep.tolist(), allf[0].tolist(), center.tolist(), root_mode, normalize, root=root)
         rep.features = rep._feature_names()
         rep.mean = [0.0] * len(rep.features)
         rep.std = [1.0] * len(rep.features)
@@ -149,11 +157,22 @@ class Representation:
             rep.__dict__.pop("_plan_cache", None)  # the plan caches mean/std as arrays
         return rep
 
+    def root_channels(self) -> tuple[list[str], list[str]]:
+        """(rotation x, y, z, translation x, y, z) channel names of the root."""
+        if self.root is None:
+            return list(ROOT_ROT), list(ROOT_POS)
+        return list(self.root["rot"]), list(self.root["pos"])
+
+    def _is_root(self, c: str) -> bool:
+        if self.root is None:
+            return c.startswith("root.")
+        return c in self.root["rot"] or c in self.root["pos"]
+
     def _feature_names(self) -> list[str]:
         names = []
         root_done = False
         for c, k in zip(self.channels, self.keep):
-            if self.root_mode == "relative" and c.startswith("root."):
+            if self.root_mode == "relative" and self._is_root(c):
                 if not root_done:
                     names += list(ROOT_FEATURES)
                     root_done = True
@@ -163,13 +182,16 @@ class Representation:
         return names
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in ("channels", "keep", "const_value", "center", "root_mode",
-                                               "normalize", "mean", "std", "features")}
+        d = {k: getattr(self, k) for k in ("channels", "keep", "const_value", "center", "root_mode",
+                                            "normalize", "mean", "std", "features")}
+        if self.root is not None:
+            d["root"] = dict(self.root)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Representation":
         rep = cls(**{k: d[k] for k in ("channels", "keep", "const_value", "center", "root_mode", "normalize",
-                                        "mean", "std", "features")})
+                                        "mean", "std", "features")}, root=d.get("root"))
         n, f = len(rep.channels), len(rep.features)
         for k, want in (("keep", n), ("const_value", n), ("center", n), ("mean", f), ("std", f)):
             if len(getattr(rep, k)) != want:
@@ -193,7 +215,7 @@ class Representation:
             pos = {c: i for i, c in enumerate(ch)}
             direct_raw, direct_feat = [], []
             for j, f in enumerate(self.features):
-                if f in pos and not (self.root_mode == "relative" and f.startswith("root.")):
+                if f in pos and not (self.root_mode == "relative" and (f in ROOT_FEATURES or self._is_root(f))):
                     direct_raw.append(pos[f])
                     direct_feat.append(j)
             angle = np.array([is_angle(c) for c in ch])
@@ -202,8 +224,9 @@ class Representation:
                 "direct_feat": np.array(direct_feat, int),
                 "direct_angle": angle[np.array(direct_raw, int)] if direct_raw else np.zeros(0, bool),
                 "dropped": np.flatnonzero(~np.asarray(self.keep)),
-                "rot": np.array([pos[c] for c in ROOT_ROT], int) if self.root_mode == "relative" else None,
-                "pos": np.array([pos[c] for c in ROOT_POS], int) if self.root_mode == "relative" else None,
+                "rot": np.array([pos[c] for c in self.root_channels()[0]], int) if self.root_mode == "relative" else None,
+                "pos": np.array([pos[c] for c in self.root_channels()[1]], int) if self.root_mode == "relative" else None,
+                "frame": _root_frame(self.root),
                 "rootf": np.array([self.features.index(c) for c in ROOT_FEATURES], int)
                 if self.root_mode == "relative" else None,
                 "center": np.asarray(self.center, dtype=np.float64),
@@ -219,11 +242,14 @@ class Representation:
         """For each feature, the raw channels it is computed from at the current frame."""
         pos = {c: i for i, c in enumerate(self.channels)}
         out = []
+        if self.root_mode == "relative":
+            rot, tr = self.root_channels()
+            up = "xyz".index((self.root or {}).get("up", "y"))
+            ground = [pos[c] for i, c in enumerate(tr) if i != up]
         for f in self.features:
-            if self.root_mode == "relative" and f.startswith("root."):
-                out.append({"root.dside": [pos["root.tx"], pos["root.tz"]],
-                            "root.dfwd": [pos["root.tx"], pos["root.tz"]],
-                            "root.ty": [pos["root.ty"]]}.get(f, [pos[c] for c in ROOT_ROT]))
+            if self.root_mode == "relative" and f in ROOT_FEATURES:
+                out.append({"root.dside": ground, "root.dfwd": ground,
+                            "root.ty": [pos[tr[up]]]}.get(f, [pos[c] for c in rot]))
             else:
                 out.append([pos[f]])
         return out
@@ -359,13 +385,14 @@ class ReprState:
         return F, fobs
 
     def _encode_root(self, x: np.ndarray, p: dict[str, Any]) -> np.ndarray:
-        rot, pos = x[:, p["rot"]], x[:, p["pos"]]
+        fr = p["frame"]
+        rot, pos = x[:, p["rot"]], fr.to_canonical(x[:, p["pos"]])
         out = np.full((self.n, 6), np.nan)
         r = np.deg2rad(rot)
-        yaw, pitch, roll = _matrix_to_ypr(_rxyz_to_matrix(r[:, 0], r[:, 1], r[:, 2]))
+        yaw, pitch, roll = _matrix_to_ypr(fr.matrix(r))
         yaw_u = self.prev_yaw + np.deg2rad(wrap180(np.rad2deg(yaw - self.prev_yaw)))
         dyaw = np.where(self.started, np.rad2deg(yaw_u - self.prev_yaw), 0.0)
-        prev_pos = self.prev_raw[:, p["pos"]]
+        prev_pos = fr.to_canonical(self.prev_raw[:, p["pos"]])
         d = np.where(self.started[:, None], pos - prev_pos, 0.0)
         cy, sy = np.cos(self.prev_yaw), np.sin(self.prev_yaw)
         # local = Ry(yaw_prev)^T d  (ground plane x, z)
@@ -398,13 +425,16 @@ class ReprState:
         cy, sy = np.cos(self.prev_yaw), np.sin(self.prev_yaw)
         dx = cy * side + sy * fwd
         dz = -sy * side + cy * fwd
-        prev_pos = self.prev_raw[:, p["pos"]]
+        fr = p["frame"]
+        prev_pos = fr.to_canonical(self.prev_raw[:, p["pos"]])
         st = self.started
-        out[:, p["pos"][0]] = np.where(st, prev_pos[:, 0] + dx, prev_pos[:, 0])
-        out[:, p["pos"][1]] = height
-        out[:, p["pos"][2]] = np.where(st, prev_pos[:, 2] + dz, prev_pos[:, 2])
+        pc = np.empty((self.n, 3))
+        pc[:, 0] = np.where(st, prev_pos[:, 0] + dx, prev_pos[:, 0])
+        pc[:, 1] = height
+        pc[:, 2] = np.where(st, prev_pos[:, 2] + dz, prev_pos[:, 2])
+        out[:, p["pos"]] = fr.from_canonical(pc)
         R = _ypr_to_matrix(yaw, np.deg2rad(pitch), np.deg2rad(roll))
-        out[:, p["rot"]] = _matrix_to_rxyz(R, self.prev_raw[:, p["rot"]])
+        out[:, p["rot"]] = fr.angles(R, self.prev_raw[:, p["rot"]])
 
     def commit(self, completed: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Make the completed raw frames (n, C) the new previous frame."""
@@ -416,10 +446,34 @@ class ReprState:
         self.prev_raw[sel] = completed[sel] if rows is not None else completed
         if rep.root_mode == "relative":
             r = np.deg2rad(completed[:, p["rot"]])
-            yaw, _, _ = _matrix_to_ypr(_rxyz_to_matrix(r[:, 0], r[:, 1], r[:, 2]))
+            yaw, _, _ = _matrix_to_ypr(p["frame"].matrix(r))
             yaw_u = self.prev_yaw + np.deg2rad(wrap180(np.rad2deg(yaw - self.prev_yaw)))
             self.prev_yaw[sel] = yaw_u[sel] if rows is not None else yaw_u
         self.started[sel] = True
+
+
+def _root_spec(channels: Sequence[str], skeleton: Any) -> dict[str, Any] | None:
+    """The root spec of these channels through their skeleton map; None for CMU ASF's root.*."""
+    from mocap import skelmap
+
+    try:
+        b = skelmap.Binding.of(channels, skeleton)
+    except skelmap.SkeletonError:
+        if skeleton is not None:
+            raise
+        return None  # no map fits: the CMU ASF convention, whose channels fit() then requires
+    spec = b.root_spec()
+    if spec is None and b.map.root_bone != "root":
+        r = b.root_bone or b.map.root_bone
+        raise ValueError(f"root_mode 'relative' needs the root's rotation and translation channels "
+                         f"({r}.rx, .ry, .rz, .tx, .ty, .tz; skeleton {b.map.name})")
+    return None if spec is None or spec == skelmap.DEFAULT_ROOT else spec
+
+
+def _root_frame(spec: dict[str, Any] | None) -> Any:
+    from mocap.rootframe import RootFrame
+
+    return RootFrame(spec)
 
 
 def resample(frames: np.ndarray, src_fps: float, dst_fps: float, channels: Sequence[str] | None = None) -> np.ndarray:

@@ -24,6 +24,7 @@ ACTIVITY: dict[str, str] = {
     **{t: "walk" for t in ["07_01", "07_02", "07_09", "07_10", "02_01"]},
     **{t: "walk" for t in datasets.SUBJECT35_WALKS},
     **{t: "run" for t in datasets.SUBJECT35_RUNS},
+    "35_18": "run",  # taylor2007's jog test (in cmu35_taylor only), so its rows carry an activity
     "13_39": "nonloco", "49_18": "nonloco", "49_19": "nonloco", "49_20": "nonloco",
     **{f"walking_{i}": "walk" for i in range(13, 30)},
     **{f"walking_{i}": "turn" for i in (22, 23, 24, 25, 26)},

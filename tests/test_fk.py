@@ -302,3 +302,46 @@ def test_asf_skeleton_of_a_real_subject_loads_every_bone(data):
     kin = Kinematics.from_skeleton(skel)
     assert set(kin.joints) == {"root"} | {b.name for b in skel.bones}
     assert kin.depends.shape == (len(kin.joints), len(skel.channels))
+
+
+def test_joint_position_error_counts_only_joints_an_erased_value_moves():
+    from mocap.fkerror import joint_errors_cm, joint_position_error
+
+    m = parse_bvh(HAND_BVH)
+    kin = Kinematics.from_motion(m, length_unit=0.01)  # centimetres
+    truth = m.frames
+    filled = truth.copy()
+    erased = np.zeros(truth.shape, bool)
+    j = m.channels.index("LeftUpLeg.rx")
+    erased[1, j] = True
+    filled[1, j] += 10.0  # the fill is 10 degrees off on the leg, frame 1
+    e = joint_errors_cm(kin, truth, filled, erased)
+    # only the leg's End Site moves: |R_hips Rz Ry (Rx(a + 10) - Rx(a)) (0, -40, 0)| cm
+    f = truth[1]
+    R = Rz(f[3]) @ Rx(f[4]) @ Ry(f[5]) @ Rz(f[12]) @ Ry(f[13])
+    want = np.linalg.norm(R @ (Rx(f[14] + 10) - Rx(f[14])) @ [0, -40, 0])
+    np.testing.assert_allclose(e, [want], atol=1e-9)
+    s = joint_position_error(kin, truth, filled, erased)
+    assert s["n"] == 1 and s["mean_cm"] == pytest.approx(want)
+    # a root translation erased on frame 2 moves every joint by the same offset
+    erased[2, m.channels.index("Hips.tx")] = True
+    filled[2, m.channels.index("Hips.tx")] += 3.0
+    e = joint_errors_cm(kin, truth, filled, erased)
+    np.testing.assert_allclose(e[1:], np.full(len(kin.joints), 3.0), atol=1e-9)
+
+
+@pytest.mark.realdata
+def test_per_frame_position_equals_the_batch(data, monkeypatch):
+    """position() is compiled (mocap.fastfk) where numba may run; both paths equal positions()."""
+    from lacuna import jit
+
+    for f in (data / "cmu" / "07" / "07_01.amc", data / "bvh" / "08_02.bvh"):
+        m = read_motion(f)
+        P = Kinematics.from_motion(m).positions(m.frames[::25])
+        for on in (True, False):
+            monkeypatch.setattr(jit, "enabled", lambda on=on: on)
+            kin = Kinematics.from_motion(m)
+            out = np.empty((len(kin.joints), 3))
+            for t, fr in enumerate(m.frames[::25]):
+                assert kin.position(fr, out) is out
+                np.testing.assert_allclose(out, P[t], atol=1e-12, rtol=0)

@@ -75,8 +75,12 @@ def test_gaps_is_seeded_and_looks_like_a_take(data):
 @pytest.mark.parametrize("method", ["hold", "nn", "scaled-nn", "interp"])
 def test_every_baseline_runs_on_every_protocol(data, protocol, method):
     res = evaluate(protocol, method, progress=False)
-    vals = [r["value"] for r in res["results"]]
+    vals = [r["value"] for r in res["results"] if r["value"] is not None]
     assert vals and all(np.isfinite(vals))
+    # only calibration may be n/a, and only for a method that reports no std (nn's is zero)
+    na = {r["metric"] for r in res["results"] if r["value"] is None}
+    assert na <= {"within_1std", "within_2std", "nll_per_value", "onset_err_over_step"}
+    assert bool(na & {"within_2std"}) == method.endswith("nn")
     # an erased channel is filled: the fill differs from NaN and observed entries are untouched
     for case, fill in zip(res["_cases"], res["_fills"]):
         assert np.isfinite(fill).all()
@@ -86,8 +90,8 @@ def test_every_baseline_runs_on_every_protocol(data, protocol, method):
 def test_interp_beats_hold_on_short_gaps_and_nn_beats_hold_on_pan2009(data):
     gi = evaluate("gaps", "interp", progress=False)
     gh = evaluate("gaps", "hold", progress=False)
-    for test in ("07_01", "35_29"):  # short gaps: the straight line is close; long ones it is not
-        assert _value(gi, test, "gaps", "rms_deg[0.1-0.25s]") < _value(gh, test, "gaps", "rms_deg[0.1-0.25s]")
+    for test in ("07_10", "walking_20"):  # short gaps: the straight line is close; long ones it is not
+        assert _value(gi, test, "gaps", "rms_deg[len 0.1-0.25s]") < _value(gh, test, "gaps", "rms_deg[len 0.1-0.25s]")
     assert _value(evaluate("pan2009", "nn", progress=False), "07_01", "all-but-legs", "mse_deg2") < \
         _value(evaluate("pan2009", "hold", progress=False), "07_01", "all-but-legs", "mse_deg2")
 
@@ -108,7 +112,7 @@ def test_eval_scores_another_recording_with_test_file(data, tmp_path):
     from mocap.datasets import trial_path
 
     res = evaluate("pan2009", "nn", test_file=str(trial_path("02_01")), progress=False)
-    assert {r["test"] for r in res["results"]} == {"02_01"}
+    assert {r["test"] for r in res["results"]} == {"02_01", "all"}  # the take and its pooled rows
     res = evaluate("taylor2007", "nn", test_file=str(trial_path("35_29")), progress=False)
     # the 120 Hz file resampled to 30 Hz is the protocol's own 35_29 test
     assert _value(res, "35_29", "right-leg", "cumulative_scaled_error") == pytest.approx(16.2, rel=0.15)
