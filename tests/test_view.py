@@ -239,3 +239,23 @@ def test_view_plays_a_bvh_take_on_its_own_skeleton(data):
 
     want = kin.position(m.frames[upd["seq"]]) @ TO_Y_UP[kin.up_axis].T
     assert np.abs(np.array(upd["pos"]).reshape(-1, 3) - want).max() < 1e-3
+
+
+def test_view_draws_on_the_skeleton_a_model_file_was_trained_on(daemon, capsys):
+    """Without --skeleton-file, a model file given to --channels that carries its training
+    skeleton (lacuna train writes it) is enough; one without (the hold model here) is refused."""
+    from mocap.fk import Kinematics
+
+    hlm = str(daemon.workdir.parent / "hlm.npz")
+    with ViewProcess(["--connect", daemon.zmq_opts["pub"], "--channels", hlm]) as v:
+        deadline = time.monotonic() + PAGE_TIMEOUT_S
+        st = _state(v.url)
+        while "skeleton" not in st["meta"]:
+            assert time.monotonic() < deadline, st
+            time.sleep(0.05)
+            st = _state(v.url)
+    assert st["meta"]["skeleton"]["joints"] == Kinematics.from_motion(load_trial("07_02")).joints
+    assert "training skeleton" in st["meta"]["skeleton"]["source"]
+    hold = str(daemon.workdir.parent / "hold.npz")
+    assert main(["view", "--connect", daemon.zmq_opts["pub"], "--channels", hold]) == 2
+    assert "--skeleton-file is needed" in capsys.readouterr().err

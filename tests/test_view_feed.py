@@ -20,7 +20,7 @@ def take(data):
 
 @pytest.fixture(scope="module")
 def skel(take):
-    return Skeleton(take)
+    return Skeleton.from_motion(take)
 
 
 def fill(sid, seq, frame, filled=None, std=None, t=0.0, proc_us=100, style=None, phase=None):

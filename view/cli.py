@@ -121,12 +121,21 @@ def run(args: argparse.Namespace) -> int:
     skel_path = args.skeleton_file
     if skel_path is None and args.play and not args.play.lower().endswith((".lrec", ".csv")):
         skel_path = args.play  # an .amc/.bvh carries its skeleton
+    skeleton = None
+    if skel_path is None and args.channels and args.channels.lower().endswith(".npz") and os.path.exists(args.channels):
+        try:
+            skeleton = Skeleton.from_model(args.channels)  # a model trained from takes carries theirs
+        except (ValueError, KeyError) as e:
+            raise LacunaError(f"--channels {args.channels}: its skeleton: {e}") from None
+        skel_path = skeleton.source if skeleton else None
     if skel_path is None:
-        raise LacunaError("--skeleton-file is needed to draw the skeletons (a .asf, .amc or .bvh of the performers)")
-    try:
-        skeleton = Skeleton(load_skeleton_motion(skel_path, args.asf))
-    except (ValueError, KeyError) as e:
-        raise LacunaError(f"--skeleton-file {skel_path}: {e}") from None
+        raise LacunaError("--skeleton-file is needed to draw the skeletons (a .asf, .amc or .bvh of the performers; "
+                          "or --channels a model file trained from takes, which carries their skeleton)")
+    if skeleton is None:
+        try:
+            skeleton = Skeleton.from_motion(load_skeleton_motion(skel_path, args.asf))
+        except (ValueError, KeyError) as e:
+            raise LacunaError(f"--skeleton-file {skel_path}: {e}") from None
     channels = channel_names(args.channels) if args.channels else None
     source: Any
     if args.play:

@@ -48,22 +48,36 @@ def bone(channel: str) -> str:
 
 
 class Skeleton:
-    """The skeleton of a motion file, ready to place any stream's channels on it.
+    """A skeleton ready to place any stream's channels on it.
 
     The stream's values are put into the skeleton's own channel vector by name; channels the
-    stream lacks keep the file's first frame (a skeleton file without frames: zeros).
+    stream lacks keep ``base`` (a motion file's first frame; zeros without one).
     """
 
-    def __init__(self, motion: Motion):
+    def __init__(self, kin: Any, base: np.ndarray | None = None, source: str = ""):
+        self.kin = kin
+        self.channels = list(kin.channels)
+        self.joints = list(kin.joints)
+        self.parents = [int(p) for p in kin.parents]
+        self.base = np.zeros(len(self.channels)) if base is None else np.asarray(base, np.float64).copy()
+        self.source = source
+        self.turn = TO_Y_UP[getattr(kin, "up_axis", "y")]
+
+    @classmethod
+    def from_motion(cls, motion: Motion) -> "Skeleton":
         from mocap.fk import Kinematics  # the one FK (issue 20, part 2)
 
-        self.kin = Kinematics.from_motion(motion)
-        self.channels = list(motion.channels)
-        self.joints = list(self.kin.joints)
-        self.parents = [int(p) for p in self.kin.parents]
-        self.base = (motion.frames[0].copy() if motion.n_frames else np.zeros(len(self.channels)))
-        self.source = motion.source
-        self.turn = TO_Y_UP[getattr(self.kin, "up_axis", "y")]
+        return cls(Kinematics.from_motion(motion), motion.frames[0] if motion.n_frames else None, motion.source)
+
+    @classmethod
+    def from_model(cls, path: str) -> "Skeleton | None":
+        """The skeleton a model file was trained on (``meta["training"]["skeleton"]``), or None."""
+        from lacuna import modelfile
+        from mocap.fk import from_record
+
+        meta, _ = modelfile.load_arrays(path)
+        rec = (meta.get("training") or {}).get("skeleton")
+        return cls(from_record(rec), None, f"{path} (its training skeleton)") if isinstance(rec, dict) else None
 
     def mapping(self, stream_channels: list[str]) -> "ChannelMap":
         return ChannelMap(self, stream_channels)
