@@ -125,3 +125,16 @@ def test_a_stream_without_frames_for_a_while_is_forgotten(take, skel, monkeypatc
     feed.on_fill(fill("here", 1, take.frames[1]))
     feed.tick()
     assert [m["id"] for m in feed.meta()["streams"]] == ["here"] and feed.meta_version > v
+
+
+def test_a_stream_whose_width_changes_is_mapped_again(take, skel):
+    """A new hello over the ROUTER (the view does not see its ack) may change a stream's channel
+    list: the view looks for the names again instead of indexing the old map."""
+    feed = Feed(skel)
+    feed.on_fill(fill("s", 0, take.frames[0]))
+    assert "pos" in feed.tick()["streams"][0]
+    feed.on_fill(fill("s", 1, take.frames[1, :5]))
+    d = feed.tick()["streams"][0]
+    assert "pos" not in d and "channel names unknown" in feed.meta()["streams"][0]["problem"]
+    feed.on_fill(fill("s", 2, take.frames[2]))
+    assert "pos" in feed.tick()["streams"][0] and feed.meta()["streams"][0]["problem"] == ""

@@ -92,6 +92,7 @@ class ChannelMap:
         if not src:
             raise ValueError(f"none of the stream's {len(stream_channels)} channels is on the skeleton of "
                              f"{skel.source or 'the skeleton file'} (e.g. {stream_channels[:3]})")
+        self.width = len(stream_channels)
         self.src = np.asarray(src, int)
         self.dst = np.asarray([pos[stream_channels[i]] for i in src], int)
         jpos = {j: k for k, j in enumerate(skel.joints)}
@@ -130,6 +131,7 @@ class StreamState:
     last_frame: np.ndarray | None = None  # skeleton channel vector of the last frame drawn
     cmap: ChannelMap | None = None
     problem: str = ""  # why the stream has no skeleton, for the page
+    problem_width: int = 0  # the frame width the problem was found for
     frames: int = 0
     last_seen: float = 0.0  # monotonic time of its newest frame
     tick_proc_ms: float | None = None
@@ -210,7 +212,10 @@ class Feed:
         """Find the stream's channel names and its map onto the skeleton (once, or after a hello)."""
         if st.cmap is not None or st.problem:
             return
+        st.problem_width = width
         names = st.channels
+        if names is not None and len(names) != width:
+            names = None  # (the hello-ack was for another channel list)
         if names is None and self.default_channels and len(self.default_channels) == width:
             names = self.default_channels
         if names is None and self.skeleton is not None and len(self.skeleton.channels) == width:
@@ -258,7 +263,10 @@ class Feed:
             for st in fresh:
                 taken.append((st, st.msg, st.tick_proc_ms, st.tick_age_ms))
                 st.new, st.tick_proc_ms, st.tick_age_ms = False, None, None
-                self._resolve(st, len(st.msg.angles))
+                width = len(st.msg.angles)
+                if (st.cmap is not None and st.cmap.width != width) or (st.problem and width != st.problem_width):
+                    st.cmap, st.problem = None, ""  # a new hello the view did not see: look again
+                self._resolve(st, width)
             stats = None
             if now >= self._next_stats:
                 self._next_stats = now + STATS_EVERY_S

@@ -81,7 +81,11 @@ class ViewServer:
         meta_sent = -1
         while not self.stop_event.is_set():
             next_t += period
-            upd = self.feed.tick()
+            try:
+                upd = self.feed.tick()
+            except Exception as e:  # a bug must not freeze the page: say it there, keep ticking
+                self.feed.fail(f"view: {type(e).__name__}: {e}")
+                upd = None
             meta = None
             v = self.feed.meta_version
             if v != meta_sent:
