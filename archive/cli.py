@@ -95,15 +95,17 @@ def _check_drop(pattern: str) -> None:
 
 
 def _print_table(s: dict, rows: list[dict]) -> None:
-    where = (f"{s['workers']} workers at {s['scheduler']}" if s["scheduler"] else
-             "this process" if s["filled"] + s["failed"] else "nothing to do: every take is already filled")
+    where = f"{s['workers']} workers at {s['scheduler']}" if s["scheduler"] else "this process"
     print(f"{'takes':>8} {'filled':>7} {'skipped':>8} {'failed':>7} {'frames':>9} {'values filled':>14} "
           f"{'wall s':>8} {'takes/s':>8} {'frames/s':>9}")
     tps = "-" if s["takes_per_s"] is None else f"{s['takes_per_s']:.2f}"
     fps = "-" if s["frames_per_s"] is None else f"{s['frames_per_s']:.0f}"
     print(f"{s['takes']:>8} {s['filled']:>7} {s['skipped']:>8} {s['failed']:>7} {s['frames']:>9} "
           f"{s['values_filled']:>14} {s['wall_s']:>8.2f} {tps:>8} {fps:>9}")
-    print(f"method {s['method']} on {where}; outputs in {s['out']}")
+    if s["filled"] + s["failed"]:
+        print(f"method {s['method']} on {where}; outputs in {s['out']}")
+    else:
+        print(f"nothing to do: every take is already filled with {s['method']} in {s['out']} (--force fills again)")
     reh = [r["rehearsal"]["rms_deg"] for r in rows if r.get("rehearsal") and r["rehearsal"]["rms_deg"] is not None]
     if reh:
         import numpy as np
