@@ -6,7 +6,7 @@ a rerun after a lost worker only replaces them) and never raises for a bad take:
 comes back in the result, so one broken file cannot stop a batch.
 
 Method choice (``resolve_method``): a model file's best method that may use the whole take
-(``BEST_OFFLINE``: HLM's fixed-lag smoother; models without an offline method use their own
+(``BEST_OFFLINE``: HLM's smoother, eq. 18 over the whole take; models without an offline method use their own
 causal fill); ``--method hold|interp`` without a model fit those baselines on the take itself.
 """
 from __future__ import annotations
@@ -25,10 +25,10 @@ from archive.takes import TakeJob, read_with_gaps, readable, write_filled
 from lacuna.errors import LacunaError
 from mocap.atomic import atomic_write_text
 
-# model file's method -> the method `lacuna fill` uses by default.  HLM: the fixed-lag smoother
+# model file's method -> the method `lacuna fill` uses by default.  HLM: smoothing over the take
 # (chosen on the VALIDATION takes, docs/ARCHIVE.md ## Choice of method); every other model
 # family has only causal fills, which are used as they are.
-BEST_OFFLINE = {"hlm": "hlm-lag"}
+BEST_OFFLINE = {"hlm": "hlm-offline"}
 # methods that need no trained model: fitted on the take's own observed values
 MODEL_FREE = ("hold", "interp")
 # a model trained at one rate fills takes at that rate only (relative tolerance)
