@@ -12,7 +12,13 @@ output directory.  Per run: the batch's wall time from the first submit to the l
 cluster already up; its start is reported apart), the model's scatter, every take's own timers
 (model load, read, fill, write) and Dask's task stream (compute start/stop per take on each
 worker), from which the scheduling gap (a worker idle between the end of one take and the start
-of its next) is measured per take.
+of its next) is measured per take, and the workers' CPU time (getrusage) over the batch.
+
+``loopback-N`` starts ``dask scheduler`` and N ``dask worker`` processes, each in its own session;
+``local-N`` is ``lacuna fill``'s LocalCluster, whose workers share the caller's session.  On a
+Linux machine with autogroup scheduling (``/proc/sys/kernel/sched_autogroup_enabled``) and other
+sessions keeping the CPUs busy, a session gets one share of the CPU however many processes it
+runs, so ``local-2`` gets little more CPU than ``local-1``; ``cpu_share`` says what each got.
 """
 from __future__ import annotations
 
@@ -84,6 +90,13 @@ def _gaps(stream: list[dict], t_submit: float) -> dict:
             "first_start_s": float(np.mean(first)) if first else None}
 
 
+def _cpu() -> float:
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def run_one(kind: str, jobs_paths: list[str], spec, model: str, work: Path) -> dict:
     from distributed import get_task_stream
 
@@ -96,24 +109,27 @@ def run_one(kind: str, jobs_paths: list[str], spec, model: str, work: Path) -> d
     jobs = discover(jobs_paths, str(out))
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
-    if kind == "loopback-2":
-        cm = dask_cluster(2)
-    else:
-        cm = open_client(None, int(kind.split("-")[1]))
+    n = int(kind.split("-")[1])
+    loop = kind.startswith("loopback")
+    cm = dask_cluster(n) if loop else open_client(None, n)
     with cm as c:
-        client = c.client if kind == "loopback-2" else c
+        client = c.client if loop else c
         t_up = time.perf_counter() - t0
+        cpu0 = client.run(_cpu)
         t_submit = time.time()
         with get_task_stream(client=client) as ts:
             res = run_batch(jobs, spec, model, client, progress=False)
         stream = ts.data
+        cpu1 = client.run(_cpu)
+    worker_cpu = sum(cpu1[w] - cpu0[w] for w in cpu1)
     rows = res.rows
     secs = {k: float(np.sum([r["seconds"].get(k, 0.0) for r in rows])) for k in ("model", "read", "fill", "write", "total")}
     s = res.summary()
     g = _gaps(stream, t_submit)
     return {"config": kind, "cluster_start_s": round(t_up, 2), "wall_s": s["wall_s"], "takes": s["filled"],
             "failed": s["failed"], "frames": s["frames"], "takes_per_s": s["takes_per_s"], "frames_per_s": s["frames_per_s"],
-            "model_ship_s": s["model_ship_s"], "work_s": secs, "task_stream": g, "load1_before": load0,
+            "model_ship_s": s["model_ship_s"], "work_s": secs, "worker_cpu_s": round(worker_cpu, 2),
+            "cpu_share": round(worker_cpu / (n * s["wall_s"]), 3), "task_stream": g, "load1_before": load0,
             "load1_after": os.getloadavg()[0],
             "rehearsal_rms_deg_mean": float(np.mean([r["rehearsal"]["rms_deg"] for r in rows
                                                      if r.get("rehearsal") and r["rehearsal"]["rms_deg"] is not None]))}
@@ -125,7 +141,7 @@ def main() -> int:
     ap.add_argument("--method", default=None)
     ap.add_argument("--takes", type=int, default=40)
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--configs", default="local-1,local-2,loopback-2")
+    ap.add_argument("--configs", default="local-1,local-2,loopback-1,loopback-2")
     ap.add_argument("--json", dest="json_out")
     a = ap.parse_args()
     from archive.fill import FillSpec, resolve_method
@@ -150,16 +166,18 @@ def main() -> int:
                 print(f"round {r} {kind:>10}: {res['takes_per_s']:.3f} takes/s {res['frames_per_s']:.0f} frames/s "
                       f"wall {res['wall_s']:.1f} s, up {res['cluster_start_s']:.1f} s, ship {res['model_ship_s'] * 1e3:.1f} ms, "
                       f"fill/take {res['work_s']['fill'] / res['takes']:.3f} s, gap/take {ts['gap_s_mean'] or 0:.4f} s, "
+                      f"worker CPU {res['worker_cpu_s']:.1f} s ({res['cpu_share']:.2f} of each worker's wall), "
                       f"load {res['load1_before']:.1f}->{res['load1_after']:.1f}", file=sys.stderr, flush=True)
     summ = {}
     for kind in configs:
         rs = [x for x in runs if x["config"] == kind]
         summ[kind] = {"takes_per_s_median": float(np.median([x["takes_per_s"] for x in rs])),
                       "frames_per_s_median": float(np.median([x["frames_per_s"] for x in rs]))}
-    if "local-1" in summ and "local-2" in summ:
-        ratios = [y["takes_per_s"] / x["takes_per_s"] for x, y in
-                  zip([x for x in runs if x["config"] == "local-1"], [y for y in runs if y["config"] == "local-2"])]
-        summ["speedup_2_over_1_per_round"] = ratios
+    for a1, a2 in (("local-1", "local-2"), ("loopback-1", "loopback-2")):
+        if a1 in summ and a2 in summ:
+            summ[f"speedup_{a2}_over_{a1}_per_round"] = [
+                y["takes_per_s"] / x["takes_per_s"] for x, y in
+                zip([x for x in runs if x["config"] == a1], [y for y in runs if y["config"] == a2])]
     out = {"takes": a.takes, "method": spec.method, "model": a.model, "drop": "gaps", "runs": runs, "summary": summ,
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cpus": os.cpu_count()}
     print(json.dumps(summ, indent=1))
