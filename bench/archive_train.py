@@ -1,5 +1,6 @@
 """HLM training with the E-step on Dask workers: every locomotion take of the data directory,
-in this process and on local clusters of 1 and 2 workers; same bound checked, time split into
+in this process and on clusters of 1 and 2 workers (local: LocalCluster; loopback: dask
+scheduler + dask worker processes, see bench/archive_fill.py on why both); same bound checked, time split into
 E-step (Q(pi) over the takes) and the rest (Q(Z), Q(l), M-step, bound: in the driving process).
 
     OPENBLAS_NUM_THREADS=1 nice -n 5 .venv/bin/python bench/archive_train.py \
@@ -81,7 +82,12 @@ def run(kind: str, seqs, ch, kw) -> dict:
             model = train_model(seqs, ch, **kw)
     else:
         n = int(kind.split("-")[1])
-        with open_client(None, n) as client:
+        loop = kind.startswith("loopback")
+        if loop:
+            sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+            from dask_cluster import dask_cluster
+        with (dask_cluster(n) if loop else open_client(None, n)) as c:
+            client = c.client if loop else c
             up = time.perf_counter() - t0
             t0 = time.perf_counter()
             mapper = Timed(DaskEStep(client))
@@ -97,7 +103,9 @@ def run(kind: str, seqs, ch, kw) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--configs", default="workers-2,workers-1,process")
+    ap.add_argument("--configs", default="loopback-2,loopback-1,local-2,process",
+                    help="process (no Dask), local-N (LocalCluster, the workers in this session), loopback-N "
+                         "(dask scheduler + N dask worker processes, each in its own session)")
     ap.add_argument("--iterations", type=int, default=15)
     ap.add_argument("--restarts", type=int, default=3)
     ap.add_argument("--json", dest="json_out")

@@ -194,3 +194,20 @@ def test_crbm_members_trained_on_workers_equal_local(data, cluster):
     for a, b in zip(local.members, dist.members):
         np.testing.assert_allclose(b.W_, a.W_, rtol=1e-12, atol=1e-12)
     assert not np.allclose(dist.members[0].W_, dist.members[1].W_)     # two seeds, two members
+
+
+def test_train_commands_on_the_cluster_write_the_same_models(data, tmp_path, cluster):
+    """`lacuna train hlm|crbm ... --scheduler ADDR` against the same commands in one process."""
+    from lacuna.modelfile import load_arrays
+
+    takes = [os.path.join(data, "cmu/07/07_02.amc"), os.path.join(data, "cmu/07/07_09.amc")]
+    cmds = {"hlm": ["train", "hlm", *takes, "--styles", "1", "--cycle-frames", "30", "--iterations", "2",
+                    "--restarts", "1", "-q"],
+            "crbm": ["train", "crbm", *takes, "--members", "2", "--hidden", "20", "--epochs", "5", "-q"]}
+    for what, cmd in cmds.items():
+        assert main([*cmd, "-o", str(tmp_path / f"{what}-here.npz")]) == 0
+        assert main([*cmd, "-o", str(tmp_path / f"{what}-cluster.npz"), "--scheduler", cluster.address]) == 0
+        (_, a), (_, b) = load_arrays(str(tmp_path / f"{what}-here.npz")), load_arrays(str(tmp_path / f"{what}-cluster.npz"))
+        assert sorted(a) == sorted(b)
+        for k in a:
+            np.testing.assert_allclose(b[k], a[k], rtol=1e-9, atol=1e-12, err_msg=f"{what} {k}")
