@@ -211,3 +211,30 @@ def test_train_commands_on_the_cluster_write_the_same_models(data, tmp_path, clu
         assert sorted(a) == sorted(b)
         for k in a:
             np.testing.assert_allclose(b[k], a[k], rtol=1e-9, atol=1e-12, err_msg=f"{what} {k}")
+
+
+def test_distributed_estep_with_missing_values_equals_local(data, cluster):
+    """Training takes with gaps: eq. (18) refills them every M-step, so the frames travel with
+    every E-step task; bound, parameters and the refilled values as in one process."""
+    from archive.hlm_dist import distributed_estep
+    from hlm.train import fit
+    from mocap.asf import read_amc
+    from mocap.representation import resample
+
+    seqs = []
+    for p in ("cmu/07/07_02.amc", "cmu/35/35_01.amc", "cmu/35/35_06.amc"):
+        m = read_amc(os.path.join(data, p))
+        seqs.append(resample(m.frames, 120, 30, m.channels)[:, 6:30].copy())   # legs and back
+    seqs[0][20:40, 3:9] = np.nan
+    seqs[2][5:15, 0:4] = np.nan
+    kw = dict(n_styles=2, cycle_frames=35, n_restarts=1, n_iter=3)
+    local = fit(seqs, **kw)
+    with distributed_estep(cluster.client) as mapper:
+        dist = fit(seqs, **kw)
+    assert mapper.calls > 5
+    np.testing.assert_allclose(dist.bounds, local.bounds, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(dist.params.mu, local.params.mu, rtol=1e-9, atol=1e-12)
+    assert len(dist.filled) == 3
+    for a, b in zip(local.filled, dist.filled):
+        assert np.all(np.isfinite(b))
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
