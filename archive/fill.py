@@ -90,12 +90,12 @@ def model_from_bytes(sha: str, data: bytes) -> Any:
 
 def is_done(job: TakeJob, spec: FillSpec, model_file: str | None) -> bool:
     """True when the take's output and sidecar are complete, newer than the input and the model,
-    and were made with this method, model and drop pattern."""
+    and were made with this method, model and drop pattern (and its seed)."""
     side = read_fill_sidecar(job.output + FILL_SUFFIX)
     if side is None or not os.path.exists(job.output):
         return False
-    if (side.get("method"), (side.get("model") or {}).get("sha256"), side.get("drop")) != \
-            (spec.method, spec.model_sha256, spec.drop):
+    if (side.get("method"), (side.get("model") or {}).get("sha256"), side.get("drop"), side.get("drop_seed")) != \
+            (spec.method, spec.model_sha256, spec.drop, spec.seed if spec.drop else None):
         return False
     t_out = os.path.getmtime(job.output)
     newer = [job.source] + ([model_file] if model_file else [])
@@ -169,7 +169,8 @@ def fill_take(job: TakeJob, spec: FillSpec, model_blob: tuple[str, bytes] | None
         truth = motion.frames
         motion.frames = out
         write_filled(job.output, motion, observed, std)
-        extra: dict[str, Any] = {"real_gap_values": int((~known).sum()), "held_values": int(held.sum())}
+        extra: dict[str, Any] = {"real_gap_values": int((~known).sum()), "held_values": int(held.sum()),
+                                 "drop_seed": spec.seed if spec.drop else None}
         if spec.drop:
             from clients.replay import errors
 
