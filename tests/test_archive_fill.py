@@ -146,3 +146,19 @@ def test_bad_command_lines_are_one_line_errors(data, tmp_path, capsys, argv, msg
     rc = main(["fill", _take(data, "cmu/07/07_02.amc"), "--out", str(tmp_path / "o"), *argv])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and err[0].startswith("lacuna: error:") and msg in err[0]
+
+
+def test_unreachable_scheduler_is_a_one_line_error(data, tmp_path, capsys, monkeypatch):
+    import socket
+
+    import archive.cluster
+
+    monkeypatch.setattr(archive.cluster, "CONNECT_TIMEOUT_S", 2)
+    with socket.socket() as s:          # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    rc = main(["fill", _take(data, "cmu/07/07_02.amc"), "--out", str(tmp_path / "o"), "--method", "hold",
+               "--scheduler", f"tcp://127.0.0.1:{port}", "-q"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("lacuna: error: --scheduler") and "cannot connect" in err[0]
+    assert not (tmp_path / "o" / "07_02.amc").exists()
