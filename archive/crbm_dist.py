@@ -14,8 +14,10 @@ from crbm.train import fit_member, member_map
 
 
 def _member_task(Z, i: int, kw: dict):
+    from archive.worker import tune_malloc
     from lacuna.blas import single_thread_blas
 
+    tune_malloc()
     with single_thread_blas():  # mini-batch products: a second BLAS thread only spins (lacuna.blas)
         m = fit_member(Z, i, **{**kw, "progress": False})
     m.progress = None

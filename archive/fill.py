@@ -156,6 +156,9 @@ def fill_arrays(spec: FillSpec, model: Any, motion, known: np.ndarray) -> tuple[
 
 def fill_take(job: TakeJob, spec: FillSpec, model_blob: tuple[str, bytes] | None = None) -> dict[str, Any]:
     """Fill one take; returns its result row (``status`` 'filled' or 'failed', counts, timings)."""
+    from archive.worker import tune_malloc
+
+    tune_malloc()  # in a Dask worker (archive/worker.py); harmless in a plain process
     t0 = time.perf_counter()
     row: dict[str, Any] = {"index": job.index, "source": job.source, "output": job.output, "pid": os.getpid()}
     try:
