@@ -43,6 +43,8 @@ def add_commands(cli) -> None:
     p.add_argument("--mode", choices=["gibbs", "mean-field"], default="gibbs")
     p.add_argument("--bias-rate", type=float, default=0.0,
                    help="fill: per-stream bias adaptation rate per frame (0 = the paper; crbm-imp uses 0.02)")
+    p.add_argument("--scheduler", metavar="ADDR", help="train the --members on this Dask cluster (tcp://HOST:PORT), one per task")
+    p.add_argument("--workers", type=int, metavar="N", help="the same on a local Dask cluster of N worker processes")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
     from mocap import skelmap
 
@@ -98,13 +100,16 @@ def _run_train(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f"training crbm on {len(seqs)} sequences, {sum(len(s) for s in seqs)} frames at {fps:g} Hz",
               file=sys.stderr)
-    model = train_model(seqs, channels, hidden=args.hidden, order=args.order, epochs=args.epochs, seed=args.seed,
-                        history_noise=args.history_noise, positive_hidden=args.positive_hidden,
-                        bias_init_std=args.bias_init_std, batches=args.batches,
-                        average_last=args.average_last, levels=args.levels, members=args.members,
-                        n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, bias_rate=args.bias_rate,
-                        names=names, fps=fps, skeleton=args.skeleton,
-                        progress=not args.quiet)
+    from archive.dist_cli import training_cluster  # a no-op without --scheduler/--workers
+
+    with training_cluster(args, "crbm"):
+        model = train_model(seqs, channels, hidden=args.hidden, order=args.order, epochs=args.epochs, seed=args.seed,
+                            history_noise=args.history_noise, positive_hidden=args.positive_hidden,
+                            bias_init_std=args.bias_init_std, batches=args.batches,
+                            average_last=args.average_last, levels=args.levels, members=args.members,
+                            n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, bias_rate=args.bias_rate,
+                            names=names, fps=fps, skeleton=args.skeleton,
+                            progress=not args.quiet)
     if not args.protocol:
         from mocap.fk import skeleton_record
 

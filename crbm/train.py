@@ -2,6 +2,8 @@
 optionally a second level on its hidden activities (section 6)."""
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import datetime as _dt
 import math
 import sys
@@ -42,6 +44,34 @@ def _progress_printer(what: str, every: int):
     return show
 
 
+# Who trains an ensemble's members: None = this process, one after another; else a mapper
+# (Z, member indices, fit_member keywords) -> the fitted CRBMs in member order.
+_MEMBER_MAP: contextvars.ContextVar = contextvars.ContextVar("crbm_member_map", default=None)
+
+
+@contextlib.contextmanager
+def member_map(mapper):
+    """Train every ensemble's members inside the block through ``mapper`` (see ``_MEMBER_MAP``)."""
+    token = _MEMBER_MAP.set(mapper)
+    try:
+        yield
+    finally:
+        _MEMBER_MAP.reset(token)
+
+
+def fit_member(Z: Sequence[np.ndarray], i: int, *, hidden: int, order: int, epochs: int, history_noise: float,
+               positive_hidden: str, average_last: float, seed: int, members: int, progress: bool,
+               progress_every: int, bias_init_std: float = RELEASED["bias_init_std"],
+               batches: str = RELEASED["batches"]) -> CRBM:
+    """CD-1 on the features Z for member i (seed ``seed + MEMBER_SEED_STRIDE * i``)."""
+    what = "crbm" if members == 1 else f"crbm member {i + 1}/{members}"
+    m = CRBM(n_hidden=hidden, order=order, n_epochs=epochs, history_noise=history_noise,
+             positive_hidden=positive_hidden, bias_init_std=bias_init_std, batches=batches,
+             average_last=average_last, random_state=seed + MEMBER_SEED_STRIDE * i,
+             progress=_progress_printer(what, progress_every) if progress else None)
+    return m.fit(Z)
+
+
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hidden: int = 150, order: int = 3,
                 epochs: int | None = None, seed: int = 0, history_noise: float = RELEASED["history_noise"],
                 positive_hidden: str = RELEASED["positive_hidden"], bias_init_std: float = RELEASED["bias_init_std"],
@@ -73,16 +103,15 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
     ep = auto_epochs(n_cases) if epochs is None else int(epochs)
     if epochs is None and members > 1:
         ep = max(50, int(round(ENSEMBLE_EPOCH_FRACTION * ep)))
-    fitted = []
-    for i in range(int(members)):
-        # members one after another: stacking them into batched (M, ...) matrix products was
-        # tried and was slower with numpy here (6.5 s against 3 x 1.2 s for 30 epochs)
-        what = "crbm" if members == 1 else f"crbm member {i + 1}/{members}"
-        m = CRBM(n_hidden=hidden, order=order, n_epochs=ep, history_noise=history_noise,
-                 positive_hidden=positive_hidden, bias_init_std=bias_init_std, batches=batches,
-                 average_last=average_last, random_state=seed + MEMBER_SEED_STRIDE * i,
-                 progress=_progress_printer(what, progress_every) if progress else None)
-        fitted.append(m.fit(Z))
+    # members one after another: stacking them into batched (M, ...) matrix products was
+    # tried and was slower with numpy here (6.5 s against 3 x 1.2 s for 30 epochs); the mapper
+    # set with ``member_map`` (archive/crbm_dist.py) trains them on Dask workers instead
+    kw = dict(hidden=hidden, order=order, epochs=ep, history_noise=history_noise, positive_hidden=positive_hidden,
+              bias_init_std=bias_init_std, batches=batches, average_last=average_last, seed=seed,
+              members=int(members), progress=progress, progress_every=progress_every)
+    mapper = _MEMBER_MAP.get()
+    fitted = ([fit_member(Z, i, **kw) for i in range(int(members))] if mapper is None
+              else list(mapper(Z, list(range(int(members))), kw)))
     l1 = fitted[0]
     l2 = None
     if levels == 2:

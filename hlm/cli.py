@@ -44,6 +44,9 @@ def add_commands(cli) -> None:
                         "from walking to running (default 0: the paper's one style per take, better on single-style "
                         "takes; see docs/BENCHMARKS.md)")
     p.add_argument("--lag", type=int, default=15, help="frames of look-ahead of the fixed-lag filler (default 15)")
+    p.add_argument("--scheduler", metavar="ADDR", help="run each E-step over the takes on this Dask cluster "
+                   "(tcp://HOST:PORT; archive/hlm_dist.py): the same bound and parameters as one process")
+    p.add_argument("--workers", type=int, metavar="N", help="the same on a local Dask cluster of N worker processes")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines on stderr")
     from mocap import skelmap
 
@@ -90,12 +93,15 @@ def _run_train(args: argparse.Namespace) -> int:
         print(f"hlm: {len(seqs)} takes, {n} frames at {fps:g} fps, C={args.styles}, N={args.cycle_frames}, "
               f"M={args.states or 2 * args.cycle_frames}", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
-    model = train_model(seqs, ch, [os.path.basename(p) for p in args.data], progress=not args.quiet,
-                        styles=args.styles, cycle_frames=args.cycle_frames, n_states=args.states, jumps=args.jumps,
-                        n_iter=args.iterations, n_var=args.sweeps, restarts=args.restarts, seed=args.seed,
-                        root_mode=args.root_mode, root_tau=args.root_tau, normalize=args.normalize, kappa=args.kappa, width=args.width,
-                        kappa_global=args.kappa_global, style_switch=args.style_switch,
-                        lag=args.lag, skeleton=args.skeleton)
+    from archive.dist_cli import training_cluster  # a no-op without --scheduler/--workers
+
+    with training_cluster(args, "hlm"):
+        model = train_model(seqs, ch, [os.path.basename(p) for p in args.data], progress=not args.quiet,
+                            styles=args.styles, cycle_frames=args.cycle_frames, n_states=args.states, jumps=args.jumps,
+                            n_iter=args.iterations, n_var=args.sweeps, restarts=args.restarts, seed=args.seed,
+                            root_mode=args.root_mode, root_tau=args.root_tau, normalize=args.normalize, kappa=args.kappa,
+                            width=args.width, kappa_global=args.kappa_global, style_switch=args.style_switch,
+                            lag=args.lag, skeleton=args.skeleton)
     model.meta["training"]["fps"] = fps
     from mocap.fk import skeleton_record
 

@@ -21,6 +21,8 @@ ascent on it.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import sys
 import time
 import warnings
@@ -33,7 +35,51 @@ from hlm.emissions import LOG2PI
 from lacuna.blas import single_thread_blas
 from hlm.params import BoundWarning, FitResult, HLMParams
 
-__all__ = ["VariationalEM", "fit", "HLMParams", "FitResult", "BoundWarning"]
+__all__ = ["VariationalEM", "fit", "pi_stats", "estep_map", "HLMParams", "FitResult", "BoundWarning"]
+
+
+# The E-step's per-sequence part can run elsewhere (archive/hlm_dist.py runs it on Dask
+# workers): a mapper (em, Baug, plam, log_d) -> the dict ``pi_stats`` returns for all K sequences,
+# in sequence order.  None = this process.
+_ESTEP_MAP: contextvars.ContextVar = contextvars.ContextVar("hlm_estep_map", default=None)
+
+
+@contextlib.contextmanager
+def estep_map(mapper: Callable | None):
+    """Run every ``VariationalEM`` E-step inside the block through ``mapper`` (see ``_ESTEP_MAP``)."""
+    token = _ESTEP_MAP.set(mapper)
+    try:
+        yield
+    finally:
+        _ESTEP_MAP.reset(token)
+
+
+def pi_stats(X: np.ndarray, lengths: np.ndarray, Baug: np.ndarray, plam: np.ndarray, log_d: np.ndarray) -> dict:
+    """Q(pi^k) of eq. (7)/(10) for a batch of sequences and its sufficient statistics.
+
+    X : (T, K, F) padded frames (0 on padding).  lengths : (K,).  Baug : (K, F + 1, M) the
+    psi-weighted emission coefficients (last row the constant).  plam : (K, F) = psi Lambda.
+    log_d : (K, J).  Returns G (T, K, M) posteriors, jumps (K, J), log_z (K,), GX (K, M, F),
+    Gs (K, M) and H_pi (K,) the entropy of Q(pi^k).  Every output row k depends on sequence k
+    only, so batches of sequences can be computed apart and stacked.
+    """
+    T, K, F = X.shape
+    M = Baug.shape[2]
+    valid = np.arange(T)[:, None] < lengths[None, :]
+    Xk = np.ascontiguousarray(X.transpose(1, 0, 2))                           # (K, T, F)
+    Xaug = np.ones((K, T, F + 1))
+    Xaug[:, :, :F] = Xk
+    x2 = np.einsum("ktf,kf->kt", Xk ** 2, plam)                              # (K, T)
+    ek = Xaug @ Baug                                                          # (K, T, M) on BLAS
+    ek -= 0.5 * x2[:, :, None]
+    e = np.ascontiguousarray(ek.transpose(1, 0, 2))                           # (T, K, M)
+    e[~valid] = 0.0
+    log_start = np.full((K, M), -np.log(M))
+    G, log_z, jumps = hmm.forward_backward(e, log_start, log_d, lengths)
+    GX = np.ascontiguousarray(G.transpose(1, 2, 0)) @ Xk                      # (K, M, F)
+    # entropy of Q(pi^k) = log Z_k - <log p(pi_1)> - <sum log d> - <sum e>, fixed with this Q
+    H_pi = log_z + np.log(M) - (jumps * log_d).sum(1) - np.einsum("tkm,tkm->k", G, e)
+    return {"G": G, "jumps": jumps, "log_z": log_z, "GX": GX, "Gs": G.sum(0), "H_pi": H_pi}
 
 
 class VariationalEM:
@@ -131,7 +177,10 @@ class VariationalEM:
 
     def _update_pi(self) -> None:
         """Eq. (7)/(10): forward-backward with psi-weighted expected emissions
-        e_k(i, m) = sum_c psi_kc <log N(x_i; z^c_m, Lambda^c^-1)>."""
+        e_k(i, m) = sum_c psi_kc <log N(x_i; z^c_m, Lambda^c^-1)>.
+
+        The per-sequence work is ``pi_stats``; the mapper set with ``estep_map`` (default: this
+        process) runs it over the sequences, e.g. on Dask workers (archive/hlm_dist.py)."""
         lam_mu, lam_q, log_norm = self._tables()
         K, M, F = self.K, self.M, self.F
         # e_k(i, m) = x_i . B_k[m] + const_k[m] - 1/2 x_i^2 . (psi_k Lambda): the (k, m) constant rides
@@ -139,23 +188,12 @@ class VariationalEM:
         Baug = np.empty((K, F + 1, M))
         Baug[:, :F] = np.einsum("kc,cmf->kfm", self.psi, lam_mu)
         Baug[:, F] = -0.5 * (self.psi @ lam_q) + (self.psi @ log_norm)[:, None]
-        T = self.X.shape[0]
-        Xk = np.ascontiguousarray(self.X.transpose(1, 0, 2))                      # (K, T, F)
-        Xaug = np.ones((K, T, F + 1))
-        Xaug[:, :, :F] = Xk
-        x2 = np.einsum("ktf,kf->kt", Xk ** 2, self.psi @ self.lam)              # (K, T)
-        ek = Xaug @ Baug                                                          # (K, T, M) on BLAS
-        ek -= 0.5 * x2[:, :, None]
-        e = np.ascontiguousarray(ek.transpose(1, 0, 2))                           # (T, K, M)
-        e[~self.valid] = 0.0
+        plam = self.psi @ self.lam
         log_d = np.log(self.d)
-        log_start = np.full((self.K, self.M), -np.log(self.M))
-        G, log_z, jumps = hmm.forward_backward(e, log_start, log_d, self.lengths)
-        self.G, self.jumps, self.log_z = G, jumps, log_z
-        self.GX = np.ascontiguousarray(G.transpose(1, 2, 0)) @ Xk                 # (K, M, F)
-        self.Gs = G.sum(0)                                                        # (K, M)
-        # entropy of Q(pi^k) = log Z_k - <log p(pi_1)> - <sum log d> - <sum e>, fixed with this Q
-        self.H_pi = log_z + np.log(self.M) - (jumps * log_d).sum(1) - np.einsum("tkm,tkm->k", G, e)
+        mapper = _ESTEP_MAP.get()
+        st = pi_stats(self.X, self.lengths, Baug, plam, log_d) if mapper is None else mapper(self, Baug, plam, log_d)
+        self.G, self.jumps, self.log_z, self.GX, self.Gs, self.H_pi = (
+            st["G"], st["jumps"], st["log_z"], st["GX"], st["Gs"], st["H_pi"])
 
     def _stats(self) -> tuple[np.ndarray, np.ndarray]:
         """W (C, M) = sum_k psi_kc sum_i gamma_im; R (C, M, F) = sum_k psi_kc sum_i gamma_im x_i."""

@@ -1,0 +1,1 @@
+"""Whole archives: batch filling of recorded takes and distributed training on Dask."""
