@@ -45,9 +45,9 @@ def _run(args: argparse.Namespace) -> int:
         sha = sha256_file(args.model)
     method = resolve_method(args.method, meta)
     if args.drop:
-        from clients.takes import drop_mask  # noqa: F401  (pattern errors surface per take otherwise)
+        from clients.takes import check_pattern
 
-        _check_drop(args.drop)
+        check_pattern(args.drop)  # an unknown pattern fails before any take is read
     jobs = discover(args.takes, args.out)
     os.makedirs(args.out, exist_ok=True)
     spec = FillSpec(method, args.model, sha, meta.get("method") if meta else None, args.drop, args.seed)
@@ -82,16 +82,6 @@ def _run(args: argparse.Namespace) -> int:
         atomic_write_text(args.json_out, json.dumps({"summary": summ, "takes": res.rows}, indent=2, sort_keys=True) + "\n")
         print(f"json: {args.json_out}")
     return 1 if res.failed else 0
-
-
-def _check_drop(pattern: str) -> None:
-    """Reject an unknown pattern before any take is read (one line, exit 2)."""
-    import numpy as np
-
-    from clients.takes import drop_mask
-    from mocap.motion import Motion
-
-    drop_mask(pattern, Motion(np.zeros((2, 1)), ["root.tx"], 120.0, None, "check"))
 
 
 def _print_table(s: dict, rows: list[dict]) -> None:

@@ -81,6 +81,24 @@ def write_take(path: str | os.PathLike, motion: Motion, asf: str | None = None, 
     raise LacunaError(f"{p}: this build writes .amc and {recording.SUFFIX} (mocap.io for BVH/CSV is not installed)")
 
 
+def check_pattern(pattern: str) -> None:
+    """Reject an unknown drop pattern or joint group before any take is read (LacunaError naming
+    it); whether the pattern erases anything depends on each take's skeleton (``drop_mask``)."""
+    name, _, arg = pattern.partition(":")
+    what = f"--drop {pattern}"
+    if name == "none":
+        return
+    if name not in ("gaps", "pan2009", "taylor2007"):
+        raise LacunaError(f"--drop {pattern!r}: unknown pattern (none, gaps[:GROUP,...], pan2009, "
+                          "taylor2007:right-leg|upper-body)")
+    if name == "gaps":
+        bad = [g for g in arg.split(",") if g and g not in GAP_GROUPS]
+        if bad:
+            raise LacunaError(f"{what}: unknown joint group {bad[0]!r} (known: {', '.join(GAP_GROUPS)})")
+    if name == "taylor2007" and arg not in ("", "right-leg", "upper-body"):
+        raise LacunaError(f"{what}: taylor2007 erases right-leg or upper-body (got {arg!r})")
+
+
 def drop_mask(pattern: str, motion: Motion, seed: int = 0,
               skeleton: str | None = None) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
     """The observed mask (T, C) a pattern leaves, and the bursts (group, start, stop) it erased.
@@ -90,19 +108,14 @@ def drop_mask(pattern: str, motion: Motion, seed: int = 0,
     T, C = motion.frames.shape
     ch = motion.channels
     obs = np.ones((T, C), bool)
+    check_pattern(pattern)
     name, _, arg = pattern.partition(":")
     what = f"--drop {pattern}"
     if name == "none":
         return obs, []
-    if name not in ("gaps", "pan2009", "taylor2007"):
-        raise LacunaError(f"--drop {pattern!r}: unknown pattern (none, gaps[:GROUP,...], pan2009, "
-                          "taylor2007:right-leg|upper-body)")
     sk = skelmap.Binding.of(ch, skeleton, motion.source)
     if name == "gaps":
         groups = [g for g in arg.split(",") if g] if arg else list(skelmap.GROUPS)
-        bad = [g for g in groups if g not in GAP_GROUPS]
-        if bad:
-            raise LacunaError(f"{what}: unknown joint group {bad[0]!r} (known: {', '.join(GAP_GROUPS)})")
         sk.mask(groups, what)
         gaps = Gaps(seed)
         gaps.skeleton = skeleton
@@ -120,7 +133,5 @@ def drop_mask(pattern: str, motion: Motion, seed: int = 0,
         obs[T // 2:, ~legs] = False
         return obs, [("all-but-legs", T // 2, T)]
     which = arg or "right-leg"
-    if which not in ("right-leg", "upper-body"):
-        raise LacunaError(f"{what}: taylor2007 erases right-leg or upper-body (got {which!r})")
     obs[T // 2:, sk.mask(which, what)] = False
     return obs, [(which, T // 2, T)]
