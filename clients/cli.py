@@ -175,6 +175,9 @@ def _replay(args: argparse.Namespace) -> int:
     observed = keep & known
     p = Path(args.file)
     out = args.out or f"{p.stem}.filled{p.suffix}"
+    if args.positions and (Path(out).suffix.lower() != ".csv" or motion.skeleton is None):
+        raise LacunaError("--positions writes joint positions as CSV of a take with a skeleton (AMC, BVH): "
+                          "give --out FILE.csv")
     if not args.quiet:
         print(f"replaying {args.file}: {motion.n_frames} frames x {len(motion.channels)} channels at {motion.fps:g} Hz, "
               f"drop {args.drop} ({int((known & ~keep).sum())} values erased)", file=sys.stderr)
@@ -199,10 +202,7 @@ def _replay(args: argparse.Namespace) -> int:
         from mocap.fk import Kinematics
 
         kin = Kinematics.from_motion(motion, skeleton=args.skeleton)
-    if args.positions:
-        if Path(out).suffix.lower() != ".csv" or kin is None:
-            raise LacunaError("--positions writes joint positions as CSV of a take with a skeleton (AMC, BVH): "
-                              "give --out FILE.csv")
+    if args.positions and kin is not None:
         from mocap.csvio import write_csv
         from mocap.fkerror import positions_motion
 

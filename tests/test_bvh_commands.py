@@ -172,3 +172,11 @@ def test_a_model_trained_from_files_carries_its_skeleton_for_fk(tmp_path, capsys
         assert kin.joints == want.joints and kin.length_unit == want.length_unit
         np.testing.assert_allclose(kin.positions(m.frames[:5]), want.positions(m.frames[:5]), atol=1e-12)
     capsys.readouterr()
+
+
+def test_positions_need_a_csv_output_and_fail_before_any_daemon(tmp_path, capsys):
+    take = tmp_path / "x.bvh"
+    take.write_text(bvh_text(NAMINGS["xsens-mvn"](), 120))
+    assert main(["replay", str(take), "--serve", str(tmp_path / "absent.npz"), "--out", str(tmp_path / "y.bvh"),
+                 "--positions", "-q"]) == 2
+    assert "--positions writes joint positions as CSV" in capsys.readouterr().err
