@@ -17,6 +17,8 @@ for pan2009 None (the paper's 07_01) or "validation"/"test" (that split's walks,
 any validation or test take); ``train_split=True`` makes pan2009 train on that reduced set for
 ``test_file`` too.  ``test_file`` is a path or a list of paths (one model scores every file).
 ``seeds`` (gaps only) lists occlusion seeds; figures pool the values of every seed.
+``trained_on`` names the takes a given ``model`` saw (default: the protocol's training set; for a
+``model_path``, the file's ``training.data``), so rows of those takes are flagged ``in_training``.
 ``fills_dir`` writes one ``<stem>[-<pattern>][-seed<k>].npz`` per case (see ``write_fill``).
 
 Result: ``{"protocol", "method", "causal", "model", "train_seconds", "split", "seeds",
@@ -103,7 +105,8 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
              test_file: str | list[str] | None = None, asf: str | None = None,
              options: dict[str, Any] | None = None, progress: bool = True, seed: int = 0, *,
              seeds: Iterable[int] | None = None, split: str | None = None, train_split: bool = False,
-             model: Any = None, fills_dir: str | None = None, keep: bool = True) -> dict[str, Any]:
+             model: Any = None, fills_dir: str | None = None, keep: bool = True,
+             trained_on: list[str] | None = None) -> dict[str, Any]:
     """Train (or load, or take ``model``) once, fill every case of every seed, score and aggregate."""
     seeds = [int(s) for s in seeds] if seeds is not None else [int(seed)]
     if not seeds:
@@ -121,7 +124,12 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
     elif model is None:
         model = train(protocols[0], method, options, progress)
         train_seconds = time.perf_counter() - t0
-    trained_on = list(protocols[0].training_set().names) if not model_path else []
+    if trained_on is None:
+        if model_path:  # what the file says it was trained on (HLM and CRBM files say; others: unknown)
+            meta, _ = modelfile.load_arrays(model_path)
+            trained_on = list((meta.get("training") or {}).get("data") or [])
+        else:
+            trained_on = list(protocols[0].training_set().names)
     seen = set(trained_on)
 
     per_case: list[tuple[Case, metrics.Values, list[dict[str, Any]]]] = []

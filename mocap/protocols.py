@@ -5,13 +5,13 @@ pan2009     Pan & Torresani 2009 section 4.3: train on CMU 07_02, 07_09, 07_10 a
             subject-35 trial (120 Hz); test 07_01; over its second half erase every channel
             except the 14 leg channels; metric: mean squared wrapped error per erased angle
             channel (degrees^2), root translation scored separately.
-taylor2007  Taylor, Hinton & Roweis 2006 section 5 on the split in cmu35_taylor (30 Hz): tests
-            35_29 (walk) and 35_18 (jog); from the middle on erase the right leg (7 channels)
-            or the upper body (36); metric: cumulative scaled error and RMS degrees.
             ``Pan2009(split="validation")`` scores the same erasure on the walks of the
             validation split (07_10, 35_28, walking_20, walking_21) with a model trained on the
             paper's training set minus every validation and test take (``train_split``, implied);
             ``Pan2009(train_split=True)`` trains on that reduced set for ``--test`` files too.
+taylor2007  Taylor, Hinton & Roweis 2006 section 5 on the split in cmu35_taylor (30 Hz): tests
+            35_29 (walk) and 35_18 (jog); from the middle on erase the right leg (7 channels)
+            or the upper body (36); metric: cumulative scaled error and RMS degrees.
 gaps        Seeded random occlusion that looks like a real take: bursts of dropout of 0.1-2 s on
             joint groups (arms, legs, head and neck, torso, root), several at once.  Trained on
             ``splits.TRAIN`` (locomotion and non-locomotion), scored on ``splits.VALIDATION``

@@ -51,7 +51,11 @@ def test_issue4_generate_writes_amc_with_the_seed_skeleton(small_model, data, tm
 def test_issue4_eval_scores_a_crbm_model_file(small_model):
     r = lacuna("eval", "--protocol", "taylor2007", "--method", "crbm", "--model", str(small_model), "-q")
     assert r.returncode == 0, r.stderr
-    assert r.stdout.count("cumulative_scaled_error") == 4
+    # one block per erasure pattern, a column per test take: the 4 cases
+    assert r.stdout.count("cumulative_scaled_error") == 2
+    assert "erased: right-leg" in r.stdout and "erased: upper-body" in r.stdout
+    for line in (ln for ln in r.stdout.splitlines() if ln.startswith("cumulative_scaled_error")):
+        assert len([v for v in line.split()[1:] if float(v) > 0]) == 2
 
 
 def test_bad_input_gives_one_line_errors(small_model, tmp_path):

@@ -12,11 +12,10 @@ import pytest
 
 from mocap import splits
 from mocap.evaluate import evaluate, value
-from mocap.protocols import Gaps, get_protocol, load_take
+from mocap.protocols import Gaps, load_take
 from mocap.representation import is_angle, wrap180
 
 pytestmark = pytest.mark.realdata
-CMU = None
 
 
 def _lacuna(*args, timeout=600):
