@@ -68,6 +68,7 @@ def test_leading_frames_are_refused_not_held_as_an_envelope(tmp_path, walk):
             mute.send_multipart(big + [body])
         _wait(lambda: status(S, ep["router"])["rejected"].get("bad_envelope", 0) == 24, 60, "not all refused")
         grew = d.rss_kib() - rss0
+        print(f"\nF1: daemon RSS {rss0} KiB before 24 requests of 200 x 60 KiB leading frames, +{grew} KiB after")
         assert grew < 64 * 1024, f"RSS grew {grew} KiB"  # the 288 MB offered are not held
         rd = S.make(zmq.DEALER, ep["router"])
         rd.send_multipart(big + [body])
@@ -174,6 +175,7 @@ def test_expensive_requests_have_a_budget_per_peer(tmp_path, walk):
             att.send(bad)
         got = [recv_msg(att, 20_000) for _ in range(1000)]
         reasons = {r: sum(1 for m in got if m.reason == r) for r in {m.reason for m in got}}
+        print(f"\nF4: 1000 hellos of 4096 identical names from one peer answered {reasons}")
         assert set(reasons) == {"bad_channels", "rate_limited"} and reasons["rate_limited"] > 0, reasons
         assert all("repeat: ['ab']" in m.detail for m in got if m.reason == "bad_channels")
         fresh = S.make(zmq.DEALER, ep["router"])

@@ -99,6 +99,7 @@ def test_metrics_flood_holds_no_thread_and_reload_still_runs(tmp_path, walk):
             body = scrape(mport)
         assert "lacuna_up 1" in body and "lacuna_frames_out_total" in body
         peak = max(peak, threads(d.pid))
+        print(f"\nF2: daemon threads {base} before 300 half-open metrics connections and 3 SIGHUPs, {peak} at most after")
         assert peak <= base, (base, peak)  # no thread per connection, none per reload
         st = status(S, ep["router"])
         mh = st["metrics_http"]
