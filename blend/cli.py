@@ -40,23 +40,41 @@ def _load(paths: list[str], fps: float | None):
             seqs.append(m.frames)
         if seqs[-1].shape[0] < 10:
             raise LacunaError(f"{p}: has {seqs[-1].shape[0]} frames; need at least 10")
-    return seqs, ch, rate
+    return seqs, ch, rate, motions[0]
 
 
 def _run(args: argparse.Namespace) -> int:
     from blend.train import train_model
 
-    seqs, ch, rate = _load(args.data, args.fps)
+    seqs, ch, rate, first = _load(args.data, args.fps)
     cal = None
     if args.calibrate:
-        cseqs, cch, _ = _load(args.calibrate, rate)
+        cseqs, cch, _, _ = _load(args.calibrate, rate)
         if cch != ch:
             from lacuna.errors import LacunaError
 
             raise LacunaError(f"{args.calibrate[0]}: channels differ from the training takes'")
         cal = [(os.path.basename(p), s, "take") for p, s in zip(args.calibrate, cseqs)]
     model = train_model(seqs, ch, [os.path.basename(p) for p in args.data], calibrate=cal, fps=rate)
+    from mocap.fk import skeleton_record
+
+    # as `lacuna train hlm|crbm` do: the rate (lacuna fill checks a take's against it) and the
+    # skeleton (FK for lacuna view and positions in replies) go with the model
+    training = model.meta.setdefault("training", {})
+    training["fps"] = rate
+    rec = skeleton_record(first)
+    if rec:
+        training["skeleton"] = rec
     model.save(args.output)
+    from blend.model import GROUPS, ROOT_POS
+
+    if not ((model.group > 0) & (model.group < len(GROUPS)) & (model.group != ROOT_POS)).any():
+        # its weights and groups are CMU ASF's: another skeleton's limbs are all "other", which the
+        # shipped weights hold.  Mapping them through the skeleton map was tried: trained on
+        # 08_02.bvh it was worse than hold on 07_01.bvh (7.97 against 6.38 deg), so it stays off
+        print(f"lacuna: warning: {args.data[0]}: default knows CMU ASF bone names only; on this skeleton it "
+              "holds the last value of every missing channel (use `lacuna train hlm` for this skeleton)",
+              file=sys.stderr)
     if not args.quiet:
         print(f"default: {len(seqs)} takes, {sum(s.shape[0] for s in seqs)} frames at {rate:g} fps, "
               f"{len(model.reg_idx)} regression channels, weights "
