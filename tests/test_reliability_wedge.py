@@ -266,7 +266,8 @@ def test_a_stopped_daemon_shows_the_stall(tmp_path):
         assert cam["max_wait_ms"] >= 1000  # (it was sent before a 1.5 s stop and read after it)
         # (the stop met the loop asleep in poll, or, less likely, inside a turn's work)
         lp = st["loop"]
-        assert lp["stalls_over"]["1000ms"] + lp["long_turns_over"]["1000ms"] == 1
+        # at least the stop (a loaded machine may add a stall of its own)
+        assert lp["stalls_over"]["1000ms"] + lp["long_turns_over"]["1000ms"] >= 1
         assert max(lp["max_stall_ms"], lp["max_turn_ms"]) >= 1000
         body = ""
         deadline = time.monotonic() + 10
