@@ -60,12 +60,13 @@ def test_first_erased_frame_starts_where_the_performer_was(small):
     np.testing.assert_array_equal(fill[obs], truth[obs])  # observed values come back exactly
 
 
-@pytest.mark.parametrize("take", ["walking_21", "soccer_4", "basketball_signal_4"])
+@pytest.mark.parametrize("take", ["walking_27", "soccer_5", "basketball_signal_5"])
 def test_not_worse_than_hold_and_calibrated_on_held_out_takes(small, take):
-    """Validation takes (a walk of another performer, non-locomotion) with the gaps-like occlusion."""
+    """TEST takes (a walk of another performer, non-locomotion), which neither the model's training
+    nor the shipped weights' fit (validation takes, seeds 100-102) saw, with the gaps-like occlusion."""
     model, hold = small
     truth = splits.load_take(take).frames
-    obs, _ = occlusion(take, truth.shape[0], model.channels, 120.0, seed=100)
+    obs, _ = occlusion(take, truth.shape[0], model.channels, 120.0, seed=0)
     given = np.where(obs, truth, np.nan)
     fill, std = model.fill_offline(given, obs)
     hfill, _ = hold.fill_offline(given, obs)
@@ -78,15 +79,16 @@ def test_not_worse_than_hold_and_calibrated_on_held_out_takes(small, take):
 
 
 def test_weights_fitted_on_given_takes_beat_hold(data):
-    """The calibration path: weights fitted on two held-out takes are not all zero and beat hold there."""
+    """The calibration path: weights fitted on two held-out takes are not all zero and beat hold on a
+    third take they were not fitted on."""
     seqs = [splits.load_take(t).frames for t in TRAIN[:4]]
     ch = splits.load_take(TRAIN[0]).channels
     cal = [(t, splits.load_take(t).frames, "walk") for t in ("07_10", "walking_21")]
     model = train_model(seqs, ch, TRAIN[:4], calibrate=cal)
     assert np.abs(model.weights.wv).max() > 0.05 and np.abs(model.weights.wr).max() > 0.05
     assert model.meta["calibration"]["data"] == ["07_10", "walking_21"]
-    truth = cal[0][1]
-    obs, _ = occlusion("07_10", truth.shape[0], ch, 120.0, seed=100)
+    truth = splits.load_take("walking_20").frames
+    obs, _ = occlusion("walking_20", truth.shape[0], ch, 120.0, seed=0)
     given = np.where(obs, truth, np.nan)
     e = wrap(model.fill_offline(given, obs)[0] - truth)[~obs]
     eh = wrap(HoldModel.fit(seqs, ch).fill_offline(given, obs)[0] - truth)[~obs]
