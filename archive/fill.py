@@ -198,7 +198,9 @@ def fill_take(job: TakeJob, spec: FillSpec, model_blob: tuple[str, bytes] | None
     except Exception as e:  # a bad take is reported, never raised: the batch goes on
         msg = str(e) if isinstance(e, (LacunaError, ValueError, OSError, KeyError)) else \
             f"{type(e).__name__}: {e} ({traceback.format_exc(limit=-1).strip().splitlines()[-2].strip()})"
-        row.update(status="failed", error=msg.strip("'\""), seconds={"total": time.perf_counter() - t0})
+        msg = msg.strip("'\"")
+        msg = msg[len(job.source) + 2:] if msg.startswith(job.source + ": ") else msg   # the row names the take
+        row.update(status="failed", error=msg, seconds={"total": time.perf_counter() - t0})
     return row
 
 

@@ -68,7 +68,7 @@ def test_cluster_fill_equals_local_fill(data, tmp_path, cluster):
 
 
 def test_cluster_fill_with_a_model_ships_it_once(data, tmp_path, cluster):
-    """A small HLM (trained here in seconds) filling with its fixed-lag smoother on the cluster."""
+    """A small HLM (trained here in seconds) filling with its default, the smoother (hlm-offline)."""
     from hlm.methods import train_model
     from mocap.asf import read_amc
 
@@ -84,9 +84,9 @@ def test_cluster_fill_with_a_model_ships_it_once(data, tmp_path, cluster):
     assert main(["fill", *takes, "--out", str(tmp_path / "cluster"), "--scheduler", cluster.address,
                  "--json", str(js), *base]) == 0
     s = json.loads(js.read_text())
-    assert s["summary"]["method"] == "hlm-lag" and s["summary"]["filled"] == 2
+    assert s["summary"]["method"] == "hlm-offline" and s["summary"]["filled"] == 2
     side = read_fill_sidecar(str(tmp_path / "cluster" / "07_02.amc") + FILL_SUFFIX)
-    assert side["model"]["sha256"] == s["summary"]["model_sha256"] and side["method"] == "hlm-lag"
+    assert side["model"]["sha256"] == s["summary"]["model_sha256"] and side["method"] == "hlm-offline"
     _same_outputs(tmp_path / "local", tmp_path / "cluster", ["07_02.amc", "35_01.amc"])
 
 
