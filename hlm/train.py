@@ -151,6 +151,10 @@ class VariationalEM:
         src = np.linspace(0.0, n - 1.0, M)
         self.zbar = np.stack([np.interp(src, np.arange(n), seq[:n, f]) for f in range(F)], 1)
         self.lam = np.tile(1.0 / var_f, (C, 1))                 # sample precision per coordinate
+        # eq. (14)'s precision is capped at 1e6 x the sample precision: a coordinate that is constant
+        # in every take of a style (a finger channel that moves in 3 of 45 takes) has a residual of
+        # ~0 there, and 1/0 would overflow the bound (hmmlearn's min_covar does the same)
+        self.lam_max = 1e6 / var_f
         # "0.01 times the sample precision of all the data coordinates": one number for all f;
         # we take the precision of the average per-coordinate variance.
         self.lam_zbar = zbar_frac / float(var_f.mean())
@@ -248,7 +252,8 @@ class VariationalEM:
         # A style no sequence uses (num ~ 0) leaves the bound independent of its Lambda (every term
         # carrying it is weighted by psi or W = 0): keep the old value instead of 0/0.
         alive = num > 1e-9 * self.lengths.sum()
-        self.lam = np.where(alive[:, None], num[:, None] / np.maximum(den, 1e-300), self.lam)
+        self.lam = np.where(alive[:, None], np.minimum(num[:, None] / np.maximum(den, 1e-300), self.lam_max),
+                            self.lam)
         # (15), (16)
         t = self.eta + self.psi.sum(0)
         self.tau = t / t.sum()

@@ -113,3 +113,18 @@ def test_bad_training_input_is_rejected():
         VariationalEM([np.zeros((10, 3))], 2, 2)
     with pytest.raises(ValueError, match="no training sequences"):
         VariationalEM([], 2, 10)
+
+
+def test_a_coordinate_constant_within_a_style_keeps_the_bound_finite(synth):
+    """A channel that moves in one style's takes only (CMU's lfingers.rx moves in 3 of 45 walks)
+    has a residual of ~0 in the other style: eq. (14) must not divide by it."""
+    seqs, _ = synth
+    seqs = [s.copy() for s in seqs]
+    for s in seqs[::2]:  # the fixture's style-0 takes (labels 0, 1, 0, 1, ...)
+        s[:, 0] = 1.25
+    em = VariationalEM(seqs, C, M // 2, seed=3)
+    for _ in range(15):  # the paper's iteration count; uncapped, lambda reached 4e302 on the 15th
+        for step in (em._update_Z, em._update_l, em._update_pi, em._m_step):
+            step()
+    assert np.isfinite(em.bound()) and np.isfinite(em.lam).all()
+    assert em.lam.max() < 1e12 and (em.lam == em.lam_max).any()  # the cap is what held it
