@@ -24,8 +24,12 @@ def add_commands(cli) -> None:
     p.add_argument("--sweeps", type=int, default=3, help="variational updates per E-step (default 3)")
     p.add_argument("--restarts", type=int, default=3, help="seeded restarts; the best bound is kept (default 3)")
     p.add_argument("--seed", type=int, default=0, help="first restart's seed (default 0)")
-    p.add_argument("--root-mode", choices=["raw", "relative"], default="raw",
-                   help="root as raw angles/positions (the paper) or heading-relative motion (default raw)")
+    p.add_argument("--root-mode", choices=["raw", "relative", "auto"], default=None,
+                   help="root as raw angles/positions (the paper) or heading-relative motion; auto (the default): "
+                        "relative where the skeleton has root.tx..rz")
+    p.add_argument("--root-tau", type=float, default=None, metavar="FRAMES",
+                   help="relative root: how fast the root's motion is damped over a root dropout "
+                        "(see docs/BENCHMARKS.md, HLM root representation)")
     p.add_argument("--normalize", action=argparse.BooleanOptionalAction, default=False,
                    help="scale features to unit variance before training (default off, as the paper)")
     p.add_argument("--fps", type=float, help="resample every file to this rate first")
@@ -89,7 +93,7 @@ def _run_train(args: argparse.Namespace) -> int:
     model = train_model(seqs, ch, [os.path.basename(p) for p in args.data], progress=not args.quiet,
                         styles=args.styles, cycle_frames=args.cycle_frames, n_states=args.states, jumps=args.jumps,
                         n_iter=args.iterations, n_var=args.sweeps, restarts=args.restarts, seed=args.seed,
-                        root_mode=args.root_mode, normalize=args.normalize, kappa=args.kappa, width=args.width,
+                        root_mode=args.root_mode, root_tau=args.root_tau, normalize=args.normalize, kappa=args.kappa, width=args.width,
                         kappa_global=args.kappa_global, style_switch=args.style_switch,
                         lag=args.lag, skeleton=args.skeleton)
     model.meta["training"]["fps"] = fps

@@ -237,12 +237,12 @@ def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, row
 
 
 @_jit
-def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, rt, post, t, D, W, G, GW, cyc, ht,
+def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
                live, live_stats, out, sd, style):  # pragma: no cover - compiled
     """fastrepr.encode1 -> _step -> fastrepr.finish1 for pool row r: the arithmetic of
     ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Writes the
     completed frame to out, its std to sd, the style posterior to style; returns the phase."""
-    center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF = rt
+    center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF, root_tau, root_power = rt
     prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin = ht
     C = frame.shape[0]
     x = np.empty(C)
@@ -250,7 +250,7 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, rt, post
         x[c] = frame[c] if observed[c] else np.nan
     z = np.empty(nF)
     zobs = np.empty(nF, np.bool_)
-    encode1(x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], center, dr, df, dang, any_angle,
+    encode1(x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center, dr, df, dang, any_angle,
             relative, rot, pos, rootf, fsrc, normalize, mean, std, z, zobs)
     q = r if cyc else 0
     zf = np.empty(nF)
@@ -259,8 +259,9 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, rt, post
     phase = _step(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
                   D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style)
     t[r] += 1
-    prev_yaw[r] = finish1(zf, zsd, x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], center, const,
-                          dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, out, sd)
+    prev_yaw[r] = finish1(zf, zsd, x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center,
+                          const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power,
+                          out, sd)
     started[r] = True
     return phase
 
@@ -270,7 +271,8 @@ def slot_tables(tab, rep) -> tuple:
     filter without them) as ``_step_slot`` takes them."""
     t = fastrepr.tables(rep)
     rt = (t["center"], t["const"], t["dr"], t["df"], t["dang"], t["any_angle"], t["relative"], t["rot"], t["pos"],
-          t["rootf"], t["fsrc"], t["rsrc"], t["normalize"], t["mean"], t["std"], int(rep.n_features))
+          t["rootf"], t["fsrc"], t["rsrc"], t["normalize"], t["mean"], t["std"], int(rep.n_features), t["root_tau"],
+          t["root_power"])
     ht = (tab.prior_flat, tab.d_pop, int(tab.shape[1]), tab.em.fused_t, tab.mu, tab.bin0, tab.bin1, tab.bin_a,
           float(tab.kappa), float(tab.kappa_global), int(tab.n_bins), tab.lam_rows, tab.var_q, tab.pack, tab.cos,
           tab.sin)
@@ -291,6 +293,6 @@ def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarr
     style = np.empty(ht[0].shape[0] // ht[2])
     cyc = "D" in cp
     D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
-    phase = _step_slot(r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rt,
+    phase = _step_slot(r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
                        cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style)
     return out, sd, {"style": style.tolist(), "phase": phase}

@@ -1,14 +1,16 @@
 """Registers the HLM methods with ``lacuna eval`` and the model-file loader.
 
 hlm                    the online forward filter (causal, constant time per frame), with the
-                       stream-cycle adaptation (kappa; see hlm.online) switched on
+                       stream-cycle adaptation (kappa; see hlm.online) switched on and the
+                       heading-relative root with its dropout damping (mocap.representation)
 hlm-offline            eq. (18) with the smoothed posteriors of the whole recording (not causal)
 hlm-lag                the fixed-lag smoother, ``lag`` frames late (default 15; not causal)
 hlm-faithful           the paper's model and filler as written: no stream-cycle adaptation
 hlm-faithful-offline   the paper's section 4.3 procedure (smoothed posteriors, eq. 18)
 
 All train the same model (the faithful section 3-4 training); they differ in inference options,
-which live in the model file and can be changed without retraining (``HLMModel.with_options``).
+which live in the model file and can be changed without retraining (``HLMModel.with_options``),
+and the faithful ones train on the paper's representation (raw root, ``FAITHFUL_TRAIN``).
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from hlm import model as _model  # noqa: F401  (registers the model-file loader)
 from hlm.model import HLMModel, HLMOptions
 from hlm.train import fit
 from lacuna.registry import MethodSpec, register_method
-from mocap.representation import Representation
+from mocap.representation import Representation, has_root_channels
 
 # Defaults (section 4 of the paper where it says; representation: see docs/BENCHMARKS.md ## HLM)
 DEFAULTS: dict[str, Any] = {
@@ -35,14 +37,21 @@ DEFAULTS: dict[str, Any] = {
     "restarts": 3,
     "screen_iters": 2,
     "seed": 0,
-    "root_mode": "raw",
+    # the root heading-relative (Taylor et al. 2006) where the skeleton has root.tx..rz, its motion
+    # over a root dropout damped by exp(-(g / 40)^2 / 2) after g frames: chosen on VALIDATION
+    # (docs/BENCHMARKS.md, "HLM root representation")
+    "root_mode": "auto",
     "normalize": False,
+    "root_tau": 40.0,       # frames: damping of the root's motion over a root gap (relative mode)
+    "root_power": 2.0,      # its shape: 1 exponential, 2 Gaussian (mocap.representation)
     "eta": 0.1,
     "lam_s": 0.1,
     "zbar_frac": 0.01,
     "adapt_rate": 0.0,
     "lag": 15,
-    "kappa": 3.0,          # stream-cycle adaptation (hlm.online); chosen on pan2009 and gaps
+    # stream-cycle adaptation (hlm.online): first chosen on 07_01 (a test take), re-chosen on the
+    # VALIDATION split (kappa 0.3-10, kappa_global 0-10, width 4-12: these stay best or within 1%)
+    "kappa": 3.0,
     "width": 8,
     "kappa_global": 3.0,
     # a change of style mid-take (walk -> run); 0 = the paper's one style per recording.  Off by
@@ -52,15 +61,21 @@ DEFAULTS: dict[str, Any] = {
     "skeleton": None,      # skeleton map (name or file) of the channels; None: recognised from their names
 }
 FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0}
+# the faithful methods' training defaults: the paper's representation (raw root angles and
+# positions, not normalised) and C = 4, whatever ``hlm``'s defaults become
+FAITHFUL_TRAIN = {"root_mode": "raw", "normalize": False, "root_tau": 0.0, "root_power": 1.0, "styles": 4}
 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
                 progress: bool = False, **options: Any) -> HLMModel:
     """Fit the representation and the HLM on raw sequences [(n_k, n_channels)] -> HLMModel."""
     o = {**DEFAULTS, **{k: v for k, v in options.items() if k in DEFAULTS and v is not None}}
+    if o["root_mode"] == "auto":
+        # heading-relative where the skeleton has the six root channels it is computed from
+        o["root_mode"] = "relative" if has_root_channels(channels, o["skeleton"]) else "raw"
     t0 = time.perf_counter()
     rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]),
-                             skeleton=o["skeleton"])
+                             skeleton=o["skeleton"], root_tau=float(o["root_tau"]), root_power=float(o["root_power"]))
     feats = [rep.transform(s) for s in sequences]
     res = fit(feats, int(o["styles"]), int(o["cycle_frames"]), n_restarts=int(o["restarts"]), seed=int(o["seed"]),
               n_iter=int(o["n_iter"]), n_var=int(o["n_var"]), progress=progress,
@@ -98,7 +113,7 @@ def _fill_lag(model: HLMModel, frames: np.ndarray, observed: np.ndarray):
 
 
 def _train_faithful(training_set, **options: Any) -> HLMModel:
-    return _train(training_set, **{**options, **FAITHFUL})
+    return _train(training_set, **{**FAITHFUL_TRAIN, **options, **FAITHFUL})
 
 
 def _faithful_online(model: HLMModel, frames: np.ndarray, observed: np.ndarray):

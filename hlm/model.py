@@ -89,9 +89,16 @@ class HLMModel(FeatureModel):
                                                 self.options.style_switch)
 
     def with_options(self, **kw) -> "HLMModel":
-        """A copy with other inference options (the learned parameters are shared, read-only)."""
+        """A copy with other inference options (the learned parameters are shared, read-only);
+        ``root_tau`` (frames) and ``root_power`` change the representation's root damping, which nothing learned
+        depends on."""
+        rep = self.representation
+        if "root_tau" in kw or "root_power" in kw:
+            tau, q = float(kw.pop("root_tau", rep.root_tau)), float(kw.pop("root_power", rep.root_power))
+            if (tau, q) != (rep.root_tau, rep.root_power):
+                rep = rep.with_root_damping(tau, q)
         o = HLMOptions(**{**self.options.__dict__, **kw})
-        return HLMModel(self.representation, self.params, o, self.meta)
+        return HLMModel(rep, self.params, o, self.meta)
 
     # ---- online core (FeatureModel hooks) ------------------------------------------------------
     def core_init(self, n: int) -> dict[str, np.ndarray]:
@@ -135,18 +142,18 @@ class HLMModel(FeatureModel):
             z, zo = st.encode(frames[t : t + 1], observed[t : t + 1])
             Z[t], O[t] = z[0], zo[0]
             held = np.where(observed[t], frames[t], st.prev_raw[0])
-            st.commit(held[None])
+            st.commit(held[None], observed=observed[t : t + 1])
         return Z, O
 
     def decode_recording(self, Zf: np.ndarray, Zsd: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rep = self.representation
         st = rep.new_state(1)
         out = np.empty(frames.shape)
+        std = np.empty(frames.shape)
         for t in range(frames.shape[0]):
             f = np.where(observed[t], frames[t], np.nan)[None]
-            out[t] = st.decode(Zf[t : t + 1], f, observed[t : t + 1])[0]
-            st.commit(out[t : t + 1])
-        std = np.where(observed, 0.0, self._raw_std(Zsd))
+            done, sd = st.finish(Zf[t : t + 1], Zsd[t : t + 1], f, observed[t : t + 1])
+            out[t], std[t] = done[0], sd[0]
         return out, std
 
     def _check_recording(self, frames: np.ndarray, observed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -276,10 +283,8 @@ class LagStream:
         zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot], *online.cycle_stats(self.core),
                              **online.group_stats(self.core))
         f = np.where(self.rawobs[slot], self.raw[slot], np.nan)[None]
-        done = self.dec.decode(zf, f, self.rawobs[slot][None])
-        self.dec.commit(done)
-        std = np.where(self.rawobs[slot], 0.0, m._raw_std(sd)[0])
-        return Fill(done[0], std, ~self.rawobs[slot], online.extras(m.tables, P)[0])
+        done, std = self.dec.finish(zf, sd, f, self.rawobs[slot][None])
+        return Fill(done[0], std[0], ~self.rawobs[slot], online.extras(m.tables, P)[0])
 
     def step(self, frame: np.ndarray | None, observed: np.ndarray | None = None) -> Fill | None:
         m = self.model
@@ -291,9 +296,9 @@ class LagStream:
         z, zo = self.enc.encode(f[None], obs[None])
         ll = online.update(m.tables, self.core, z, zo)
         online.accumulate(m.tables, self.core, z, zo)
-        zf, _ = online.fill(m.tables, self.core["post"], z, zo, *online.cycle_stats(self.core),
-                            **online.group_stats(self.core))
-        self.enc.commit(self.enc.decode(zf, np.where(obs, f, np.nan)[None], obs[None]))
+        zf, zsd = online.fill(m.tables, self.core["post"], z, zo, *online.cycle_stats(self.core),
+                              **online.group_stats(self.core))
+        self.enc.finish(zf, zsd, np.where(obs, f, np.nan)[None], obs[None])
         slot = self.n % (self.lag + 1)
         self.post[slot], self.ll[slot], self.z[slot], self.zobs[slot] = self.core["post"], ll, z, zo
         self.raw[slot], self.rawobs[slot] = np.where(obs, f, 0.0), obs

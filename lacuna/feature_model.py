@@ -32,7 +32,7 @@ from lacuna.filler import Fill, FillerState, Model, check_frame
 from mocap import fastrepr
 from mocap.representation import Representation, ReprState
 
-REPR_ATTRS = ("prev_u", "prev_raw", "prev_yaw", "started")
+REPR_ATTRS = ("prev_u", "prev_raw", "prev_yaw", "started", "root_st")
 
 
 @dataclass
@@ -140,9 +140,7 @@ class FeatureModel(Model):
         if compiled:
             completed, std = fastrepr.finish(repr_state, out.z, out.z_std, frames, observed)
         else:
-            completed = repr_state.decode(out.z, frames, observed)
-            repr_state.commit(completed)
-            std = np.where(observed, 0.0, self._raw_std(out.z_std))
+            completed, std = repr_state.finish(out.z, out.z_std, frames, observed)
         return completed, std, out.extras
 
     def _views(self, lo: int, hi: int) -> tuple[ReprState, dict[str, np.ndarray]]:

@@ -53,7 +53,7 @@ def _rad(x):  # pragma: no cover - compiled
 
 
 @_jit
-def encode1(frame, observed, prev_u, prev_raw, prev_yaw, started, center, dr, df, dang, any_angle,
+def encode1(frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, dr, df, dang, any_angle,
             relative, rot, pos, rootf, fsrc, normalize, mean, std, F, fobs):  # pragma: no cover - compiled
     """ReprState.encode for one stream: fills F (n_features,) and fobs (n_features,) in place."""
     C = frame.shape[0]
@@ -87,6 +87,11 @@ def encode1(frame, observed, prev_u, prev_raw, prev_yaw, started, center, dr, df
         F[rootf[3]] = dyaw
         F[rootf[4]] = _deg(pitch)
         F[rootf[5]] = _deg(roll)
+        if root_st[0] > 0:
+            # after a root gap the previous root is a fill: no displacement or yaw rate observed
+            F[rootf[0]] = np.nan
+            F[rootf[2]] = np.nan
+            F[rootf[3]] = np.nan
     for j in range(F.shape[0]):
         ok = observed[fsrc[j, 0]] and observed[fsrc[j, 1]] and observed[fsrc[j, 2]] and F[j] == F[j]
         fobs[j] = ok
@@ -112,11 +117,11 @@ def _to_rxyz(R, p0, p1, p2, out, i0, i1, i2):  # pragma: no cover - compiled
 
 
 @_jit
-def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, center, const, dr, df, dang,
-            relative, rot, pos, rootf, rsrc, normalize, mean, std, out, sd):  # pragma: no cover - compiled
-    """ReprState.decode + commit + the raw std, for one stream.  Writes the completed raw frame to
-    out, its std (0 where observed) to sd, and the new previous-frame state (prev_u, prev_raw in
-    place); returns (prev_yaw, started) as the new scalars."""
+def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, const, dr, df, dang,
+            relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power, out, sd):  # pragma: no cover - compiled
+    """ReprState.finish (decode + the raw std + commit), for one stream.  Writes the completed raw
+    frame to out, its std (0 where observed) to sd, and the new previous-frame state (prev_u,
+    prev_raw, root_st in place); returns the new prev_yaw."""
     C = frame.shape[0]
     nF = z.shape[0]
     Fv = np.empty(nF)
@@ -127,9 +132,16 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, cente
     for k in range(dr.shape[0]):
         v = Fv[df[k]]
         out[dr[k]] = _wrap(v) if dang[k] else v
+    kd = 1.0
+    if relative and root_tau > 0:
+        kd = math.exp(-((root_st[0] / root_tau) ** root_power) / root_power)
+    speed, turn = 0.0, 0.0
     if relative:
         side, height, fwd = Fv[rootf[0]], Fv[rootf[1]], Fv[rootf[2]]
         dyaw, pitch, roll = Fv[rootf[3]], Fv[rootf[4]], Fv[rootf[5]]
+        speed, turn = math.hypot(side, fwd), abs(dyaw)
+        if root_tau > 0:
+            side, fwd, dyaw = side * kd, fwd * kd, dyaw * kd
         yaw = prev_yaw + _rad(dyaw) if started else prev_yaw
         cy, sy = math.cos(prev_yaw), math.sin(prev_yaw)
         dx = cy * side + sy * fwd
@@ -167,6 +179,31 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, cente
                 if v != v:
                     break
         sd[c] = m
+    if relative:
+        # the std of a missing root's ground position and heading, summed over the root gap
+        s0 = zstd[rootf[0]] * std[rootf[0]] if normalize else zstd[rootf[0]]
+        s2 = zstd[rootf[2]] * std[rootf[2]] if normalize else zstd[rootf[2]]
+        s3 = zstd[rootf[3]] * std[rootf[3]] if normalize else zstd[rootf[3]]
+        mx = s0 if s0 > s2 else s2
+        if s0 != s0 or s2 != s2:
+            mx = np.nan                      # np.maximum's NaN
+        sp = root_st[1] + kd * mx + (1.0 - kd) * speed
+        sy = root_st[2] + kd * s3 + (1.0 - kd) * turn
+        for i in (0, 2):
+            if not observed[pos[i]]:
+                sd[pos[i]] = sp
+        for i in range(3):
+            c = rot[i]
+            if not observed[c] and sd[c] == sd[c] and (sy != sy or sy > sd[c]):
+                sd[c] = sy
+        seen = True
+        for i in range(3):
+            if not (observed[rot[i]] and observed[pos[i]]):
+                seen = False
+        if seen:
+            root_st[0], root_st[1], root_st[2] = 0.0, 0.0, 0.0
+        else:
+            root_st[0], root_st[1], root_st[2] = root_st[0] + 1.0, sp, sy
     # commit: the completed frame becomes the previous one
     for c in range(C):
         ref = prev_u[c] if started else center[c]
@@ -182,20 +219,20 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, cente
 
 
 @_jit
-def encode_many(frames, observed, prev_u, prev_raw, prev_yaw, started, center, dr, df, dang, any_angle,
+def encode_many(frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, dr, df, dang, any_angle,
                 relative, rot, pos, rootf, fsrc, normalize, mean, std, F, fobs):  # pragma: no cover - compiled
     for i in range(frames.shape[0]):
-        encode1(frames[i], observed[i], prev_u[i], prev_raw[i], prev_yaw[i], started[i], center, dr, df, dang,
+        encode1(frames[i], observed[i], prev_u[i], prev_raw[i], prev_yaw[i], started[i], root_st[i], center, dr, df, dang,
                 any_angle, relative, rot, pos, rootf, fsrc, normalize, mean, std, F[i], fobs[i])
 
 
 @_jit
-def finish_many(z, zstd, frames, observed, prev_u, prev_raw, prev_yaw, started, center, const, dr, df, dang,
-                relative, rot, pos, rootf, rsrc, normalize, mean, std, out, sd):  # pragma: no cover - compiled
+def finish_many(z, zstd, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, const, dr, df, dang,
+                relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power, out, sd):  # pragma: no cover - compiled
     for i in range(frames.shape[0]):
         prev_yaw[i] = finish1(z[i], zstd[i], frames[i], observed[i], prev_u[i], prev_raw[i], prev_yaw[i], started[i],
-                              center, const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std,
-                              out[i], sd[i])
+                              root_st[i], center, const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize,
+                              mean, std, root_tau, root_power, out[i], sd[i])
         started[i] = True
 
 
@@ -223,6 +260,8 @@ def tables(rep: Any) -> dict[str, Any]:
             "normalize": bool(rep.normalize),
             "mean": np.ascontiguousarray(p["mean"], np.float64),
             "std": np.ascontiguousarray(p["std"], np.float64),
+            "root_tau": float(rep.root_tau),
+            "root_power": float(rep.root_power),
         }
     return t
 
@@ -235,7 +274,7 @@ def encode(rs: Any, frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarra
     F = np.empty((n, nF))
     fobs = np.empty((n, nF), np.bool_)
     encode_many(np.ascontiguousarray(frames, np.float64), np.ascontiguousarray(observed, np.bool_), rs.prev_u,
-                rs.prev_raw, rs.prev_yaw, rs.started, t["center"], t["dr"], t["df"], t["dang"], t["any_angle"],
+                rs.prev_raw, rs.prev_yaw, rs.started, rs.root_st, t["center"], t["dr"], t["df"], t["dang"], t["any_angle"],
                 t["relative"], t["rot"], t["pos"], t["rootf"], t["fsrc"], t["normalize"], t["mean"], t["std"], F, fobs)
     return F, fobs
 
@@ -249,6 +288,7 @@ def finish(rs: Any, z: np.ndarray, zstd: np.ndarray, frames: np.ndarray, observe
     sd = np.empty((n, C))
     finish_many(np.ascontiguousarray(z, np.float64), np.ascontiguousarray(zstd, np.float64),
                 np.ascontiguousarray(frames, np.float64), np.ascontiguousarray(observed, np.bool_), rs.prev_u,
-                rs.prev_raw, rs.prev_yaw, rs.started, t["center"], t["const"], t["dr"], t["df"], t["dang"],
-                t["relative"], t["rot"], t["pos"], t["rootf"], t["rsrc"], t["normalize"], t["mean"], t["std"], out, sd)
+                rs.prev_raw, rs.prev_yaw, rs.started, rs.root_st, t["center"], t["const"], t["dr"], t["df"], t["dang"],
+                t["relative"], t["rot"], t["pos"], t["rootf"], t["rsrc"], t["normalize"], t["mean"], t["std"],
+                t["root_tau"], t["root_power"], out, sd)
     return out, sd

@@ -13,6 +13,18 @@ Raw channels (what the studio sends) -> features (what models see):
   roll relative to the heading (``root.pitch``, ``root.roll``);
 * optional per-channel normalisation to zero mean and unit variance (stored with the model).
 
+Root dropouts (relative mode).  A root velocity feature is observed only when the root was
+observed in this frame *and* the previous one: the first frame after a root gap would otherwise
+"see" the whole gap's error as one frame's displacement.  While the root is missing the decoder
+integrates the filled displacement and yaw rate from the last completed frame (no jump at the
+first erased frame), damped by exp(-(g / ``root_tau``)^q / q) after g missing frames (q =
+``root_power``: 1 an exponential decay, 2 a Gaussian one that keeps the motion of short gaps and
+stops that of long ones; ``root_tau`` = 0: undamped), so a long root gap falls back toward
+holding the last root; the reported std of the
+ground position and of the heading is summed over the gap (the errors of successive increments
+are taken as fully correlated), each frame adding its damped increment's std and the part of
+the increment the damping dropped, not one frame's std.
+
 The encoder/decoder pair is a *stream*: arrays of shape (n_streams, ...) so the daemon can
 code many streams in one call.  ``encode`` maps frame t to features using the previous
 *completed* frame; the model fills the missing features; ``decode`` maps them back, passes the
@@ -32,15 +44,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from lacuna.errors import LacunaError
+
+from mocap.rootrot import _matrix_to_rxyz, _matrix_to_ypr, _rxyz_to_matrix, _ypr_to_matrix, wrap180  # noqa: F401
+
 ROOT_ROT = ("root.rx", "root.ry", "root.rz")
 ROOT_POS = ("root.tx", "root.ty", "root.tz")
 ROOT_FEATURES = ("root.dside", "root.ty", "root.dfwd", "root.dyaw", "root.pitch", "root.roll")
 CONST_TOL = 1e-2  # degrees: range below this is constant (the rebuilt subject-35 files differ by ~1e-4)
-
-
-def wrap180(x: np.ndarray) -> np.ndarray:
-    """Wrap angles in degrees into [-180, 180)."""
-    return (np.asarray(x) + 180.0) % 360.0 - 180.0
 
 
 def is_angle(name: str) -> bool:
@@ -50,58 +61,6 @@ def is_angle(name: str) -> bool:
 def circular_mean_deg(x: np.ndarray, axis: int = 0) -> np.ndarray:
     r = np.deg2rad(x)
     return np.rad2deg(np.arctan2(np.sin(r).mean(axis), np.cos(r).mean(axis)))
-
-
-# ---- root rotation algebra (vectorised over rows) ----------------------------------------------
-def _rxyz_to_matrix(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """R = Rz(c) Ry(b) Rx(a), angles in radians, shape (n,) -> (n, 3, 3)."""
-    ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
-    R = np.empty(a.shape + (3, 3))
-    R[..., 0, 0] = cc * cb
-    R[..., 0, 1] = cc * sb * sa - sc * ca
-    R[..., 0, 2] = cc * sb * ca + sc * sa
-    R[..., 1, 0] = sc * cb
-    R[..., 1, 1] = sc * sb * sa + cc * ca
-    R[..., 1, 2] = sc * sb * ca - cc * sa
-    R[..., 2, 0] = -sb
-    R[..., 2, 1] = cb * sa
-    R[..., 2, 2] = cb * ca
-    return R
-
-
-def _matrix_to_ypr(R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """R = Ry(yaw) Rx(pitch) Rz(roll): row 1 is (cp sr, cp cr, -sp); column 2 is (sy cp, ., cy cp)."""
-    pitch = np.arcsin(np.clip(-R[..., 1, 2], -1.0, 1.0))
-    roll = np.arctan2(R[..., 1, 0], R[..., 1, 1])
-    yaw = np.arctan2(R[..., 0, 2], R[..., 2, 2])
-    return yaw, pitch, roll
-
-
-def _ypr_to_matrix(y: np.ndarray, p: np.ndarray, r: np.ndarray) -> np.ndarray:
-    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
-    R = np.empty(y.shape + (3, 3))
-    R[..., 0, 0] = cy * cr + sy * sp * sr
-    R[..., 0, 1] = -cy * sr + sy * sp * cr
-    R[..., 0, 2] = sy * cp
-    R[..., 1, 0] = cp * sr
-    R[..., 1, 1] = cp * cr
-    R[..., 1, 2] = -sp
-    R[..., 2, 0] = -sy * cr + cy * sp * sr
-    R[..., 2, 1] = sy * sr + cy * sp * cr
-    R[..., 2, 2] = cy * cp
-    return R
-
-
-def _matrix_to_rxyz(R: np.ndarray, prev: np.ndarray) -> np.ndarray:
-    """Both Euler solutions of R = Rz Ry Rx; pick the one nearer ``prev`` (n, 3) degrees."""
-    b1 = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
-    a1 = np.arctan2(R[..., 2, 1], R[..., 2, 2])
-    c1 = np.arctan2(R[..., 1, 0], R[..., 0, 0])
-    s1 = np.rad2deg(np.stack([a1, b1, c1], -1))
-    s2 = np.stack([s1[..., 0] + 180.0, 180.0 - s1[..., 1], s1[..., 2] + 180.0], -1)
-    d1 = np.abs(wrap180(s1 - prev)).sum(-1)
-    d2 = np.abs(wrap180(s2 - prev)).sum(-1)
-    return wrap180(np.where((d2 < d1)[..., None], s2, s1))
 
 
 @dataclass
@@ -118,16 +77,21 @@ class Representation:
     std: list[float] = field(default_factory=list)    # per feature
     features: list[str] = field(default_factory=list)
     root: dict[str, Any] | None = None    # root spec (mocap.rootframe); None = CMU ASF's root.*
+    root_tau: float = 0.0                 # frames; damping of root motion over a root gap (0 = none)
+    root_power: float = 1.0               # shape of that damping (1 exponential, 2 Gaussian)
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
     def fit(cls, sequences: Sequence[np.ndarray], channels: Sequence[str], root_mode: str = "relative",
-            normalize: bool = True, drop_constant: bool = True, skeleton: Any = None) -> "Representation":
+            normalize: bool = True, drop_constant: bool = True, skeleton: Any = None,
+            root_tau: float = 0.0, root_power: float = 1.0) -> "Representation":
         """sequences: list of (n_frames, n_channels) raw frames.  ``skeleton``: a skeleton map
         (name, file or ``mocap.skelmap.SkeletonMap``) naming the root; else recognised from the
         channel names."""
         if root_mode not in ("relative", "raw"):
             raise ValueError(f"root_mode must be 'relative' or 'raw' (got {root_mode!r})")
+        if not (np.isfinite(root_tau) and root_tau >= 0 and np.isfinite(root_power) and root_power > 0):
+            raise ValueError(f"root_tau must be >= 0 frames and root_power > 0 (got {root_tau}, {root_power})")
         channels = list(channels)
         allf = np.vstack([np.asarray(s, dtype=np.float64) for s in sequences])
         if allf.shape[1] != len(channels):
@@ -144,7 +108,8 @@ class Representation:
             for c in want:
                 keep[channels.index(c)] = True
         center = np.where(ang, circular_mean_deg(allf), 0.0)
-        rep = cls(channels, keep.tolist(), allf[0].tolist(), center.tolist(), root_mode, normalize, root=root)
+        rep = cls(channels, keep.tolist(), allf[0].tolist(), center.tolist(), root_mode, normalize, root=root,
+                  root_tau=float(root_tau), root_power=float(root_power))
         rep.features = rep._feature_names()
         rep.mean = [0.0] * len(rep.features)
         rep.std = [1.0] * len(rep.features)
@@ -183,7 +148,7 @@ class Representation:
 
     def to_dict(self) -> dict[str, Any]:
         d = {k: getattr(self, k) for k in ("channels", "keep", "const_value", "center", "root_mode",
-                                            "normalize", "mean", "std", "features")}
+                                            "normalize", "mean", "std", "features", "root_tau", "root_power")}
         if self.root is not None:
             d["root"] = dict(self.root)
         return d
@@ -191,7 +156,8 @@ class Representation:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Representation":
         rep = cls(**{k: d[k] for k in ("channels", "keep", "const_value", "center", "root_mode", "normalize",
-                                        "mean", "std", "features")}, root=d.get("root"))
+                                        "mean", "std", "features")}, root=d.get("root"),
+                  root_tau=float(d.get("root_tau", 0.0)), root_power=float(d.get("root_power", 1.0)))
         n, f = len(rep.channels), len(rep.features)
         for k, want in (("keep", n), ("const_value", n), ("center", n), ("mean", f), ("std", f)):
             if len(getattr(rep, k)) != want:
@@ -202,7 +168,16 @@ class Representation:
             raise ValueError(f"representation root_mode {rep.root_mode!r} is unknown")
         if not all(np.isfinite(rep.std)) or min(rep.std, default=1.0) <= 0:
             raise ValueError("representation std must be positive and finite")
+        if not (np.isfinite(rep.root_tau) and rep.root_tau >= 0 and np.isfinite(rep.root_power) and rep.root_power > 0):
+            raise ValueError(f"representation root_tau must be >= 0 and root_power > 0 "
+                             f"(got {rep.root_tau}, {rep.root_power})")
         return rep
+
+    def with_root_damping(self, root_tau: float, root_power: float) -> "Representation":
+        """A copy with another root damping (not learned, so no refit)."""
+        d = self.to_dict()
+        d["root_tau"], d["root_power"] = float(root_tau), float(root_power)
+        return Representation.from_dict(d)
 
     # ---- index plumbing -----------------------------------------------------------------------
     @property
@@ -326,7 +301,8 @@ class Representation:
 
 class ReprState:
     """Causal encoder/decoder state for n streams: the previous completed frame's unwrapped angles,
-    root position and yaw."""
+    root position and yaw, and of the root's dropout (``root_st`` (n, 3): frames the root has been
+    missing before this frame, and the std summed over them of the ground position and the yaw)."""
 
     def __init__(self, rep: Representation, n: int):
         self.rep = rep
@@ -336,16 +312,18 @@ class ReprState:
         self.prev_raw = np.tile(np.asarray(rep.const_value, dtype=np.float64), (n, 1))
         self.prev_yaw = np.zeros(n)          # radians, unwrapped
         self.started = np.zeros(n, bool)     # has a completed frame been committed
+        self.root_st = np.zeros((n, 3))      # [frames missing, position std, yaw std (degrees)]
         self._C = C
 
     @classmethod
     def of(cls, rep: Representation, prev_u: np.ndarray, prev_raw: np.ndarray, prev_yaw: np.ndarray,
-           started: np.ndarray) -> "ReprState":
-        """A state over existing arrays (n, C), (n, C), (n,), (n,): writes go to them (views of a
-        model's state pool, see ``lacuna.feature_model``)."""
+           started: np.ndarray, root_st: np.ndarray | None = None) -> "ReprState":
+        """A state over existing arrays (n, C), (n, C), (n,), (n,), (n, 3): writes go to them (views
+        of a model's state pool, see ``lacuna.feature_model``)."""
         st = cls.__new__(cls)
         st.rep, st.n, st._C = rep, started.shape[0], len(rep.channels)
         st.prev_u, st.prev_raw, st.prev_yaw, st.started = prev_u, prev_raw, prev_yaw, started
+        st.root_st = np.zeros((st.n, 3)) if root_st is None else root_st
         return st
 
     def reset(self, i: int) -> None:
@@ -354,6 +332,7 @@ class ReprState:
         self.prev_raw[i] = rep.const_value
         self.prev_yaw[i] = 0.0
         self.started[i] = False
+        self.root_st[i] = 0.0
 
     def _unwrap(self, x: np.ndarray) -> np.ndarray:
         """Raw angles (n, C) -> continuous with the previous frame (or the centre at the start)."""
@@ -400,6 +379,8 @@ class ReprState:
         fwd = sy * d[:, 0] + cy * d[:, 2]
         out[:, 0], out[:, 1], out[:, 2] = side, pos[:, 1], fwd
         out[:, 3], out[:, 4], out[:, 5] = dyaw, np.rad2deg(pitch), np.rad2deg(roll)
+        # after a root gap the previous root is a fill: no displacement or yaw rate is observed
+        out[np.ix_(self.root_st[:, 0] > 0, [0, 2, 3])] = np.nan
         return out
 
     def decode(self, feats: np.ndarray, frames: np.ndarray, observed: np.ndarray, normalized: bool | None = None) -> np.ndarray:
@@ -419,8 +400,16 @@ class ReprState:
         observed = np.asarray(observed, dtype=bool)
         return np.where(observed, frames, out)
 
+    def _damping(self) -> np.ndarray:
+        """exp(-(g / root_tau)^q / q) for a root missing g frames before this one (1 without damping)."""
+        tau, q = self.rep.root_tau, self.rep.root_power
+        return np.exp(-((self.root_st[:, 0] / tau) ** q) / q) if tau > 0 else np.ones(self.n)
+
     def _decode_root(self, rf: np.ndarray, out: np.ndarray, p: dict[str, Any]) -> None:
         side, height, fwd, dyaw, pitch, roll = (rf[:, i] for i in range(6))
+        if self.rep.root_tau > 0:
+            k = self._damping()
+            side, fwd, dyaw = side * k, fwd * k, dyaw * k
         yaw = np.where(self.started, self.prev_yaw + np.deg2rad(dyaw), self.prev_yaw)
         cy, sy = np.cos(self.prev_yaw), np.sin(self.prev_yaw)
         dx = cy * side + sy * fwd
@@ -436,8 +425,39 @@ class ReprState:
         R = _ypr_to_matrix(yaw, np.deg2rad(pitch), np.deg2rad(roll))
         out[:, p["rot"]] = fr.angles(R, self.prev_raw[:, p["rot"]])
 
-    def commit(self, completed: np.ndarray, rows: np.ndarray | None = None) -> None:
-        """Make the completed raw frames (n, C) the new previous frame."""
+    def finish(self, feats: np.ndarray, fstd: np.ndarray, frames: np.ndarray, observed: np.ndarray,
+               normalized: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """decode + the raw std (0 where observed) + commit: completed features and their std (n, F)
+        -> (completed raw frames, raw std), (n, C) each.  In relative mode the std of a missing
+        root's ground position and heading is summed over the root gap (module doc)."""
+        rep, p = self.rep, self.rep._plan()
+        norm = rep.normalize if normalized is None else normalized
+        out = self.decode(feats, frames, observed, normalized=norm)
+        fsd = np.asarray(fstd, dtype=np.float64) * p["std"] if norm else np.asarray(fstd, dtype=np.float64)
+        observed = np.asarray(observed, dtype=bool)
+        std = np.where(observed, 0.0, rep.raw_std(fsd))
+        sums = None
+        if rep.root_mode == "relative":
+            rf = fsd[:, p["rootf"]]
+            rv = (rep.denormalize_features(feats) if norm else np.asarray(feats, dtype=np.float64))[:, p["rootf"]]
+            k = self._damping()
+            # the damped increments' own std, and the motion the damping dropped (the performer may
+            # well keep moving: the spread between holding and integrating)
+            sp = self.root_st[:, 1] + k * np.maximum(rf[:, 0], rf[:, 2]) + (1.0 - k) * np.hypot(rv[:, 0], rv[:, 2])
+            sy = self.root_st[:, 2] + k * rf[:, 3] + (1.0 - k) * np.abs(rv[:, 3])
+            pos, rot = p["pos"][[0, 2]], p["rot"]
+            std[:, pos] = np.where(observed[:, pos], 0.0, sp[:, None])
+            std[:, rot] = np.where(observed[:, rot], 0.0, np.maximum(std[:, rot], sy[:, None]))
+            sums = (sp, sy)
+        self.commit(out, observed=observed, sums=sums)
+        return out, std
+
+    def commit(self, completed: np.ndarray, rows: np.ndarray | None = None, observed: np.ndarray | None = None,
+               sums: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Make the completed raw frames (n, C) the new previous frame.  With ``observed`` (n, C)
+        (relative mode) the root's dropout is counted: a frame with any root channel missing adds
+        one to the gap (and ``sums``, the stds summed so far, are kept), a fully observed root
+        resets it.  Without it (a recording with everything observed) the count does not move."""
         rep, p = self.rep, self.rep._plan()
         completed = np.asarray(completed, dtype=np.float64)
         sel = slice(None) if rows is None else rows
@@ -449,7 +469,27 @@ class ReprState:
             yaw, _, _ = _matrix_to_ypr(p["frame"].matrix(r))
             yaw_u = self.prev_yaw + np.deg2rad(wrap180(np.rad2deg(yaw - self.prev_yaw)))
             self.prev_yaw[sel] = yaw_u[sel] if rows is not None else yaw_u
+            if observed is not None:
+                o = np.asarray(observed, dtype=bool)
+                seen = o[:, p["rot"]].all(1) & o[:, p["pos"]].all(1)
+                st = self.root_st.copy()
+                st[:, 0] += 1.0
+                if sums is not None:
+                    st[:, 1], st[:, 2] = sums
+                st[seen] = 0.0
+                self.root_st[sel] = st[sel] if rows is not None else st
         self.started[sel] = True
+
+
+def has_root_channels(channels: Sequence[str], skeleton: Any = None) -> bool:
+    """Whether these channels carry the root's three rotations and three translations (named
+    through their skeleton map, else CMU ASF's root.*): what ``root_mode="relative"`` needs."""
+    try:
+        spec = _root_spec(channels, skeleton)
+    except (ValueError, LacunaError):
+        return False
+    want = spec["rot"] + spec["pos"] if spec else list(ROOT_ROT + ROOT_POS)
+    return all(c in channels for c in want)
 
 
 def _root_spec(channels: Sequence[str], skeleton: Any) -> dict[str, Any] | None:

@@ -172,15 +172,19 @@ print("enabled", fast.enabled(), "finite", bool(np.isfinite(fill.frame).all()))
     assert r.stdout.split() == ["enabled", "False", "finite", "True"]
 
 
-@pytest.mark.parametrize("root_mode,normalize", [("relative", True), ("relative", False), ("raw", True), ("raw", False)])
-def test_compiled_representation_equals_numpy(data, root_mode, normalize):
+@pytest.mark.parametrize("root_mode,normalize,root_tau,root_power",
+                         [("relative", True, 0.0, 1.0), ("relative", False, 0.0, 1.0), ("relative", False, 60.0, 1.0),
+                          ("relative", True, 7.5, 2.0), ("raw", True, 0.0, 1.0), ("raw", False, 0.0, 1.0)])
+def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_tau, root_power):
     """encode -> (a model's fill) -> decode -> commit, frame by frame over a real walk whose root and
     arm drop out: the compiled single-stream code and ReprState agree to 1e-9 in the features, the
-    feature mask, the completed frame, the raw std and the carried state (unwrapped angles, yaw)."""
+    feature mask, the completed frame, the raw std and the carried state (unwrapped angles, yaw,
+    the root's dropout count and summed stds), with and without the root damping."""
     from mocap.datasets import load_trial
 
     walks = [load_trial(t) for t in ("35_01", "35_06")]
-    rep = Representation.fit([m.frames for m in walks], walks[0].channels, root_mode=root_mode, normalize=normalize)
+    rep = Representation.fit([m.frames for m in walks], walks[0].channels, root_mode=root_mode, normalize=normalize,
+                             root_tau=root_tau, root_power=root_power)
     frames = load_trial("35_08").frames[:300]
     C, F = frames.shape[1], rep.n_features
     obs = np.ones(frames.shape, bool)
@@ -189,6 +193,7 @@ def test_compiled_representation_equals_numpy(data, root_mode, normalize):
     obs[40:90, arm] = False
     obs[120:150, root] = False            # the root itself lost: relative features go missing
     obs[200:202] = False
+    obs[240:260, root[:2]] = False        # part of the root: tx, ty
     rng = np.random.default_rng(1)
     a, b = rep.new_state(1), rep.new_state(1)
     for t in range(frames.shape[0]):
@@ -200,13 +205,13 @@ def test_compiled_representation_equals_numpy(data, root_mode, normalize):
         # what a model would hand back: every feature filled, a std where it was missing
         zfill = np.where(oa, za, rng.normal(size=(1, F)))
         zstd = np.where(oa, 0.0, rng.uniform(0.1, 1.0, size=(1, F)))
-        done_a = a.decode(zfill, f, o)
-        a.commit(done_a)
-        std_a = np.where(o, 0.0, rep.raw_std(zstd * rep._plan()["std"] if normalize else zstd))
+        done_a, std_a = a.finish(zfill, zstd, f, o)
         done_b, std_b = fastrepr.finish(b, zfill, zstd, f, o)
         np.testing.assert_allclose(done_a, done_b, rtol=0, atol=1e-9)
         np.testing.assert_allclose(std_a, std_b, rtol=0, atol=1e-12)
-        for attr in ("prev_u", "prev_raw", "prev_yaw"):
+        for attr in ("prev_u", "prev_raw", "prev_yaw", "root_st"):
             np.testing.assert_allclose(getattr(a, attr), getattr(b, attr), rtol=0, atol=1e-9)
         assert a.started[0] and b.started[0]
+        if root_mode == "relative" and 120 <= t < 150:
+            assert a.root_st[0, 0] == t - 119     # the root's gap is counted
     assert C == len(walks[0].channels)
