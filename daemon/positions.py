@@ -77,7 +77,7 @@ class StreamFK:
         else:
             np.copyto(b, model_frame)  # model channels the studio does not send: the model's values
             np.take(angles, self._s_idx, out=self._take, mode="clip")  # (indices are in range: no check)
-            b[self._m_idx] = self._take
+            np.put(b, self._m_idx, self._take)
         self.kin.position(b, out=self._out)
         return self._out.astype(np.float32)
 

@@ -155,20 +155,3 @@ def test_a_model_without_a_skeleton_refuses_positions_with_no_skeleton(served):
         assert c.hello().model == "hold"
         assert c.fill(take.frames[0]).status == "ok"
 
-
-def test_positions_option_on_the_wire():
-    """The hello option and the fill field encode and decode; absent means off."""
-    h = wire.decode(wire.encode(wire.Hello("s1", ["a.rx"], positions=True)))
-    assert h.positions is True
-    assert wire.decode(wire.encode(wire.Hello("s1", ["a.rx"]))).positions is False
-    assert b"positions" not in wire.encode(wire.Hello("s1", ["a.rx"]))
-    with pytest.raises(wire.WireError) as e:
-        wire.decode(msgpack.packb({"v": 1, "type": "hello", "stream": "s", "channels": ["a"], "positions": 1}))
-    assert e.value.reason == "bad_type"
-    p = np.arange(6, dtype=np.float32).reshape(2, 3)
-    f = wire.FillMsg("s1", 1, 0.0, np.zeros(1, np.float32), np.zeros(1, bool), np.zeros(1, np.float32), "ok", "m", 5,
-                     positions=p)
-    back = wire.decode(wire.encode(f))
-    assert back.positions.shape == (2, 3) and np.array_equal(back.positions, p)
-    ack = wire.decode(wire.encode(wire.HelloAck("s1", "m", ["a.rx"], joints=["root", "a"], parents=[-1, 0])))
-    assert ack.joints == ["root", "a"] and ack.parents == [-1, 0]
