@@ -155,3 +155,26 @@ def test_a_model_without_a_skeleton_refuses_positions_with_no_skeleton(served):
         assert c.hello().model == "hold"
         assert c.fill(take.frames[0]).status == "ok"
 
+
+
+def test_a_reload_keeps_a_positions_stream_on_a_model_with_a_skeleton_only(served):
+    """In-process SessionTable: a reload swapping the model rebinds a stream that asked for
+    positions when the new model has a skeleton (its FK rebuilt), and keeps the old model (and
+    positions) when the new one has none, rather than silently dropping the positions."""
+    from daemon.session import SessionTable
+    from lacuna.modelfile import load_model
+
+    d, take = served
+    hlm = load_model(d.config()["models.hlm"]["file"])
+    models = {"hlm": hlm}
+    table = SessionTable(lambda name, sid: (name or "hlm", models[name or "hlm"]), 8, lambda *a: None)
+    ack, _ = table.hello(wire.Hello("r", list(take.channels), positions=True))
+    s = table.sessions["r"]
+    assert ack.joints and s.fk is not None and s.fk.kin.channels == list(hlm.channels)
+    hlm2 = load_model(d.config()["models.hlm"]["file"])  # the same file read again: a new model object
+    assert table.rebind("hlm", hlm2) == 1 and s.model is hlm2 and s.fk is not None
+    hold = load_model(d.config()["models.hold"]["file"])
+    assert table.rebind("hlm", hold) == 0 and s.model is hlm2 and s.fk is not None
+    plain, _ = table.hello(wire.Hello("p", list(take.channels)))
+    assert plain.joints is None and table.sessions["p"].fk is None
+    assert table.rebind("hlm", hold) == 1 and table.sessions["p"].model is hold
