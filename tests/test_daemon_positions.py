@@ -178,3 +178,21 @@ def test_a_reload_keeps_a_positions_stream_on_a_model_with_a_skeleton_only(serve
     plain, _ = table.hello(wire.Hello("p", list(take.channels)))
     assert plain.joints is None and table.sessions["p"].fk is None
     assert table.rebind("hlm", hold) == 1 and table.sessions["p"].model is hold
+
+
+def test_the_asyncio_client_asks_for_positions_too(served):
+    import asyncio
+
+    from clients.aio import AsyncClient
+
+    d, take = served
+    kin = Kinematics.from_motion(take)
+    sent, _ = _frames(take, 5)
+
+    async def run():
+        async with AsyncClient(d.endpoint, "pos-aio", list(take.channels), timeout_s=30, positions=True) as c:
+            assert (await c.hello()).joints == kin.joints
+            return [await c.fill(f) for f in sent]
+
+    for m in asyncio.run(run()):
+        np.testing.assert_allclose(m.positions, kin.positions(m.angles.astype(np.float64)[None])[0], atol=1e-5, rtol=0)
