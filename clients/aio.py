@@ -26,11 +26,11 @@ class AsyncClient(_DealerLink):
 
     def __init__(self, endpoint: str, stream: str, channels: list[str] | None = None, model: str | None = None,
                  *, timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
-                 ctx: zmq.asyncio.Context | None = None, first_seq: int = 0):
+                 ctx: zmq.asyncio.Context | None = None, first_seq: int = 0, positions: bool = False):
         if timeout_s <= 0:
             raise ValueError(f"timeout_s must be positive (got {timeout_s})")
         self.endpoint = endpoint
-        self.session = StreamSession(stream, channels, model, first_seq)
+        self.session = StreamSession(stream, channels, model, first_seq, positions)
         self.timeout_s = float(timeout_s)
         self.retries = int(retries)
         self._own_ctx = ctx is None

@@ -118,13 +118,15 @@ class Client(_DealerLink):
     retries : how many times a request is re-sent on a fresh socket before DaemonUnavailable.
     curve : (this client's .key_secret file, the daemon's public .key file) for a daemon with keys.
     claim : the stream's claim token, to keep across client restarts (default: a fresh random one).
+    positions : every fill also carries ``.positions``, (J, 3) float32 joint positions in metres
+        (the model's training skeleton); ``joints``/``parents`` name them after the handshake.
     """
 
     def __init__(self, endpoint: str, stream: str, channels: list[str] | None = None, model: str | None = None,
                  *, timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
                  ctx: zmq.Context | None = None, first_seq: int = 0, curve: tuple[str, str] | None = None,
-                 claim: str | None = None):
-        self.session = StreamSession(stream, channels, model, first_seq)
+                 claim: str | None = None, positions: bool = False):
+        self.session = StreamSession(stream, channels, model, first_seq, positions)
         if claim is not None:
             self.session.claim = claim
         self.curve = curve
@@ -187,6 +189,19 @@ class Client(_DealerLink):
                 self.reconnect()
         raise DaemonUnavailable(f"no answer from {self.endpoint} to the handshake of {self.session.stream!r} "
                                 f"after {self.retries + 1} tries of {self.timeout_s:g} s")
+
+    @property
+    def joints(self) -> list[str] | None:
+        """With ``positions=True``: the joints of ``fill(...).positions``, in row order (after the
+        handshake, which the first frame makes if ``hello()`` was not called)."""
+        ack = self.session.ack
+        return None if ack is None else ack.joints
+
+    @property
+    def parents(self) -> list[int] | None:
+        """Parent index per joint (-1 for a root), as ``joints``."""
+        ack = self.session.ack
+        return None if ack is None else ack.parents
 
     def send(self, angles: Any, observed: Any = None, t: float | None = None, seq: int | None = None) -> int:
         """Send one frame without waiting; returns its sequence number.  Read answers with recv()."""

@@ -74,11 +74,17 @@ class StreamSession:
     channels : the studio's channel names in frame order, or None to use the model's own list
         (then no handshake is sent and frames must have the model's width).
     model : model name from the daemon's config, or None for the daemon's choice.
+    positions : ask (in the hello) for joint positions in every fill (``FillMsg.positions``, (J, 3)
+        metres); the hello's answer names the joints (``ack.joints``, ``ack.parents``).
     """
 
-    def __init__(self, stream: str, channels: list[str] | None = None, model: str | None = None, first_seq: int = 0):
+    def __init__(self, stream: str, channels: list[str] | None = None, model: str | None = None, first_seq: int = 0,
+                 positions: bool = False):
         if not stream or len(stream) > wire.MAX_STREAM_ID or not stream.isprintable():
             raise ValueError(f"stream id must be 1..{wire.MAX_STREAM_ID} printable characters (got {stream!r})")
+        if positions and channels is None:
+            raise ValueError("positions are asked for in the hello: pass the stream's channel list")
+        self.positions = bool(positions)
         self.stream = stream
         self.channels = list(channels) if channels is not None else None
         self.model = model
@@ -99,7 +105,7 @@ class StreamSession:
     # ---- messages --------------------------------------------------------------------------
     def hello_bytes(self) -> bytes:
         assert self.channels is not None
-        return wire.encode(wire.Hello(self.stream, self.channels, self.model, self.claim))
+        return wire.encode(wire.Hello(self.stream, self.channels, self.model, self.claim, self.positions))
 
     def frame_bytes(self, angles: Any, observed: Any = None, t: float | None = None,
                     seq: int | None = None) -> tuple[int, bytes]:

@@ -13,6 +13,7 @@ from typing import Any
 from daemon.config import Config, ModelSpec
 from daemon.fillers import PassThroughModel
 from daemon.safeopen import NotRegularFile, proc_path, regular_fd
+from daemon import positions
 from daemon.scheduler import CostModel, Scheduler
 from lacuna.filler import Model
 from lacuna.modelfile import ModelFileError, load_model
@@ -80,6 +81,7 @@ def load_one(spec: ModelSpec, budget_ms: float) -> Loaded:
             tmp.warm_up(model, C)
         except Exception as e:
             raise ModelFileError(f"{spec.file or spec.name}: model failed its warm-up step ({type(e).__name__}: {e})") from None
+    positions.warm(model, spec.name)  # FK of its skeleton compiled now, not in a stream's hello
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     return Loaded(spec.name, model, spec, stamp, now, tmp.costs)
 

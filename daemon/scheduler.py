@@ -376,10 +376,13 @@ def fill_message(s: Session, fill: Fill, status: str, now: float) -> wire.FillMs
     style = ex.get("style")
     phase = ex.get("phase")
     gap = 0 if s.last_seq is None else max(0, f.seq - s.last_seq - 1)
-    return wire.FillMsg(f.stream, f.seq, f.t, angles, filled, std, status, s.model_name,
-                        int((now - p.arrived) * 1e6),
-                        None if style is None else np.asarray(style, np.float32).ravel(),
-                        None if phase is None or not np.isfinite(phase) else float(phase), gap)
+    msg = wire.FillMsg(f.stream, f.seq, f.t, angles, filled, std, status, s.model_name,
+                       int((now - p.arrived) * 1e6),
+                       None if style is None else np.asarray(style, np.float32).ravel(),
+                       None if phase is None or not np.isfinite(phase) else float(phase), gap)
+    if s.fk is not None:  # the stream's hello asked for positions
+        msg.positions = s.fk(fill.frame, angles)
+    return msg
 
 
 def model_inputs(group: list[Session], C: int) -> tuple[np.ndarray, np.ndarray]:
@@ -456,10 +459,13 @@ def _identity_fills(items: list[tuple[Session, Fill, str]], C: int, now: float) 
     for j, (s, fill, status) in enumerate(items):
         f = fr[j]
         phase = exs[j].get("phase")
-        msgs.append(wire.FillMsg(f.stream, f.seq, f.t, angles[j], filled[j], std[j], status, s.model_name,
-                                 int((now - s.pending.arrived) * 1e6),  # type: ignore[union-attr]
-                                 styles[j], None if phase is None or not math.isfinite(phase) else float(phase),
-                                 0 if s.last_seq is None else max(0, f.seq - s.last_seq - 1)))
+        msg = wire.FillMsg(f.stream, f.seq, f.t, angles[j], filled[j], std[j], status, s.model_name,
+                           int((now - s.pending.arrived) * 1e6),  # type: ignore[union-attr]
+                           styles[j], None if phase is None or not math.isfinite(phase) else float(phase),
+                           0 if s.last_seq is None else max(0, f.seq - s.last_seq - 1))
+        if s.fk is not None:  # the stream's hello asked for positions
+            msg.positions = s.fk(fill.frame, angles[j])
+        msgs.append(msg)
     return msgs
 
 

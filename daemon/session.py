@@ -26,7 +26,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from daemon import wire
+from daemon import positions, wire
 from lacuna.filler import FillerState, Model
 
 Origin = tuple  # (transport name, address): ("router", envelope) | ("router", envelope, "bundle") | ("pull", None) | ("osc", (host, port))
@@ -121,6 +121,7 @@ class Session:
     max_wait_s: float = 0.0
     owner: Any = None  # the principal that opened the stream (None: anyone)
     claim: str | None = None  # the claim token of its hello: a new connection presenting it takes the stream over
+    fk: Any = None  # daemon.positions.StreamFK when the hello asked for positions (else no FK work at all)
 
     def restart(self) -> None:
         """Fresh filter state; the sequence numbering restarts at the next frame."""
@@ -199,13 +200,16 @@ class SessionTable:
                                          f"sends its hello with the stream's claim token)")
 
     # ---- lifecycle --------------------------------------------------------------------------
+    def _resolve(self, model_req: str | None, sid: str) -> tuple[str, Model]:
+        try:
+            return self.resolve(model_req, sid)
+        except KeyError as e:
+            raise SessionError("unknown_model", str(e.args[0])) from None
+
     def _new(self, sid: str, studio: list[str] | None, model_req: str | None, width: int = 0) -> Session:
         if sid not in self.sessions and len(self.sessions) >= self.max_streams:
             raise SessionError("too_many_streams", f"{len(self.sessions)} streams are open, the limit is {self.max_streams}")
-        try:
-            name, model = self.resolve(model_req, sid)
-        except KeyError as e:
-            raise SessionError("unknown_model", str(e.args[0])) from None
+        name, model = self._resolve(model_req, sid)
         chans = list(model.channels)
         if not chans:  # pass-through "any channels": the studio's list (or the first frame's width) decides
             chans = studio if studio is not None else [f"ch{i}" for i in range(width)]
@@ -232,10 +236,20 @@ class SessionTable:
         old = self.sessions.get(msg.stream)
         if old is not None and not self._owned(old, who, msg.claim):
             raise self._foreign(msg.stream, "hello")
+        if msg.positions:  # checked before the session is made: a refused hello leaves the stream as it was
+            name, model = self._resolve(msg.model, msg.stream)
+            try:
+                fk = positions.stream_fk(model, name, Mapping.build(msg.channels, list(model.channels)))
+            except ValueError as e:
+                raise SessionError(positions.NO_SKELETON, str(e)) from None
         s = self._new(msg.stream, msg.channels, msg.model)
         s.owner, s.claim = who, msg.claim
         mp = s.mapping
-        return wire.HelloAck(msg.stream, s.model_name, mp.channels, mp.passthrough, mp.missing), self._orphan(old)
+        ack = wire.HelloAck(msg.stream, s.model_name, mp.channels, mp.passthrough, mp.missing)
+        if msg.positions:
+            s.fk = fk
+            ack.joints, ack.parents = fk.joints, fk.parents
+        return ack, self._orphan(old)
 
     def reset(self, sid: str, who: Any = None, operator: bool = False) -> tuple[bool, Out]:
         """End stream ``sid``: its owner may, an operator may end anyone's."""
@@ -300,6 +314,11 @@ class SessionTable:
             mp = Mapping.build(s.mapping.channels, chans)
             if chans and mp.s_idx.size == 0:
                 continue
+            if s.fk is not None:  # a stream that asked for positions keeps them, or keeps its old model
+                try:
+                    s.fk = positions.stream_fk(model, name, mp)
+                except ValueError:
+                    continue
             s.model, s.mapping, s.state = model, mp, model.stream()
             s.model_seq, s.last_out = None, None
             n += 1

@@ -51,6 +51,7 @@ class Hello:
     channels: list[str]
     model: str | None = None
     claim: str | None = None  # a secret the client keeps across reconnects: presenting it takes its stream over
+    positions: bool = False  # every fill of the stream also carries joint positions (the model's skeleton, FK)
 
 
 @dataclass
@@ -66,6 +67,8 @@ class HelloAck:
     channels: list[str]
     passthrough: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)
+    joints: list[str] | None = None  # with hello positions: the joints of the fills' positions, in their order
+    parents: list[int] | None = None  # parent index per joint, -1 for a root
 
 
 @dataclass
@@ -105,6 +108,7 @@ class FillMsg:
     style: np.ndarray | None = None
     phase: float | None = None
     gap: int = 0
+    positions: np.ndarray | None = None  # (J, 3) float32 metres, for a stream whose hello asked
 
 
 @dataclass
@@ -314,7 +318,8 @@ def _decode_hello(m: dict) -> Hello:
     claim = _get(m, "claim", str, "hello", optional=True)
     if claim is not None and not 0 < len(claim) <= MAX_CLAIM:
         raise WireError("bad_length", f"hello field 'claim' must be 1..{MAX_CLAIM} characters (got {len(claim)})", sid)
-    return Hello(sid, channels, model or None, claim)
+    positions = _get(m, "positions", bool, "hello", optional=True)
+    return Hello(sid, channels, model or None, claim, bool(positions))
 
 
 def _decode_control(m: dict) -> Control:
@@ -341,17 +346,23 @@ def _decode_fill(m: dict) -> FillMsg:
         raise WireError("bad_status", f"fill status must be one of {list(STATUSES)} (got {status[:40]!r})", sid, seq)
     style = _f32(m, "style", "fill", None, optional=True)
     phase = _get(m, "phase", (int, float), "fill", optional=True)
+    pos = _f32(m, "positions", "fill", None, optional=True)
+    if pos is not None:
+        if pos.size % 3:
+            raise WireError("bad_length", f"fill field 'positions' must hold 3 float32 per joint (got {pos.size})", sid, seq)
+        pos = pos.reshape(-1, 3)
     return FillMsg(sid, seq, _number(m, "t", "fill"), angles, _mask(m, "filled", "fill", n),  # type: ignore[arg-type]
                    _f32(m, "std", "fill", n), status, _get(m, "model", str, "fill"),  # type: ignore[arg-type]
                    _get(m, "proc_us", int, "fill"), style, None if phase is None else float(phase),
-                   _get(m, "gap", int, "fill", optional=True) or 0)
+                   _get(m, "gap", int, "fill", optional=True) or 0, pos)
 
 
 def _decode_ack(m: dict) -> HelloAck:
     sid = _stream_id(m, "hello-ack")
     return HelloAck(sid, _get(m, "model", str, "hello-ack"), _names(m.get("channels"), "channels", "hello-ack", sid),
                     list(_get(m, "passthrough", list, "hello-ack", optional=True) or []),
-                    list(_get(m, "missing", list, "hello-ack", optional=True) or []))
+                    list(_get(m, "missing", list, "hello-ack", optional=True) or []),
+                    _get(m, "joints", list, "hello-ack", optional=True), _get(m, "parents", list, "hello-ack", optional=True))
 
 
 def _decode_drop(m: dict) -> Drop:
@@ -559,6 +570,8 @@ def to_map(msg: Message) -> dict[str, Any]:
             d["phase"] = float(msg.phase)
         if msg.gap:
             d["gap"] = int(msg.gap)
+        if msg.positions is not None:
+            d["positions"] = _b32(msg.positions)
         return d
     if isinstance(msg, Frame):
         d: dict[str, Any] = {"v": 1, "type": "frame", "stream": msg.stream, "seq": msg.seq, "t": msg.t,
@@ -572,10 +585,15 @@ def to_map(msg: Message) -> dict[str, Any]:
             d["model"] = msg.model
         if msg.claim:
             d["claim"] = msg.claim
+        if msg.positions:
+            d["positions"] = True
         return d
     if isinstance(msg, HelloAck):
-        return {"v": 1, "type": "hello-ack", "stream": msg.stream, "model": msg.model,
-                "channels": list(msg.channels), "passthrough": list(msg.passthrough), "missing": list(msg.missing)}
+        d = {"v": 1, "type": "hello-ack", "stream": msg.stream, "model": msg.model,
+             "channels": list(msg.channels), "passthrough": list(msg.passthrough), "missing": list(msg.missing)}
+        if msg.joints is not None:
+            d["joints"], d["parents"] = list(msg.joints), [int(p) for p in msg.parents or ()]
+        return d
     if isinstance(msg, Drop):
         return {"v": 1, "type": "drop", "stream": msg.stream, "seq": msg.seq, "reason": msg.reason}
     if isinstance(msg, Control):

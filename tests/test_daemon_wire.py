@@ -305,3 +305,52 @@ def test_mutated_bundles_never_raise_anything_but_wire_error():
                 continue
             if isinstance(m, w.Bundle):
                 assert all(isinstance(x, (w.Frame, w.WireError)) for x in m.items)
+
+
+# ---- positions (hello option) ---------------------------------------------------------------
+HELLO_S1_ONE_CHANNEL_POSITIONS = bytes.fromhex(  # docs/PROTOCOL.md, `hello` positions
+    "85a17601a474797065a568656c6c6fa673747265616da27331a86368616e6e656c7391a96c66656d75722e7278a970"
+    "6f736974696f6e73c3"
+)
+ACK_S1_JOINTS_ROOT_LFEMUR = bytes.fromhex(  # docs/PROTOCOL.md, `hello-ack` with joints
+    "89a17601a474797065a968656c6c6f2d61636ba673747265616da27331a56d6f64656ca477616c6ba86368616e6e656c"
+    "7391a96c66656d75722e7278ab706173737468726f75676890a76d697373696e6790a66a6f696e747392a4726f6f74a6"
+    "6c66656d7572a7706172656e747392ff00"
+)
+FILL_S1_SEQ7_TWO_JOINT_POSITIONS = bytes.fromhex(  # docs/PROTOCOL.md, `fill` with positions
+    "8ca17601a474797065a466696c6ca673747265616da27331a373657107a174cb3ff8000000000000a6616e676c6573c4"
+    "0400005040a666696c6c6564c40101a3737464c4040000003fa6737461747573a26f6ba56d6f64656ca477616c6ba770"
+    "726f635f7573cd019ca9706f736974696f6e73c418000000000000603f000000000000003e0000003f00000000"
+)
+
+
+def test_protocol_examples_positions():
+    h = w.Hello("s1", ["lfemur.rx"], positions=True)
+    assert w.encode(h) == HELLO_S1_ONE_CHANNEL_POSITIONS and w.decode(HELLO_S1_ONE_CHANNEL_POSITIONS) == h
+    ack = w.HelloAck("s1", "walk", ["lfemur.rx"], joints=["root", "lfemur"], parents=[-1, 0])
+    assert w.encode(ack) == ACK_S1_JOINTS_ROOT_LFEMUR and w.decode(ACK_S1_JOINTS_ROOT_LFEMUR) == ack
+    f = w.decode(FILL_S1_SEQ7_TWO_JOINT_POSITIONS)
+    assert isinstance(f, w.FillMsg) and f.positions.dtype == np.float32
+    assert f.positions.tolist() == [[0.0, 0.875, 0.0], [0.125, 0.5, 0.0]]
+    assert w.encode(f) == FILL_S1_SEQ7_TWO_JOINT_POSITIONS
+    with pytest.raises(w.WireError) as e:  # not a whole number of joints
+        w.decode(FILL_S1_SEQ7_TWO_JOINT_POSITIONS[:-26] + bytes.fromhex("c414") + bytes(20))
+    assert e.value.reason == "bad_length"
+
+
+def test_positions_option_on_the_wire():
+    """The hello option and the fill field encode and decode; absent means off."""
+    h = w.decode(w.encode(w.Hello("s1", ["a.rx"], positions=True)))
+    assert h.positions is True
+    assert w.decode(w.encode(w.Hello("s1", ["a.rx"]))).positions is False
+    assert b"positions" not in w.encode(w.Hello("s1", ["a.rx"]))
+    with pytest.raises(w.WireError) as e:
+        w.decode(msgpack.packb({"v": 1, "type": "hello", "stream": "s", "channels": ["a"], "positions": 1}))
+    assert e.value.reason == "bad_type"
+    p = np.arange(6, dtype=np.float32).reshape(2, 3)
+    f = w.FillMsg("s1", 1, 0.0, np.zeros(1, np.float32), np.zeros(1, bool), np.zeros(1, np.float32), "ok", "m", 5,
+                     positions=p)
+    back = w.decode(w.encode(f))
+    assert back.positions.shape == (2, 3) and np.array_equal(back.positions, p)
+    ack = w.decode(w.encode(w.HelloAck("s1", "m", ["a.rx"], joints=["root", "a"], parents=[-1, 0])))
+    assert ack.joints == ["root", "a"] and ack.parents == [-1, 0]
