@@ -62,11 +62,29 @@ def open_client(scheduler: str | None = None, workers: int | None = None, quiet:
         client = Client(cluster)
         try:
             client.wait_for_workers(n, timeout=WORKERS_TIMEOUT_S)
+            client.run(_own_session)  # each worker its own share of the CPU (see _own_session)
             yield client
         finally:
             client.close()
     finally:
         cluster.close()
+
+
+def _own_session() -> bool:
+    """Make this worker process the leader of a session of its own (True if it now is).
+
+    With the kernel's autogroup scheduling (``/proc/sys/kernel/sched_autogroup_enabled``, on by
+    default on desktop and many server kernels) the CPU is shared fairly between *sessions*: the
+    local cluster's workers, children of the caller, shared the caller's one session's share, and
+    two of them got about 0.46 of a CPU each on two busy cores where one alone got 0.78
+    (docs/ARCHIVE.md).  Workers of a cluster started by hand (``dask worker``) are in sessions of
+    their own already."""
+    try:
+        if os.getsid(0) != os.getpid():
+            os.setsid()
+        return os.getsid(0) == os.getpid()
+    except OSError:
+        return False
 
 
 def describe(client) -> dict:

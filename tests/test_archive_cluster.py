@@ -238,3 +238,19 @@ def test_distributed_estep_with_missing_values_equals_local(data, cluster):
     for a, b in zip(local.filled, dist.filled):
         assert np.all(np.isfinite(b))
         np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
+
+
+def _session_of_this_process() -> tuple[int, int]:
+    return os.getpid(), os.getsid(0)
+
+
+def test_local_cluster_workers_each_lead_a_session_of_their_own():
+    """Under the kernel's autogroup scheduling the CPU is shared between sessions: a local
+    cluster's workers must not share the caller's (archive.cluster._own_session)."""
+    from archive.cluster import open_client
+
+    with open_client(workers=2) as client:
+        got = client.run(_session_of_this_process)
+    assert len(got) == 2
+    for pid, sid in got.values():
+        assert sid == pid != os.getsid(0)
