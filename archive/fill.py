@@ -130,7 +130,8 @@ def fill_arrays(spec: FillSpec, model: Any, motion, known: np.ndarray) -> tuple[
     T, C = motion.frames.shape
     keep = np.ones((T, C), bool)
     if spec.drop:
-        keep, _ = drop_mask(spec.drop, motion, spec.seed)
+        # a short take in which no burst falls is a rehearsal with nothing to fill, not a failure
+        keep, _ = drop_mask(spec.drop, motion, spec.seed, require_erased=False)
     observed = known & keep
     m = _model_for(spec, model, motion, observed)
     mfps = (getattr(m, "meta", None) or {}).get("training", {}).get("fps")

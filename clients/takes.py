@@ -99,11 +99,12 @@ def check_pattern(pattern: str) -> None:
         raise LacunaError(f"{what}: taylor2007 erases right-leg or upper-body (got {arg!r})")
 
 
-def drop_mask(pattern: str, motion: Motion, seed: int = 0,
-              skeleton: str | None = None) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
+def drop_mask(pattern: str, motion: Motion, seed: int = 0, skeleton: str | None = None,
+              require_erased: bool = True) -> tuple[np.ndarray, list[tuple[str, int, int]]]:
     """The observed mask (T, C) a pattern leaves, and the bursts (group, start, stop) it erased.
 
-    Raises LacunaError naming the pattern when it is unknown or would erase nothing.
+    Raises LacunaError naming the pattern when it is unknown or would erase nothing (with
+    ``require_erased=False`` a gaps pattern whose random bursts miss a short take erases nothing).
     """
     T, C = motion.frames.shape
     ch = motion.channels
@@ -123,7 +124,7 @@ def drop_mask(pattern: str, motion: Motion, seed: int = 0,
         keep = [b for b in bursts if b[0] in groups]
         for g, a, b in keep:
             obs[a:b, sk.mask(g, require=False)] = False
-        if obs.all():
+        if obs.all() and require_erased:
             raise LacunaError(f"{what}: no burst falls in this take's {T} frames ({T / motion.fps:.2f} s); "
                               "try another --seed or a longer take")
         return obs, keep

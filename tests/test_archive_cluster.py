@@ -147,7 +147,7 @@ def test_worker_killed_mid_batch_loses_no_take(data, tmp_path):
         res = run_batch(jobs, FillSpec("interp", drop="gaps"), None, c.client, progress=False, on_row=on_row)
     assert killed, "the victim worker never reported a take"
     assert killed["keys"], "the victim had no take in flight when it was killed"
-    assert len(res.rows) == 16 and not res.failed
+    assert len(res.rows) == 16 and not res.failed, [r.get("error") for r in res.failed]
     lost = [int(k.rsplit("-", 1)[1]) for k in killed["keys"]]
     for i in lost:
         assert res.rows[i]["pid"] != victim_pid              # redone by the survivor
