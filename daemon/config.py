@@ -207,7 +207,9 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
                                    or len(set(ch)) != len(ch)):
                 raise ConfigError(f"{where}: {key}.channels must be a list of distinct channel names (got {ch!r:.60})")
             cfg.models[name] = ModelSpec(name, builtin=b, channels=ch)
-    cfg.default_model = d.get("default_model") or next(iter(cfg.models))
+    # unless told otherwise, streams get the model named "default" (the recommended filler,
+    # `lacuna train default`) where the config has one, else the first model listed
+    cfg.default_model = d.get("default_model") or ("default" if "default" in cfg.models else next(iter(cfg.models)))
     if cfg.default_model not in cfg.models:
         raise ConfigError(f"{where}: daemon.default_model {cfg.default_model!r} is not under [models] "
                           f"(have: {', '.join(cfg.models)})")

@@ -68,6 +68,15 @@ def test_config_resolves_model_paths_against_its_directory(tmp_path):
     assert cfg.stream_models == {"cam": "w"} and cfg.default_model == "w"
 
 
+def test_config_without_default_model_serves_the_model_named_default(tmp_path):
+    """`default` is what streams get unless the config says otherwise (issue 17)."""
+    p = tmp_path / "l.toml"
+    p.write_text('[models.floor]\nbuiltin = "passthrough"\n[models.default]\nbuiltin = "passthrough"\n')
+    assert config.load(str(p)).default_model == "default"
+    p.write_text('[models.floor]\nbuiltin = "passthrough"\n[models.other]\nbuiltin = "passthrough"\n')
+    assert config.load(str(p)).default_model == "floor"
+
+
 def test_missing_config_file_names_it(tmp_path):
     with pytest.raises(config.ConfigError, match="nope.toml: cannot read config"):
         config.load(str(tmp_path / "nope.toml"))
