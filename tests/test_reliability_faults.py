@@ -143,7 +143,12 @@ def test_daemon_sigkilled_is_restarted_and_clients_resume(tmp_path, walk):
     ep = write_config(tmp_path / "lacuna.toml", {"walk": {"file": "walk.npz"}}, pull=True)
     sup = Supervisor(Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log")).start()
     S = Sockets()
-    clients = [LockStep(ep["router"], f"performer{i}", frames, reconnect_ms=500) for i in range(3)]
+    # plugins that handshake, as the client library does: a reconnect on a fresh socket sends the
+    # hello with its claim again, which takes the stream back from the old socket's connection
+    # (a frame in flight at the kill can reach the new daemon through the old socket's own
+    # reconnect and open the stream there; without the claim the plugin would wait for idle expiry)
+    clients = [LockStep(ep["router"], f"performer{i}", frames, reconnect_ms=500, hello=list(channels))
+               for i in range(3)]
     try:
         sub = S.make(zmq.SUB, ep["pub"])
         sub.setsockopt(zmq.SUBSCRIBE, b"pushed")
