@@ -143,13 +143,17 @@ def write_filled(path: str, motion: Motion, known: np.ndarray, filled_std: np.nd
     readable(path)
     skel = motion.skeleton
     if ext == ".amc" and getattr(skel, "source", None):
-        from mocap.asf import find_asf, write_asf
+        from mocap.asf import write_asf
 
-        # the ASF beside the output, as CMU's layout has it, so the output reads by itself
-        try:
-            find_asf(path)
-        except Exception:
-            asf = os.path.join(os.path.dirname(path), os.path.basename(skel.source))
+        # the take's own ASF beside the output under the first name mocap.asf.find_asf looks for,
+        # so the output reads by itself with its own skeleton: CMU's <subject>.asf where the take
+        # came with it, else <take>.asf (an output folder holds several skeletons: find_asf's
+        # "the one ASF in the folder" would give a take another's)
+        stem = os.path.basename(path).split(".")[0]
+        subj = stem.split("_")[0]
+        src = os.path.basename(skel.source)
+        asf = os.path.join(os.path.dirname(path), src if src == f"{subj}.asf" else f"{stem}.asf")
+        if not os.path.exists(asf):
             write_asf(asf, skel)
             readable(asf)
 

@@ -162,3 +162,24 @@ def test_unreachable_scheduler_is_a_one_line_error(data, tmp_path, capsys, monke
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and err[0].startswith("lacuna: error: --scheduler") and "cannot connect" in err[0]
     assert not (tmp_path / "o" / "07_02.amc").exists()
+
+
+def test_outputs_of_several_skeletons_in_one_folder_each_read_with_their_own(data, tmp_path):
+    """An output folder holding takes of subject 07, subject 35 and a cmu_li take: each output has
+    its own ASF beside it under the name mocap.asf.find_asf tries first, in any order of writing."""
+    from mocap.asf import find_asf
+    from mocap.io import read_motion
+
+    takes = [os.path.join(data, t) for t in ("cmu/07/07_02.amc", "cmu/35/35_01.amc", "cmu_li/walking_13.amc")]
+    out = tmp_path / "out"
+    for order in (takes, takes[::-1]):
+        assert main(["fill", *order, "--out", str(out), "--method", "hold", "--drop", "gaps", "--force",
+                     "--workers", "0", "-q"]) == 0
+        assert os.path.basename(find_asf(out / "walking_13.amc")) == "walking_13.asf"
+        assert os.path.basename(find_asf(out / "07_02.amc")) == "07.asf"
+        assert os.path.basename(find_asf(out / "35_01.amc")) == "35.asf"
+        for t in takes:
+            got = read_motion(str(out / os.path.basename(t)))
+            assert got.channels == read_motion(t).channels
+        for f in out.glob("*.asf"):
+            f.unlink()
