@@ -62,6 +62,7 @@ ROOT_POS = len(GROUP_NAMES) - 1
 NO_REGRESSION = (0, ROOT_POS)
 # seconds since the gap began; beyond the last knot the weights stay as they are there (the calibration gaps
 # end at 2 s: a knot further out would only be extrapolated)
+CACHE_PATTERNS = 512  # regression matrices kept, one per pattern of missing channels
 KNOTS = (0.0, 1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0)
 
 
@@ -197,10 +198,12 @@ class DefaultModel(Model):
             self.sh_B[i, :len(m), :len(O)] = B
 
     # ---- regression matrices, cached per missing pattern -------------------------------------
-    def regression(self, miss_reg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def regression(self, miss_reg: np.ndarray, key: bytes | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For a (R,) bool pattern of missing regression channels: (m, O, B) with m the missing
-        positions in reg space, O the observed feature indices (pose and velocity), B (|m|, |O|)."""
-        key = miss_reg.tobytes()
+        positions in reg space, O the observed feature indices (pose and velocity), B (|m|, |O|).
+        ``key``: ``miss_reg.tobytes()`` where the caller has it already."""
+        if key is None:
+            key = miss_reg.tobytes()
         hit = self._cache.get(key)
         if hit is not None:
             return hit
@@ -213,10 +216,12 @@ class DefaultModel(Model):
             B = np.linalg.solve(S_oo, self.cov_[np.ix_(O, m)]).T
         else:
             B = np.zeros((len(m), 0))
-        if len(self._cache) > 512:
-            self._cache.clear()
-        self._cache[key] = (m, O, np.ascontiguousarray(B))
-        return self._cache[key]
+        if len(self._cache) >= CACHE_PATTERNS:
+            # the oldest pattern goes (dicts keep insertion order), not every pattern at once: many
+            # streams' masks would otherwise all be solved again on the serving thread together
+            del self._cache[next(iter(self._cache))]
+        hit = self._cache[key] = (m, O, np.ascontiguousarray(B))
+        return hit
 
     def knot_weights(self, W: np.ndarray, g: np.ndarray, t: np.ndarray) -> np.ndarray:
         K = len(self.knots)

@@ -75,7 +75,7 @@ class DefaultState(FillerState):
         miss_reg = ~obs[m.reg_idx]
         if miss_reg.any():
             key = miss_reg.tobytes()
-            mm, O, B = m.regression(miss_reg)
+            mm, O, B = m.regression(miss_reg, key)
             changed = key != self.miss_key
             self.miss_key = key
             has = True
@@ -198,11 +198,11 @@ class DefaultState(FillerState):
         if not miss_reg.any():
             self.miss_key = None
             return Rout
-        mm, O, B = m.regression(miss_reg)
+        key = miss_reg.tobytes()
+        mm, O, B = m.regression(miss_reg, key)
         x = np.where(obs, f, self.last)
         r = m.mu_[mm] + B @ self._features(x, 0, O)
         cols = ri[mm]
-        key = miss_reg.tobytes()
         a = m._pf["a"]
         if key != self.miss_key:
             # the pattern changed: re-anchor so R continues from where it was on the previous frame
