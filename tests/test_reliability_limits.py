@@ -23,6 +23,7 @@ import fuzzgen
 from daemon import wire
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial
+from waiting import wait_until
 from reliability_daemon import Daemon, LockStep, Sockets, recv_msg, status, write_config
 from test_reliability_faults import all_filled
 
@@ -35,14 +36,6 @@ def walk(data):
     f = m.frames.astype(np.float32)
     f[::5, 20:24] = np.nan
     return f, list(m.channels), HoldModel.fit([m.frames], list(m.channels))
-
-
-def _wait(cond, timeout_s: float = 15.0, what: str = "") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise TimeoutError(what)
-        time.sleep(0.02)
 
 
 def test_leading_frames_are_refused_not_held_as_an_envelope(tmp_path, walk):
@@ -58,7 +51,7 @@ def test_leading_frames_are_refused_not_held_as_an_envelope(tmp_path, walk):
     good = LockStep(ep["router"], "good", frames, hello=channels)
     try:
         good.start()
-        _wait(lambda: len(good.answers) > 20)
+        wait_until(lambda: len(good.answers) > 20, 15)
         rss0 = d.rss_kib()
         body = wire.encode(wire.Frame("victim", 0, 0.0, frames[0]))
         mute = S.make(zmq.DEALER, ep["router"])
@@ -66,7 +59,7 @@ def test_leading_frames_are_refused_not_held_as_an_envelope(tmp_path, walk):
         big = [bytes(60 << 10)] * 200
         for _ in range(24):
             mute.send_multipart(big + [body])
-        _wait(lambda: status(S, ep["router"])["rejected"].get("bad_envelope", 0) == 24, 60, "not all refused")
+        wait_until(lambda: status(S, ep["router"])["rejected"].get("bad_envelope", 0) == 24, 60, "not all refused")
         grew = d.rss_kib() - rss0
         print(f"\nF1: daemon RSS {rss0} KiB before 24 requests of 200 x 60 KiB leading frames, +{grew} KiB after")
         assert grew < 64 * 1024, f"RSS grew {grew} KiB"  # the 288 MB offered are not held
@@ -167,7 +160,7 @@ def test_expensive_requests_have_a_budget_per_peer(tmp_path, walk):
     good = LockStep(ep["router"], "good", frames, hello=channels)
     try:
         good.start()
-        _wait(lambda: len(good.answers) > 20)
+        wait_until(lambda: len(good.answers) > 20, 15)
         att = S.make(zmq.DEALER, ep["router"])
         att.setsockopt(zmq.RCVHWM, 0)
         bad = wire.encode(wire.Hello("dups", ["ab"] * 4096))

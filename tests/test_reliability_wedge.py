@@ -23,6 +23,7 @@ import zmq
 from daemon import wire
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial
+from waiting import wait_until
 from reliability_daemon import Daemon, LockStep, Sockets, control, free_port, recv_msg, status, write_config
 from test_reliability_faults import all_filled
 
@@ -55,14 +56,6 @@ def scrape(port: int) -> str:
             buf += b
 
 
-def _wait(cond, timeout_s: float = 10.0, what: str = "") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise TimeoutError(what)
-        time.sleep(0.01)
-
-
 def test_metrics_flood_holds_no_thread_and_reload_still_runs(tmp_path, walk):
     """F2: 300 half-open metrics connections: the daemon's thread count does not move, the good
     stream loses nothing, three SIGHUP reloads are answered, and a scraper is served after."""
@@ -77,7 +70,7 @@ def test_metrics_flood_holds_no_thread_and_reload_still_runs(tmp_path, walk):
     conns: list[socket.socket] = []
     try:
         good.start()
-        _wait(lambda: len(good.answers) > 20, what="good stream not served")
+        wait_until(lambda: len(good.answers) > 20, what="good stream not served")
         base = threads(d.pid)
         assert "lacuna_up 1" in scrape(mport)
         for _ in range(300):
@@ -179,7 +172,7 @@ def test_each_reload_request_gets_the_outcome_of_a_reload_after_it(tmp_path, wal
         finally:
             d.signal(signal.SIGCONT)
         assert _reply(a).ok is True
-        _wait(lambda: len([r for r in d.records() if r.get("event") == "reload_done"]) >= n0 + 2, 15,
+        wait_until(lambda: len([r for r in d.records() if r.get("event") == "reload_done"]) >= n0 + 2, 15,
               "the SIGHUP sent during a reload was dropped")
         st = status(S, ep["router"])
         assert st["counters"]["reloads"] + st["counters"]["reload_failures"] == n0 + 2
@@ -216,7 +209,7 @@ def test_fifo_at_config_or_model_path_cannot_wedge_reloading(tmp_path, walk):
             path.unlink()
             path.write_bytes(good_cfg if path == cfg else good_model)
             n0 = len(ls.answers)
-            _wait(lambda: len(ls.answers) > n0 + 5, what="stream not served")
+            wait_until(lambda: len(ls.answers) > n0 + 5, what="stream not served")
             assert rec["reload"] >= 1
         HoldModel(channels, model.mean_ + 1.0, model.std_).save(str(mpath))
         r = control(ctl, "reload", timeout_ms=15_000)
