@@ -214,20 +214,7 @@ class Dispatch:
         self._send_conflated()
         todo, self._superseded = self._superseded, []
         for s, last_seq, served, chain in todo:
-            # (the burst held no hello or reset, so the session is the same object; a SIGHUP swap
-            # runs between turns and keeps it)
-            assert self.sessions.sessions.get(s.sid) is s and s.pending is None
-            now_seq, s.last_seq = s.last_seq, last_seq
-            try:
-                for item in chain:
-                    if item is None:  # where the served frame came: it supersedes the one waiting
-                        self._frame_answers(self.sessions.conflate(s))
-                        s.pending = served  # (frames after it are late or duplicates against it)
-                    else:
-                        self._handle_map(*item)
-            finally:
-                s.last_seq = now_seq
-                s.pending = None
+            self.sessions.replay(s, last_seq, served, chain, self._handle_map, self._frame_answers)
         self._send_conflated()
 
     def _send_conflated(self) -> None:
@@ -287,7 +274,7 @@ class Dispatch:
         self.metrics.reject(reason)
         s = self.sessions.sessions.get(sid) if sid else None
         if s is not None and reason != "not_owner":  # (someone else's message: counted `foreign` on the stream)
-            s.counts["rejected"] += 1
+            s.count("rejected")
         # a flood of bad input must not turn into a flood of log lines: at most REJECT_LOG_PER_S
         # a second are written, the rest are summed into one line per housekeeping tick
         now = self.clock()

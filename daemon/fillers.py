@@ -18,15 +18,12 @@ class PassThroughModel(Model):
     """Marks nothing filled; missing values stay NaN with std 0."""
 
     method = "passthrough"
+    passthrough = True
 
     def __init__(self, channels: list[str] | None = None):
         # no channel list = "any": a stream's handshake (or its first frame's width) decides,
         # which is what a latency-floor measurement wants
         self.channels = list(channels or [])
-
-    @property
-    def any_channels(self) -> bool:
-        return not self.channels
 
     def stream(self) -> "PassThroughState":
         return PassThroughState(self)
@@ -34,7 +31,8 @@ class PassThroughModel(Model):
     def info(self) -> dict:
         return {"method": self.method, "channels": len(self.channels) or "any", "causal": True}
 
-    def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray) -> list[Fill]:
+    def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
+                   level: int | None = None) -> list[Fill]:
         frames = np.asarray(frames, dtype=np.float64)
         observed = np.asarray(observed, dtype=bool)
         out = np.where(observed, frames, np.nan)

@@ -36,7 +36,8 @@ from daemon.prewarm import Prewarm
 from daemon.realtime import Realtime
 from daemon.reload import Reloader, Reloading
 from daemon.scheduler import Scheduler
-from daemon.session import Origin, SessionTable
+from daemon.session import Origin
+from daemon.sessions import SessionTable
 from daemon.stalls import Stalls
 from daemon.tick import Tick
 from daemon.transport import Transports

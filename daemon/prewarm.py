@@ -99,9 +99,10 @@ class Prewarm:
             got = self._shadows.get(id(model))
             if got is None or got[0] is not model:
                 got = self._shadows[id(model)] = (model, model.stream())
-            sh = Session(s.sid, s.model_name, model, s.mapping, got[1], last_seq=s.last_seq)
             g = wire.decode(encode(f))
-            sh.pending = Pending(g, ("router", []), t0)  # type: ignore[arg-type]
+            assert isinstance(g, wire.Frame)
+            sh = Session(s.sid, s.model_name, model, s.mapping, got[1], last_seq=s.last_seq,
+                         pending=Pending(g, ("router", []), t0))
             sched.plan(model, [sh], t0)  # (pure: reads the costs)
             mf, mo = model_inputs([sh], s.mapping.n_model)
             fill = model.step_batch([sh.state], mf, mo)[0]

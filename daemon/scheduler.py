@@ -5,8 +5,9 @@ pending slot conflates), groups them by model and steps each group through
 ``model.step_batch``.  Before stepping it compares an estimate of the step's cost with the time
 left before the oldest frame's budget runs out and, if it would overrun, degrades:
 
-1. fewer Gibbs iterations, where the model has the knob (``set_iterations(k)`` and
-   ``n_gibbs``, as crbm.filler.CRBMModel does): K, K/2, K/4, ..., 1;
+1. a cheaper level, where the model offers some (``Model.quality_levels()``: for
+   crbm.filler.CRBMModel K, K/2, K/4, ..., 1 Gibbs iterations), passed to that one step
+   (``step_batch(..., level=k)``): the model itself is never changed;
 2. hold-last-value for the streams that still do not fit (the ones held most recently go
    first next time, so no stream starves).
 
@@ -24,8 +25,7 @@ from typing import Any, Callable
 import numpy as np
 
 from daemon import wire
-from daemon.fillers import PassThroughModel
-from daemon.session import Out, Session
+from daemon.session import Session
 from lacuna.filler import Fill, Model
 
 SAFETY = 1.25  # multiply cost estimates: better to degrade a little early than overrun
@@ -87,15 +87,17 @@ class StepPlan:
 
 
 def levels_of(model: Model) -> list[int | None]:
-    """Cost levels a model offers: [None] (no knob) or [K, K/2, ..., 1] Gibbs iterations."""
-    k = getattr(model, "n_gibbs", None)
-    if not callable(getattr(model, "set_iterations", None)) or not isinstance(k, int) or k < 1:
-        return [None]
-    out, v = [k], k
-    while v > 1:
-        v = max(1, v // 2)
-        out.append(v)
-    return out
+    """Cost levels a model offers, full quality first: [None] (none) or, for a CRBM, [K, K/2,
+    ..., 1] Gibbs iterations (``Model.quality_levels``)."""
+    return model.quality_levels()
+
+
+def _step_batch(model: Model, states: list[Any], frames: np.ndarray, observed: np.ndarray,
+                level: int | None) -> list[Fill]:
+    """``model.step_batch`` at ``level`` (None: full quality, called as every other caller does)."""
+    if level is None:
+        return model.step_batch(states, frames, observed)
+    return model.step_batch(states, frames, observed, level=level)
 
 
 class Scheduler:
@@ -181,7 +183,7 @@ class Scheduler:
 
     def plan(self, model: Model, group: list[Session], now: float) -> StepPlan:
         """Decide level and which streams step (the rest hold).  Pure apart from reading costs."""
-        if isinstance(model, PassThroughModel):
+        if model.passthrough:
             return StepPlan(group, [], None, False)
         deadline = min(s.pending.arrived for s in group) + self.budget_s  # type: ignore[union-attr]
         avail = deadline - now - self.reply_cost * len(group)
@@ -253,41 +255,29 @@ class Scheduler:
 
     @staticmethod
     def _held(s: Session, out: np.ndarray, std: np.ndarray, filled: np.ndarray) -> tuple[Session, Fill, str]:
-        s.last_out = out
-        # the filter skips held frames rather than predicting them later: replaying them when
-        # the stream steps again would cost the time the daemon is short of (a death spiral)
-        if s.model_seq is not None:
-            s.model_seq = s.pending.frame.seq  # type: ignore[union-attr]
-        s.held_streak += 1
-        s.counts["held"] += 1
+        s.held(out)
         return s, Fill(out, std, filled, {}, True), "degraded"
 
     def _step(self, model: Model, plan: StepPlan) -> list[tuple[Session, Fill, str]]:
         group = plan.step
         for s in group:
             if s.model_seq is not None and self._gap(s) > self.max_gap:
-                s.restart()
-                s.counts["restarts"] += 1
+                s.gap_restart()
         gaps = [self._gap(s) for s in group]
         C = group[0].mapping.n_model
         levels = levels_of(model)
-        knob = plan.iterations is not None and plan.iterations != levels[0]
+        level = plan.iterations if plan.iterations != levels[0] else None  # (None: full quality)
         t0 = self.clock()
         try:
-            if knob:
-                model.set_iterations(plan.iterations)  # type: ignore[attr-defined]
-            try:
-                # frames that never arrived: prediction steps, all channels missing (batched by round)
-                for r in range(max(gaps, default=0)):
-                    who = [s for s, g in zip(group, gaps) if g > r]
-                    model.step_batch([s.state for s in who], np.full((len(who), C), np.nan), np.zeros((len(who), C), bool))
-                    for s in who:
-                        s.counts["predicted"] += 1
-                mf, mo = model_inputs(group, C)
-                fills = model.step_batch([s.state for s in group], mf, mo)
-            finally:
-                if knob:
-                    model.set_iterations(levels[0])  # type: ignore[attr-defined]
+            # frames that never arrived: prediction steps, all channels missing (batched by round)
+            for r in range(max(gaps, default=0)):
+                who = [s for s, g in zip(group, gaps) if g > r]
+                _step_batch(model, [s.state for s in who], np.full((len(who), C), np.nan), np.zeros((len(who), C), bool),
+                            level)
+                for s in who:
+                    s.count("predicted")
+            mf, mo = model_inputs(group, C)
+            fills = _step_batch(model, [s.state for s in group], mf, mo, level)
         except Exception as e:  # a model bug must not stop the daemon: pass the frames through
             self.step_errors += 1
             self.last_error = f"{type(e).__name__}: {e}"[:300]
@@ -300,45 +290,37 @@ class Scheduler:
         self.last_step[id(model)] = self.clock()
         dt = self.clock() - t0
         self.cost(model, plan.iterations).observe(len(group), dt / (1 + max(gaps, default=0)))
-        status = "passthrough" if isinstance(model, PassThroughModel) else ("degraded" if plan.degraded else "ok")
+        status = "passthrough" if model.passthrough else ("degraded" if plan.degraded else "ok")
         out = []
         for s, fill in zip(group, fills):
-            s.model_seq = s.pending.frame.seq  # type: ignore[union-attr]
-            s.last_out = np.asarray(fill.frame, dtype=np.float64)
-            s.held_streak = 0
+            s.stepped(fill.frame)
             out.append((s, fill, status))
         return out
 
     def warm_up(self, model: Model, n_channels: int, sizes: tuple[int, ...] = (1, 4, 16)) -> None:
         """Seed the cost model (and surface a broken model before it serves): a few throwaway
         steps on all-missing frames of fresh states."""
-        if isinstance(model, PassThroughModel):
+        if model.passthrough:
             return
         C = n_channels
         lvls = levels_of(model)
         for lv in lvls:
-            knob = lv is not None and lv != lvls[0]
-            if knob:
-                model.set_iterations(lv)  # type: ignore[attr-defined]
-            try:
-                for n in sizes:
-                    states = [model.stream() for _ in range(n)]
-                    # half the channels observed (zeros), like a frame with markers lost: an
-                    # all-missing frame can take a cheap path and would underestimate the cost
-                    obs = np.zeros((n, C), bool)
-                    obs[:, ::2] = True
-                    frames = np.where(obs, 0.0, np.nan)
-                    for rep in range(4):
-                        t0 = self.clock()
-                        fills = model.step_batch(states, frames, obs)
-                        if rep >= 2:  # first calls fill caches and lags: keep the steady state
-                            self.cost(model, lv).observe(n, self.clock() - t0)
-                    if len(fills) != n or any(np.shape(f.frame) != (C,) for f in fills):
-                        raise ValueError(f"step_batch returned {len(fills)} fills of shape "
-                                         f"{np.shape(fills[0].frame) if fills else None} for {n} streams of {C} channels")
-            finally:
-                if knob:
-                    model.set_iterations(lvls[0])  # type: ignore[attr-defined]
+            level = lv if lv != lvls[0] else None
+            for n in sizes:
+                states = [model.stream() for _ in range(n)]
+                # half the channels observed (zeros), like a frame with markers lost: an
+                # all-missing frame can take a cheap path and would underestimate the cost
+                obs = np.zeros((n, C), bool)
+                obs[:, ::2] = True
+                frames = np.where(obs, 0.0, np.nan)
+                for rep in range(4):
+                    t0 = self.clock()
+                    fills = _step_batch(model, states, frames, obs, level)
+                    if rep >= 2:  # first calls fill caches and lags: keep the steady state
+                        self.cost(model, lv).observe(n, self.clock() - t0)
+                if len(fills) != n or any(np.shape(f.frame) != (C,) for f in fills):
+                    raise ValueError(f"step_batch returned {len(fills)} fills of shape "
+                                     f"{np.shape(fills[0].frame) if fills else None} for {n} streams of {C} channels")
 
 
 def _hold_rows(frame: np.ndarray, obs: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

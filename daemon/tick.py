@@ -51,7 +51,7 @@ class Tick:
         for k, ((s, fill, status), msg) in enumerate(zip(results, msgs)):
             p = s.pending
             if isinstance(msg, Exception):  # a fill the wire cannot carry: answer with an error, keep serving
-                s.last_seq, s.pending = p.frame.seq, None
+                s.answered()
                 e = msg
                 self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
                 self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
@@ -65,14 +65,10 @@ class Tick:
                 self.metrics.inc("overdue_after_step")
                 self._conflated.extend(self.sessions.overdue(s))
                 continue
-            s.last_seq = p.frame.seq
-            s.pending = None
-            s.late_streak = 0
+            s.filled(status == "degraded")
             # receipt to this reply's encoding (it is sent with the tick's other replies, below)
             msg.proc_us = int((now - p.arrived) * 1e6)
-            s.counts["frames_out"] += 1
             if status == "degraded":
-                s.counts["degraded"] += 1
                 self.metrics.inc("degraded")
                 # held (hold-last-value) vs stepped with fewer Gibbs iterations
                 self.metrics.inc("degraded_held" if fill.degraded else "degraded_iterations")
@@ -95,7 +91,7 @@ class Tick:
             for s, arrived in sent:
                 lat(t2 - arrived)
                 if t2 - arrived > budget:
-                    s.counts["over_budget"] += 1
+                    s.count("over_budget")
                     over += 1
             if over:
                 self.metrics.inc("over_budget", over)
@@ -122,11 +118,9 @@ class Tick:
             self._send_conflated()  # (those frames were answered already: drops owed, not errors)
         except Exception:
             self._conflated = []
-        owed = [(p.origin, s.sid, p.frame.seq) for s in self.sessions.sessions.values() if (p := s.pending) is not None]
+        owed: list[tuple[Any, str, int | None]] = list(self.sessions.abandon())
         owed += [(origin, s.sid, k[1] if isinstance(m, dict) and (k := wire.frame_key(m)) else None)
                  for s, _, _, chain in todo for m, origin, _ in filter(None, chain)]
-        for s in self.sessions.sessions.values():
-            s.pending = None
         for origin, sid, seq in owed:
             try:
                 self._reject(origin, "internal", why, sid, seq)

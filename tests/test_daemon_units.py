@@ -15,7 +15,8 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 from daemon import config, osc, wire
 from daemon.fillers import PassThroughModel
 from daemon.scheduler import CostModel, Scheduler, fill_message, levels_of
-from daemon.session import SessionError, SessionTable
+from daemon.session import SessionError
+from daemon.sessions import SessionTable
 from lacuna.filler import Fill
 from mocap.baselines import HoldModel
 
@@ -302,18 +303,22 @@ def test_cost_model_recovers_affine_cost():
 
 
 class KnobModel(HoldModel):
-    """A hold model with a CRBM-style Gibbs knob (set_iterations / n_gibbs), to test planning."""
+    """A hold model with CRBM-style levels (K, K/2, ..., 1 Gibbs iterations), to test planning."""
 
     def __init__(self, *a, k=30):
         super().__init__(*a)
         self.n_gibbs = k
         self.calls: list[int] = []
 
-    def set_iterations(self, k: int) -> None:
-        self.n_gibbs = int(k)
+    def quality_levels(self):
+        out, v = [self.n_gibbs], self.n_gibbs
+        while v > 1:
+            v = max(1, v // 2)
+            out.append(v)
+        return out
 
-    def step_batch(self, states, frames, observed):
-        self.calls.append(self.n_gibbs)
+    def step_batch(self, states, frames, observed, level=None):
+        self.calls.append(self.n_gibbs if level is None else level)
         return super().step_batch(states, frames, observed)
 
 
@@ -341,7 +346,7 @@ def test_levels_and_plan_degrades_iterations_then_holds():
     sched.budget_s = 1.0
     plan = sched.plan(m, group, now=0.0)
     assert plan.iterations == 30 and not plan.degraded and len(plan.step) == 10
-    # the knob is used for a degraded step and restored afterwards
+    # a degraded step is given its level as an argument; the model is left as it was
     sched.budget_s = 1e-3
     for s in group:
         s.pending.arrived = time.perf_counter()
