@@ -3,8 +3,8 @@
 ``Dispatch`` (a part of :class:`daemon.loop.Daemon`) turns each received message (bytes and the
 origin it came from) into what it means: a frame handed to its session (which keeps the newest
 per stream, see daemon/session.py), a hello, a bundle, a control request (daemon/control.py),
-or a refusal.  Its answers go out through ``Daemon._send``, which the transport holds until the
-turn's fills have gone (see daemon/loop.py).  Under a backlog, frames a newer frame of their
+or a refusal.  It touches no socket: :meth:`Dispatch.dispatch` returns the answers (to whom,
+what), and the loop hands them to the transport (daemon/loop.py).  Under a backlog, frames a newer frame of their
 stream superseded within the burst are set aside undecoded and answered after the fills
 (``_batch``, ``_answer_superseded``).
 """
@@ -12,8 +12,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from typing import Generator
+
 from daemon import budget as budgets, osc, wire
 from daemon.session import Origin, SessionError, principal
+
+Answers = list[tuple[Origin, wire.Message]]  # (to whom, what): the loop hands them to the transport
 
 OSC_ERRORS_PER_S = 20  # error answers a second to one OSC source host; the rest are counted, not sent
 OSC_ERROR_FLOOR = 64  # bytes an OSC error answer may take even when what it answers was smaller (a reason code)
@@ -96,8 +100,13 @@ class Dispatch:
         self.log("error", "internal_error", where=where, stream=sid, error=f"{type(e).__name__}: {e}"[:300])
         self._reject(origin, "internal", f"{type(e).__name__} while handling the message", sid, seq)
 
-    def _batch(self, items: list[tuple[bytes, Origin, float]]) -> None:
-        """A turn's ZeroMQ messages, in arrival order.  Under a backlog most of them are frames
+    def dispatch(self, items: list[tuple[bytes, Origin, float]]) -> Generator[Answers, None, Answers]:
+        """A turn's messages (bytes, origin, receipt time), in arrival order, to their sessions.
+        Sends nothing: it yields the answers so far each time the frames taken so far should be
+        served before the rest (a slice of a long burst of costly requests, see below), and
+        returns the rest of its answers.  The loop hands them to the transport.
+
+        Under a backlog most of them are frames  Under a backlog most of them are frames
         that a newer frame of the same stream in the same burst supersedes; only the newest is
         served.  Those superseded frames are set aside, each burst only unpacked, and handled
         after the turn's fills went out (:meth:`_answer_superseded`), so the frames served do
@@ -112,7 +121,7 @@ class Dispatch:
         if len(items) < BATCH_MIN:
             for data, origin, arrived in items:
                 self._handle(data, origin, arrived)
-            return
+            return self._take_out()
         self.metrics.inc("messages_in", len(items))
         maxb = self.cfg.max_message_bytes
         maps: list[dict | wire.WireError | bytes] = []
@@ -177,7 +186,7 @@ class Dispatch:
                 continue
             if i and not i % slice_at and self.clock() - t_slice > self.sched.budget_s / 4:
                 if self.metrics.counters.get("frames_in", 0) != frames_seen:
-                    self._serve()
+                    yield self._take_out()  # (the loop serves the frames taken so far)
                     frames_seen = self.metrics.counters.get("frames_in", 0)
                 t_slice = self.clock()
             self._handle_map(m, origin, arrived)
@@ -195,6 +204,11 @@ class Dispatch:
                 for d in order:
                     if d != i:
                         self._handle_map(maps[d], items[d][1], items[d][2])
+        return self._take_out()
+
+    def _take_out(self) -> Answers:
+        out, self._out = self._out, []
+        return out
 
     def _frame_answers(self, out: list) -> None:
         """A session's immediate answers to a frame: a ``conflated`` drop (of the frame it
@@ -203,24 +217,21 @@ class Dispatch:
             if type(m) is wire.Drop and m.reason == "conflated":
                 self._conflated.append((o, m))
             else:
-                self._send(o, m)
+                self._out.append((o, m))
 
-    def _answer_superseded(self) -> None:
-        """After the turn's fills: the ``conflated`` drops of the turn, and the frames
-        :meth:`_batch` set aside, each decoded and taken by its session as it would have been
-        in arrival order, before the frame that was served (the stream's last answered seq put
-        back, no frame waiting), so it gets the answer it would have had then (``drop``
-        conflated, late or duplicate, or an ``error``)."""
-        self._send_conflated()
+    def superseded_answers(self) -> Answers:
+        """After the turn's fills: the ``conflated`` and ``overdue`` drops of the turn, and the
+        answers to the frames :meth:`dispatch` set aside, each decoded and taken by its session
+        as it would have been in arrival order (``SessionTable.replay``), so it gets the answer
+        it would have had then (``drop`` conflated, late or duplicate, or an ``error``)."""
+        out, self._conflated = self._conflated, []
         todo, self._superseded = self._superseded, []
         for s, last_seq, served, chain in todo:
             self.sessions.replay(s, last_seq, served, chain, self._handle_map, self._frame_answers)
-        self._send_conflated()
-
-    def _send_conflated(self) -> None:
-        todo, self._conflated = self._conflated, []
-        for o, m in todo:
-            self._send(o, m)
+        out += self._take_out()
+        out += self._conflated
+        self._conflated = []
+        return out
 
     def _dispatch(self, msg: Any, origin: Origin, arrived: float) -> None:
         try:
@@ -236,10 +247,10 @@ class Dispatch:
             elif isinstance(msg, wire.Hello):
                 ack, orphans = self.sessions.hello(msg, principal(origin))  # type: ignore[union-attr]
                 for o, m in orphans:
-                    self._send(o, m)
+                    self._out.append((o, m))
                 self.log("info", "stream_hello", stream=msg.stream, model=ack.model, channels=len(ack.channels),
                          passthrough=len(ack.passthrough), missing=len(ack.missing))
-                self._send(origin, ack)
+                self._out.append((origin, ack))
             elif isinstance(msg, wire.Control):
                 self._control(msg, origin)
             else:
@@ -294,7 +305,7 @@ class Dispatch:
             else:
                 self._osc_error(origin, wire.ErrorMsg(reason, detail, sid, seq))
             return
-        self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
+        self._out.append((origin, wire.ErrorMsg(reason, detail, sid, seq)))
 
     # ---- OSC error answers: bounded (no amplification, no reflection flood) ---------------
     def _osc_summary(self, origin: Origin, errs: list[tuple[str, str]]) -> None:
@@ -322,7 +333,7 @@ class Dispatch:
                 self.metrics.inc("osc_errors_unanswered")
                 return
             msg = wire.ErrorMsg(msg.reason, msg.detail.encode()[:keep].decode(errors="ignore"), msg.stream, msg.seq)
-        self._send(origin, msg)
+        self._out.append((origin, msg))
 
 
 

@@ -80,6 +80,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         # (session, its last answered seq before the burst, the served frame's Pending,
         #  [(unpacked map, origin, arrived) or None where the served frame came, ...])
         self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
+        self._out: list[tuple[Origin, wire.Message]] = []  # the dispatcher's answers not yet handed over
         self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` and `overdue` drops, sent after its fills
         self._drop_overdue = self.cfg.overdue == "drop"
         self.prewarm = Prewarm(cfg.prewarm_ms)
@@ -111,7 +112,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         self._install(table)
         self.reloader = Reloader(self._reload_work, self._reload_started)
         # the log object changes on reload (level): look it up at each call
-        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, lambda *a, **k: self.log(*a, **k),
+        self.net = Transports(self.cfg, self._handle_one, self._refuse, self.metrics, lambda *a, **k: self.log(*a, **k),
                               self._batch)
         self.net.open()
         if self.cfg.metrics_http:
@@ -274,6 +275,35 @@ class Daemon(Dispatch, Tick, Control, Reloading):
 
 
     # ---- output -----------------------------------------------------------------------------
+    def _batch(self, items: list[tuple[bytes, Origin, float]]) -> None:
+        """What the transport read (its ``on_batch``): the dispatcher's answers handed to the
+        transport, the frames taken so far served between two slices of a long burst."""
+        gen = self.dispatch(items)
+        while True:
+            try:
+                answers = next(gen)
+            except StopIteration as done:
+                self._deliver(done.value)
+                return
+            self._deliver(answers)
+            self._serve()
+
+    def _handle_one(self, data: bytes, origin: Origin, arrived: float) -> None:
+        self._batch([(data, origin, arrived)])
+
+    def _answer_superseded(self) -> None:
+        """After the turn's fills: its drops, and the answers to the frames set aside."""
+        self._deliver(self.superseded_answers())
+
+    def _refuse(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
+        """A refusal answered at once (the transport's own, a fill that cannot be encoded)."""
+        self._reject(origin, reason, detail, sid, seq)
+        self._deliver(self._take_out())
+
+    def _deliver(self, answers: list[tuple[Origin, wire.Message]]) -> None:
+        for origin, msg in answers:
+            self._send(origin, msg)
+
     def _send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
         if self.net is not None:
             self.net.send(origin, msg, publish)

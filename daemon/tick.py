@@ -54,7 +54,7 @@ class Tick:
                 s.answered()
                 e = msg
                 self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
-                self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
+                self._refuse(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
                 continue
             now = self.clock()
             # (a bundle's answers leave together, in one `replies`, after the tick's other answers)
@@ -115,15 +115,16 @@ class Tick:
         superseded) with an error rather than retrying the same failure in a tight loop."""
         todo, self._superseded = self._superseded, []
         try:
-            self._send_conflated()  # (those frames were answered already: drops owed, not errors)
+            todo_drops, self._conflated = self._conflated, []
+            self._deliver(todo_drops)  # (those frames were answered already: drops owed, not errors)
         except Exception:
-            self._conflated = []
+            pass
         owed: list[tuple[Any, str, int | None]] = list(self.sessions.abandon())
         owed += [(origin, s.sid, k[1] if isinstance(m, dict) and (k := wire.frame_key(m)) else None)
                  for s, _, _, chain in todo for m, origin, _ in filter(None, chain)]
         for origin, sid, seq in owed:
             try:
-                self._reject(origin, "internal", why, sid, seq)
+                self._refuse(origin, "internal", why, sid, seq)
             except Exception:  # the answer itself failing must not stop the loop either
                 pass
 
