@@ -7,12 +7,13 @@ import time
 from typing import Any
 
 from daemon import wire
+from daemon.parts import Parts
 from daemon.session import Origin, SessionError, principal
 
 STATUS_STREAMS = 256  # streams `status` details by default, most recently active first (`limit` asks for more)
 
 
-class Control:
+class Control(Parts):
     """(mixed into :class:`daemon.loop.Daemon`)"""
 
     # ---- control ----------------------------------------------------------------------------
@@ -31,7 +32,7 @@ class Control:
                                                                          "default": self.cfg.default_model})))
         elif msg.cmd == "reset":
             assert msg.stream is not None
-            ok, orphans = self.sessions.reset(msg.stream, principal(origin), self._operator(origin))  # type: ignore[union-attr]
+            ok, orphans = self.sessions.reset(msg.stream, principal(origin), self._operator(origin))
             for o, m in orphans:
                 self._out.append((o, m))
             self.log("info", "stream_reset", stream=msg.stream, existed=ok)
@@ -43,7 +44,7 @@ class Control:
             self._out.append((origin, wire.ControlReply("release", ok, {"stream": msg.stream},
                                                  None if ok else f"no open stream {msg.stream!r}")))
         elif msg.cmd == "reload":
-            if not self._operator(origin):  # type: ignore[union-attr]
+            if not self._operator(origin):
                 raise SessionError("not_operator", "reload needs an operator (with CURVE: a key listed in "
                                                    "security.operator_keys; SIGHUP reloads too)")
             self._start_reload(origin)

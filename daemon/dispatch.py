@@ -10,11 +10,12 @@ stream superseded within the burst are set aside undecoded and answered after th
 """
 from __future__ import annotations
 
+from collections.abc import Generator
 from typing import Any
 
-from typing import Generator
-
-from daemon import budget as budgets, osc, wire
+from daemon import budget as budgets
+from daemon import osc, wire
+from daemon.parts import Parts
 from daemon.session import Origin, SessionError, principal
 
 Answers = list[tuple[Origin, wire.Message]]  # (to whom, what): the loop hands them to the transport
@@ -26,7 +27,7 @@ BATCH_MIN = 3  # messages in a turn from which frames superseded within it are a
 REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, summarised
 
 
-class Dispatch:
+class Dispatch(Parts):
     """The ingest half of the daemon (mixed into :class:`daemon.loop.Daemon`)."""
 
     def _handle(self, data: bytes, origin: Origin, arrived: float, counted: bool = False) -> None:
@@ -51,21 +52,21 @@ class Dispatch:
             self._osc_in = len(data)
             self._take(osc.decode, data, origin, arrived)
 
-    def _handle_map(self, m: dict | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
+    def _handle_map(self, m: dict[str, Any] | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
         """:meth:`_handle` for a message already unpacked by :meth:`_batch` (or its unpack error;
         bytes: an OSC datagram, not unpacked), counted there."""
         if type(m) is bytes:
             self._handle(m, origin, arrived, counted=True)
         elif isinstance(m, wire.WireError):
             self._reject(origin, m.reason, m.detail, m.stream, m.seq)
-        elif m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
+        elif type(m) is dict and m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
                 not self.budget.allow(principal(origin), units):
             # (before decoding: checking a hello's names is the cost the budget is for)
             self._rate_limited(origin, m)
         else:
             self._take(_decode_map, m, origin, arrived)
 
-    def _rate_limited(self, origin: Origin, m: dict | None = None) -> None:
+    def _rate_limited(self, origin: Origin, m: dict[str, Any] | None = None) -> None:
         sid = m.get("stream") if m is not None else None
         self._reject(origin, "rate_limited", f"over this peer's budget for hello/control requests "
                                              f"({budgets.RATE:g} cost units a second, bursts of {budgets.BURST:g}; "
@@ -86,7 +87,7 @@ class Dispatch:
         except wire.WireError as e:
             self._reject(origin, e.reason, e.detail, e.stream, e.seq)
             return
-        except Exception as e:  # a decoder bug must cost one message, never the loop
+        except Exception as e:  # noqa: BLE001 - a decoder bug must cost one message, never the loop
             self._internal("decode", e, origin, None, None)
             return
         for m in got if type(got) is list else (got,):
@@ -124,13 +125,13 @@ class Dispatch:
             return self._take_out()
         self.metrics.inc("messages_in", len(items))
         maxb = self.cfg.max_message_bytes
-        maps: list[dict | wire.WireError | bytes] = []
+        maps: list[dict[str, Any] | wire.WireError | bytes] = []
         keys: list[tuple[str, int] | None] = []
         barrier = False
         for data, origin, _ in items:
             k = None
             if origin[0] == "osc":  # OSC is decoded on its own path, in order
-                m: dict | wire.WireError | bytes = data
+                m: dict[str, Any] | wire.WireError | bytes = data
                 barrier = True
             else:
                 try:
@@ -190,9 +191,10 @@ class Dispatch:
                     frames_seen = self.metrics.counters.get("frames_in", 0)
                 t_slice = self.clock()
             self._handle_map(m, origin, arrived)
-            sid = heads.get(i)
-            if sid is None:
+            head = heads.get(i)
+            if head is None:
                 continue
+            sid = head
             order = sorted(chains[sid] + [i])  # the stream's frames of the burst, in arrival order
             s = self.sessions.sessions[sid]
             p = s.pending
@@ -210,7 +212,7 @@ class Dispatch:
         out, self._out = self._out, []
         return out
 
-    def _frame_answers(self, out: list) -> None:
+    def _frame_answers(self, out: Answers) -> None:
         """A session's immediate answers to a frame: a ``conflated`` drop (of the frame it
         replaced) waits for the turn's fills (:meth:`_answer_superseded`), the rest go now."""
         for o, m in out:
@@ -237,7 +239,7 @@ class Dispatch:
         try:
             if isinstance(msg, wire.Frame):
                 self.metrics.inc("frames_in")
-                self._frame_answers(self.sessions.frame(msg, origin, arrived, principal(origin)))  # type: ignore[union-attr]
+                self._frame_answers(self.sessions.frame(msg, origin, arrived, principal(origin)))
             elif isinstance(msg, wire.Bundle):
                 self._bundle(msg, origin, arrived)
             elif isinstance(msg, (wire.Hello, wire.Control)) and \
@@ -245,7 +247,7 @@ class Dispatch:
                                           else budgets.CONTROL_COST):
                 self._rate_limited(origin)
             elif isinstance(msg, wire.Hello):
-                ack, orphans = self.sessions.hello(msg, principal(origin))  # type: ignore[union-attr]
+                ack, orphans = self.sessions.hello(msg, principal(origin))
                 for o, m in orphans:
                     self._out.append((o, m))
                 self.log("info", "stream_hello", stream=msg.stream, model=ack.model, channels=len(ack.channels),
@@ -257,14 +259,14 @@ class Dispatch:
                 self._reject(origin, "unknown_type", f"{type(msg).__name__} is an answer, not a request", None, None)
         except SessionError as e:
             self._reject(origin, e.reason, e.detail, getattr(msg, "stream", None), getattr(msg, "seq", None))
-        except Exception as e:  # a bug must cost one message, never the loop
+        except Exception as e:  # noqa: BLE001 - a bug must cost one message, never the loop
             self._internal("handle", e, origin, getattr(msg, "stream", None), getattr(msg, "seq", None))
 
     def _bundle(self, msg: wire.Bundle, origin: Origin, arrived: float) -> None:
         """Each frame of a bundle as if it had come alone, at the bundle's arrival; over ROUTER
         their answers are marked to go back together (a third origin element, see Transports)."""
         self.metrics.inc("bundles_in")
-        who = principal(origin)  # type: ignore[union-attr]
+        who = principal(origin)
         if origin[0] == "router":
             origin = (*origin, "bundle")
         for f in msg.items:
@@ -276,7 +278,7 @@ class Dispatch:
                 self._frame_answers(self.sessions.frame(f, origin, arrived, who))
             except SessionError as e:  # one frame's refusal is its own answer; the rest go on
                 self._reject(origin, e.reason, e.detail, f.stream, f.seq)
-            except Exception as e:
+            except Exception as e:  # noqa: BLE001 - the loop goes on
                 self.metrics.inc("internal_errors")
                 self.log("error", "internal_error", where="bundle", stream=f.stream, error=f"{type(e).__name__}: {e}"[:300])
                 self._reject(origin, "internal", f"{type(e).__name__} while handling the frame", f.stream, f.seq)
@@ -337,6 +339,6 @@ class Dispatch:
 
 
 
-def _decode_map(m: dict, max_bytes: int) -> wire.Message:
+def _decode_map(m: dict[str, Any], max_bytes: int) -> wire.Message:
     return wire.decode_map(m)  # (already unpacked, within max_bytes)
 

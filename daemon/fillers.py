@@ -7,7 +7,8 @@ to relay a stream unchanged.  Hold-last-value under overload is done by the sess
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -25,10 +26,10 @@ class PassThroughModel(Model):
         # which is what a latency-floor measurement wants
         self.channels = list(channels or [])
 
-    def stream(self) -> "PassThroughState":
+    def stream(self) -> PassThroughState:
         return PassThroughState(self)
 
-    def info(self) -> dict:
+    def info(self) -> dict[str, Any]:
         return {"method": self.method, "channels": len(self.channels) or "any", "causal": True}
 
     def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,

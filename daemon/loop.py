@@ -18,12 +18,14 @@ import os
 import signal
 import sys
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import zmq
 
+from daemon import budget as budgets
 from daemon import config as config_mod
-from daemon import budget as budgets, wire
+from daemon import wire
 from daemon.control import Control
 from daemon.dispatch import OSC_ERRORS_PER_S, Dispatch
 from daemon.log import Log
@@ -95,7 +97,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         return self.cfg.busy_poll_ms / 1000.0   # read each time: a reload may change it
 
     # ---- models -----------------------------------------------------------------------------
-    def _resolve(self, requested: str | None, sid: str):
+    def _resolve(self, requested: str | None, sid: str) -> tuple[str, Any]:
         name = requested or self.cfg.stream_models.get(sid) or self.cfg.default_model
         if name not in self.models:
             raise KeyError(f"model {name!r} is not loaded (loaded: {', '.join(sorted(self.models))})")
@@ -233,7 +235,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
             if self._superseded or self._conflated:
                 self._send_held()  # what came since the fills (they are out already)
                 self._answer_superseded()
-        except Exception as e:  # never let a bug end the service: log, count, go on
+        except Exception as e:  # noqa: BLE001 - never let a bug end the service: log, count, go on
             self.metrics.inc("internal_errors")
             self.log("error", "internal_error", where="loop", error=f"{type(e).__name__}: {e}"[:300])
             self._abandon_pending(f"{type(e).__name__} while serving")
@@ -254,12 +256,12 @@ class Daemon(Dispatch, Tick, Control, Reloading):
             if now >= self._next_house:
                 self._next_house = now + HOUSEKEEPING_S
                 self._housekeeping(now)
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001 - the loop goes on
             self.metrics.inc("internal_errors")
             self.log("error", "internal_error", where="housekeeping", error=f"{type(e).__name__}: {e}"[:300])
         return aside
 
-    def _spin(self, timeout_ms: int) -> dict:
+    def _spin(self, timeout_ms: int) -> dict[Any, Any]:
         """Busy-poll (``busy_poll_ms``): for that long after the last message arrived, poll without
         sleeping, so the next frame is picked up as soon as it lands instead of after the kernel
         wakes the thread (0.3-1 ms on a virtual machine, most of a loopback round trip).  Costs a

@@ -108,7 +108,7 @@ class Prewarm:
             fill = model.step_batch([sh.state], mf, mo)[0]
             encode(fill_message(sh, fill, "ok", time.perf_counter()))
             self.count += 1
-        except Exception as e:  # a rehearsal must never cost a frame: count it and go on
+        except Exception as e:  # noqa: BLE001 - a rehearsal must never cost a frame: count it and go on
             self.errors += 1
             self.last_error = f"{type(e).__name__}: {e}"[:300]
             self._shadows.pop(id(s.model), None)

@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -220,7 +221,7 @@ class Scheduler:
         return StepPlan(order[:n], order[n:], levels[-1], levels[-1] != levels[0])
 
     # ---- stepping ---------------------------------------------------------------------------
-    def run(self, groups: dict[int, tuple[Model, list[Session]]], now: float) -> list[tuple[Session, Fill, str]]:
+    def run(self, groups: dict[Any, tuple[Model, list[Session]]], now: float) -> list[tuple[Session, Fill, str]]:
         """Step every group; returns (session, fill in model space, status) for each pending frame."""
         results: list[tuple[Session, Fill, str]] = []
         for model, sessions in groups.values():
@@ -278,12 +279,12 @@ class Scheduler:
                     s.count("predicted")
             mf, mo = model_inputs(group, C)
             fills = _step_batch(model, [s.state for s in group], mf, mo, level)
-        except Exception as e:  # a model bug must not stop the daemon: pass the frames through
+        except Exception as e:  # noqa: BLE001 - a model bug must not stop the daemon: pass the frames through
             self.step_errors += 1
             self.last_error = f"{type(e).__name__}: {e}"[:300]
             out = []
             for s in group:
-                f, o = s.to_model(s.pending.frame)  # type: ignore[union-attr]
+                f, _ = s.to_model(s.pending.frame)  # type: ignore[union-attr]
                 s.restart()
                 out.append((s, Fill(f, np.zeros(C), np.zeros(C, bool)), "passthrough"))
             return out
@@ -403,7 +404,7 @@ def fill_messages(results: list[tuple[Session, Fill, str]], now: float) -> list[
         try:
             msgs = _identity_fills([results[i] for i in rows], C, now)
         except Exception:  # noqa: BLE001 - some fill does not fit the array: find which, one by one
-            msgs = [_fill_message_or_error(*results[i], now) for i in rows]
+            msgs = [_fill_message_or_error(*results[i], now) for i in rows]  # type: ignore[misc]
         for i, m in zip(rows, msgs):
             out[i] = m
     return out  # type: ignore[return-value]

@@ -27,7 +27,7 @@ import numpy as np
 from daemon import wire
 from lacuna.filler import FillerState, Model
 
-Origin = tuple  # (transport name, address): ("router", envelope) | ("router", envelope, "bundle") | ("pull", None) | ("osc", (host, port))
+Origin = tuple[Any, ...]  # (transport name, address): ("router", envelope) | ("router", envelope, "bundle") | ("pull", None) | ("osc", (host, port))
 Out = list[tuple[Origin, wire.Message]]
 
 COUNTERS = ("frames_in", "frames_out", "dropped_conflated", "dropped_late", "dropped_duplicate", "dropped_reset",
@@ -41,7 +41,7 @@ WAIT_PLAUSIBLE_S = 30.0  # more than this is taken for a jump of the capture clo
 WAIT_FOLLOW = 1e-4  # how fast the quickest-delivery baseline follows a drift between the clocks
 
 
-def principal(origin: Origin) -> tuple:
+def principal(origin: Origin) -> tuple[Any, ...]:
     """Who sent a message, for stream ownership: the CURVE public key when the ROUTER socket is
     a CURVE server (the transport hangs it on the envelope as ``.key``), else the ROUTER
     connection (its routing id); an OSC source address; PULL and SUB senders together as one."""
@@ -74,7 +74,7 @@ class Mapping:
     n_model: int
 
     @classmethod
-    def build(cls, studio: list[str], model_channels: list[str]) -> "Mapping":
+    def build(cls, studio: list[str], model_channels: list[str]) -> Mapping:
         pos = {c: i for i, c in enumerate(model_channels)}
         s_idx = np.array([i for i, c in enumerate(studio) if c in pos], dtype=np.intp)
         m_idx = np.array([pos[c] for c in studio if c in pos], dtype=np.intp)

@@ -5,12 +5,23 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from itertools import islice
-from typing import Any, Callable
+from typing import Any
 
 from daemon import positions, wire
-from daemon.session import (WAIT_FOLLOW, WAIT_PLAUSIBLE_S, WAIT_REPORT_S, Mapping, Origin, Out, Pending, Session,
-                            SessionError, _order)
+from daemon.session import (
+    WAIT_FOLLOW,
+    WAIT_PLAUSIBLE_S,
+    WAIT_REPORT_S,
+    Mapping,
+    Origin,
+    Out,
+    Pending,
+    Session,
+    SessionError,
+    _order,
+)
 from lacuna.filler import Model
 
 
@@ -237,8 +248,7 @@ class SessionTable:
                 if w >= WAIT_REPORT_S:
                     s.counts["waited"] += 1
                     self.count("frames_waited", f.stream)
-                    if w > s.max_wait_s:
-                        s.max_wait_s = w
+                    s.max_wait_s = max(s.max_wait_s, w)
         s.counts["frames_in"] += 1
         if s.last_seq is not None and f.seq <= s.last_seq:
             why = "duplicate" if f.seq == s.last_seq else "late"

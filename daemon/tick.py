@@ -9,10 +9,11 @@ from __future__ import annotations
 from typing import Any
 
 from daemon import wire
+from daemon.parts import Parts
 from daemon.scheduler import fill_messages
 
 
-class Tick:
+class Tick(Parts):
     """The serving half of the daemon (mixed into :class:`daemon.loop.Daemon`)."""
 
     def _serve(self) -> None:
@@ -31,7 +32,7 @@ class Tick:
                 pend = [s for s, x in zip(pend, late) if not x]
                 if not pend:
                     return
-        groups: dict[tuple[int, int], tuple[Any, list]] = {}
+        groups: dict[tuple[int, int], tuple[Any, list[Any]]] = {}
         for s in pend:
             # by width too: a pass-through "any channels" model serves streams of different
             # widths, and one batch stacks frames of one width
@@ -50,6 +51,7 @@ class Tick:
         n, budget, sent_at = len(results), self.sched.budget_s, self.sched.sent_at
         for k, ((s, fill, status), msg) in enumerate(zip(results, msgs)):
             p = s.pending
+            assert p is not None
             if isinstance(msg, Exception):  # a fill the wire cannot carry: answer with an error, keep serving
                 s.answered()
                 e = msg
@@ -117,7 +119,7 @@ class Tick:
         try:
             todo_drops, self._conflated = self._conflated, []
             self._deliver(todo_drops)  # (those frames were answered already: drops owed, not errors)
-        except Exception:
+        except Exception:  # noqa: BLE001, S110 - a failing send must not keep the frames below unanswered
             pass
         owed: list[tuple[Any, str, int | None]] = list(self.sessions.abandon())
         owed += [(origin, s.sid, k[1] if isinstance(m, dict) and (k := wire.frame_key(m)) else None)
@@ -125,11 +127,11 @@ class Tick:
         for origin, sid, seq in owed:
             try:
                 self._refuse(origin, "internal", why, sid, seq)
-            except Exception:  # the answer itself failing must not stop the loop either
+            except Exception:  # noqa: BLE001, S110 - the answer itself failing must not stop the loop either
                 pass
 
 
-def _arrival(r: tuple) -> tuple[float, int]:
+def _arrival(r: tuple[Any, ...]) -> tuple[float, int]:
     # (frames read together, a bundle's: the streams that were dropped `overdue` most go first)
     return r[0].pending.arrived, -r[0].late_streak
 
