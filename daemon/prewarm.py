@@ -23,7 +23,8 @@ import time
 from typing import Any
 
 from daemon import wire
-from daemon.scheduler import Scheduler, fill_message, levels_of, model_inputs
+from daemon.encode import fill_message, model_inputs
+from daemon.scheduler import Scheduler, levels_of
 from daemon.session import Pending, Session
 from lacuna.filler import FillerState, Model
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 from typing import Any
 
 from daemon import wire
+from daemon.encode import fill_messages
 from daemon.parts import Parts
-from daemon.scheduler import fill_messages
 
 
 class Tick(Parts):
