@@ -30,7 +30,7 @@ REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, s
 class Dispatch(Parts):
     """The ingest half of the daemon (mixed into :class:`daemon.loop.Daemon`)."""
 
-    def _handle(self, data: bytes, origin: Origin, arrived: float, counted: bool = False) -> None:
+    def _take_bytes(self, data: bytes, origin: Origin, arrived: float, counted: bool = False) -> None:
         if not counted:
             self.metrics.inc("messages_in")
         if origin[0] != "osc":
@@ -53,10 +53,10 @@ class Dispatch(Parts):
             self._take(osc.decode, data, origin, arrived)
 
     def _handle_map(self, m: dict[str, Any] | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
-        """:meth:`_handle` for a message already unpacked by :meth:`_batch` (or its unpack error;
+        """:meth:`_take_bytes` for a message already unpacked by :meth:`dispatch` (or its unpack error;
         bytes: an OSC datagram, not unpacked), counted there."""
         if type(m) is bytes:
-            self._handle(m, origin, arrived, counted=True)
+            self._take_bytes(m, origin, arrived, counted=True)
         elif isinstance(m, wire.WireError):
             self._reject(origin, m.reason, m.detail, m.stream, m.seq)
         elif type(m) is dict and m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
@@ -121,7 +121,7 @@ class Dispatch(Parts):
         they are handled at once, in order."""
         if len(items) < BATCH_MIN:
             for data, origin, arrived in items:
-                self._handle(data, origin, arrived)
+                self._take_bytes(data, origin, arrived)
             return self._take_out()
         self.metrics.inc("messages_in", len(items))
         maxb = self.cfg.max_message_bytes

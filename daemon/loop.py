@@ -114,7 +114,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         self._install(table)
         self.reloader = Reloader(self._reload_work, self._reload_started)
         # the log object changes on reload (level): look it up at each call
-        self.net = Transports(self.cfg, self._handle_one, self._refuse, self.metrics, lambda *a, **k: self.log(*a, **k),
+        self.net = Transports(self.cfg, self._handle, self._refuse, self.metrics, lambda *a, **k: self.log(*a, **k),
                               self._batch)
         self.net.open()
         if self.cfg.metrics_http:
@@ -290,7 +290,8 @@ class Daemon(Dispatch, Tick, Control, Reloading):
             self._deliver(answers)
             self._serve()
 
-    def _handle_one(self, data: bytes, origin: Origin, arrived: float) -> None:
+    def _handle(self, data: bytes, origin: Origin, arrived: float) -> None:
+        """One message as :meth:`_batch` takes a turn's (the transport's ``on_message``)."""
         self._batch([(data, origin, arrived)])
 
     def _answer_superseded(self) -> None:
