@@ -27,7 +27,7 @@ from daemon import budget as budgets
 from daemon import config as config_mod
 from daemon import wire
 from daemon.control import Control
-from daemon.dispatch import OSC_ERRORS_PER_S, Dispatch
+from daemon.dispatch import BATCH_MIN, OSC_ERRORS_PER_S, Dispatch
 from daemon.log import Log
 from daemon.metrics import Metrics
 from daemon.metrics_http import MetricsHTTP
@@ -280,6 +280,9 @@ class Daemon(Dispatch, Tick, Control, Reloading):
     def _batch(self, items: list[tuple[bytes, Origin, float]]) -> None:
         """What the transport read (its ``on_batch``): the dispatcher's answers handed to the
         transport, the frames taken so far served between two slices of a long burst."""
+        if len(items) < BATCH_MIN:
+            self._deliver(self.dispatch_few(items))
+            return
         gen = self.dispatch(items)
         while True:
             try:
