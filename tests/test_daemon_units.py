@@ -877,3 +877,42 @@ def test_idle_stream_expires_when_the_daemons_clock_passes_its_timeout():
             assert "quiet" in d.sessions.sessions  # 0.9 s idle: under the 2 s timeout
     assert set(d.sessions.sessions) == {"busy"}  # 2.7 s idle: expired at the turn that saw it
     assert d.metrics.counters["expired"] == 1 and d.sessions.expired == 1
+
+
+@pytest.mark.realdata
+def test_crbm_step_at_a_level_is_the_set_iterations_step_and_leaves_the_model_as_it_was(data):
+    """The degradation level is an argument of the step: CRBMModel.step_batch(..., level=5) gives
+    the fills a model set to K = 5 gives, reports K = 5, and the model still says K = 30."""
+    from crbm.train import train_model
+    from mocap.protocols import get_protocol
+
+    ts = get_protocol("taylor2007").training_set()
+    m = train_model(ts.sequences, ts.channels, hidden=12, epochs=3, seed=3)
+    assert m.n_gibbs == 30 and m.quality_levels() == [30, 15, 7, 3, 1] and levels_of(m) == [30, 15, 7, 3, 1]
+    frames = ts.sequences[0][:6].astype(np.float64)
+    obs = np.ones(frames.shape, bool)
+    obs[:, ::3] = False
+    frames = np.where(obs, frames, np.nan)
+
+    def run(level=None, k=None):
+        m.reseed(7)
+        if k is not None:
+            m.set_iterations(k)
+        try:
+            st = [m.stream(), m.stream()]
+            return [m.step_batch(st, np.stack([f, f]), np.stack([o, o]), **({} if level is None else {"level": level}))
+                    for f, o in zip(frames, obs)]
+        finally:
+            m.set_iterations(30)
+
+    at_level, set_to = run(level=5), run(k=5)
+    assert m.n_gibbs == 30
+    for a, b in zip(at_level, set_to):
+        for fa, fb in zip(a, b):
+            np.testing.assert_array_equal(fa.frame, fb.frame)
+            assert fa.extras["gibbs_iterations"] == 5
+    full = run()
+    assert all(f.extras["gibbs_iterations"] == 30 for fs in full for f in fs)
+    assert not all(np.array_equal(a[0].frame, b[0].frame) for a, b in zip(full, at_level))  # K matters
+    with pytest.raises(ValueError):
+        m.step_batch([m.stream()], frames[:1], obs[:1], level=0)
