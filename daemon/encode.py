@@ -38,21 +38,26 @@ def _bmask(a: np.ndarray) -> bytes:
     return np.ascontiguousarray(a, dtype=bool).astype(np.uint8).tobytes()
 
 
+def fill_map(msg: FillMsg) -> dict[str, Any]:
+    """A fill's msgpack map (the daemon's hot path: no dispatch on the type)."""
+    d: dict[str, Any] = {"v": 1, "type": "fill", "stream": msg.stream, "seq": msg.seq, "t": msg.t,
+                         "angles": _b32(msg.angles), "filled": _bmask(msg.filled), "std": _b32(msg.std),
+                         "status": msg.status, "model": msg.model, "proc_us": int(msg.proc_us)}
+    if msg.style is not None:
+        d["style"] = _b32(msg.style)
+    if msg.phase is not None:
+        d["phase"] = float(msg.phase)
+    if msg.gap:
+        d["gap"] = int(msg.gap)
+    if msg.positions is not None:
+        d["positions"] = _b32(msg.positions)
+    return d
+
+
 def to_map(msg: Message) -> dict[str, Any]:
     """Message object -> the msgpack map (fixed key order)."""
-    if isinstance(msg, FillMsg):  # the daemon's hot path: checked first
-        d: dict[str, Any] = {"v": 1, "type": "fill", "stream": msg.stream, "seq": msg.seq, "t": msg.t,
-             "angles": _b32(msg.angles), "filled": _bmask(msg.filled), "std": _b32(msg.std),
-             "status": msg.status, "model": msg.model, "proc_us": int(msg.proc_us)}
-        if msg.style is not None:
-            d["style"] = _b32(msg.style)
-        if msg.phase is not None:
-            d["phase"] = float(msg.phase)
-        if msg.gap:
-            d["gap"] = int(msg.gap)
-        if msg.positions is not None:
-            d["positions"] = _b32(msg.positions)
-        return d
+    if type(msg) is FillMsg:  # the daemon's hot path: checked first
+        return fill_map(msg)
     if isinstance(msg, Frame):
         d = {"v": 1, "type": "frame", "stream": msg.stream, "seq": msg.seq, "t": msg.t,
              "angles": _b32(msg.angles)}
@@ -125,6 +130,14 @@ def join_replies(bodies: list[bytes]) -> bytes:
     a msgpack array is its header followed by its elements' bytes."""
     head: bytes = _PACK.pack_array_header(len(bodies))
     return _REPLIES_HEAD + head + b"".join(bodies)
+
+
+def replies_of(maps: list[dict[str, Any]], pack: Any = None) -> bytes:
+    """Answer maps (each ``to_map(msg)``) -> one ``replies`` message in one msgpack pass; the
+    same bytes as ``join_replies([encode(m) for m in msgs])`` (a msgpack array is its header
+    followed by its elements' bytes, and pack(list) writes exactly that)."""
+    body: bytes = (pack or _PACK.pack)(maps)
+    return _REPLIES_HEAD + body
 
 
 def error_for(e: WireError) -> ErrorMsg:

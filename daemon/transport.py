@@ -59,7 +59,8 @@ class Transports:
         self.guard: security.Guard | None = None
         self.poller = zmq.Poller()
         self._held: list[tuple[zmq.Socket, list[bytes], str]] | None = None
-        self._bundles: dict[tuple[bytes, ...], list[bytes]] = {}  # ROUTER envelope -> held answers to bundled frames
+        # ROUTER envelope -> held answers to bundled frames, as maps: packed in one pass at the flush
+        self._bundles: dict[tuple[bytes, ...], list[dict[str, Any]]] = {}
         self._pack = msgpack.Packer(use_bin_type=True).pack  # one for the daemon's thread (packb builds one per call)
         self._flush_every = max(1, min(FLUSH_MAX, cfg.zmq_hwm // 4))
         self._curve = False  # set in open() when the sockets are CURVE servers
@@ -236,10 +237,12 @@ class Transports:
             n = len(held)
         if self._bundles:
             bundles, self._bundles = self._bundles, {}
-            for envelope, bodies in bundles.items():
-                for i in range(0, len(bodies), wire.MAX_BUNDLE):
-                    chunk = bodies[i:i + wire.MAX_BUNDLE]
-                    self._zsend(self.router, [*envelope, wire.join_replies(chunk)], "router")  # type: ignore[arg-type]
+            pack = self._pack
+            for envelope, maps in bundles.items():
+                for i in range(0, len(maps), wire.MAX_BUNDLE):
+                    chunk = maps[i:i + wire.MAX_BUNDLE]
+                    # one msgpack pass over the chunk's answers: the bytes join_replies would give
+                    self._zsend(self.router, [*envelope, wire.replies_of(chunk, pack)], "router")  # type: ignore[arg-type]
                     n += len(chunk)  # (answers, for what an answer costs to send)
         return n
 
@@ -270,7 +273,7 @@ class Transports:
 
     def _encode(self, msg: wire.Message) -> bytes:
         """``wire.encode``, with this thread's Packer."""
-        return self._pack(wire.to_map(msg))
+        return self._pack(wire.fill_map(msg) if type(msg) is wire.FillMsg else wire.to_map(msg))  # type: ignore[no-any-return]
 
     def send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
         """Answer on the origin's transport; ``publish`` also puts it on PUB (topic = stream).
@@ -285,13 +288,15 @@ class Transports:
                 self.log("debug", "send_error", transport=kind, error=str(e))
         body: bytes | None = None
         if kind == "router" and self.router is not None:
-            body = self._encode(msg)
             if len(origin) == 2:
+                body = self._encode(msg)
                 self._zmq(self.router, [*origin[1], body], kind)
-            elif self._held is not None:  # an answer to a bundled frame: it goes back in one `replies`
-                self._bundles.setdefault(tuple(origin[1]), []).append(body)
-            else:
-                self._zsend(self.router, [*origin[1], wire.join_replies([body])], kind)
+            else:  # an answer to a bundled frame: it goes back in one `replies`, packed at the flush
+                m = wire.fill_map(msg) if type(msg) is wire.FillMsg else wire.to_map(msg)  # type: ignore[arg-type]
+                if self._held is not None:
+                    self._bundles.setdefault(tuple(origin[1]), []).append(m)
+                else:
+                    self._zsend(self.router, [*origin[1], wire.replies_of([m], self._pack)], kind)
         elif kind == "pull" and self.pub is not None and not publish:
             topic = getattr(msg, "stream", None) or ""
             self._zmq(self.pub, [topic.encode(), self._encode(msg)], "pub")
