@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {"command": "python bench/zmq_echo.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "take": src, "streams": args.streams, "rate": args.rate, "seconds": args.seconds,
            "repeats": args.repeats, "at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-           "loadavg": open("/proc/loadavg").read().split()[:3] if os.path.exists("/proc/loadavg") else None,
+           "loadavg": Path("/proc/loadavg").read_text().split()[:3] if os.path.exists("/proc/loadavg") else None,
            "summary": summary, "runs": rows}
     print(json.dumps(summary, indent=1))
     if args.json_out:
