@@ -15,7 +15,7 @@ from typing import Any
 import msgpack  # type: ignore[import-untyped]
 import numpy as np
 
-from daemon.block import read_block
+from daemon.block import no_inf, read_block
 from daemon.schema import (
     CONTROL_COMMANDS,
     F32,
@@ -151,7 +151,7 @@ def _decode_frame(m: Map) -> Frame:
             and not len(b) % 4 and sid.isprintable()):
         angles = np.frombuffer(b, dtype=F32)
         if ob is None:
-            if not np.isinf(angles).any():
+            if no_inf(b) or not np.isinf(angles).any():
                 return Frame(sid, seq, t, angles, None)
         # a mask of one 0/1 byte per channel (translate deletes those bytes: nothing may be left)
         elif type(ob) is bytes and 4 * len(ob) == len(b) and not ob.translate(None, b"\x00\x01"):

@@ -167,3 +167,29 @@ def test_a_ticks_answers_packed_in_one_pass_are_the_bytes_of_encoding_each(rng):
 def test_replies_of_a_single_and_a_full_chunk(n):
     msgs = [w.Drop(f"s{i}", i, "late") for i in range(n)]
     assert w.replies_of([w.to_map(m) for m in msgs]) == w.join_replies([w.encode(m) for m in msgs])
+
+
+def test_no_inf_never_misses_an_infinity(rng):
+    from daemon.block import no_inf
+
+    for _ in range(2000):
+        a = rng.normal(scale=float(rng.choice([1, 1e30, 1e38])), size=int(rng.integers(1, 80)))
+        with np.errstate(over="ignore"):  # values beyond float32 become infinities: wanted here
+            a = a.astype(np.float32)
+        a[rng.random(a.size) < 0.2] = np.nan
+        if rng.random() < 0.5:
+            a[rng.integers(a.size)] = rng.choice([np.inf, -np.inf])
+        if no_inf(a.tobytes()):
+            assert not np.isinf(a).any()
+    assert not no_inf(np.array([1, -np.inf], np.float32).tobytes())
+
+
+def test_huge_observed_values_are_read_by_the_fast_checks(rng):
+    """The fast checks sum the observed values (in float64, which float32 values cannot
+    overflow): values near the float32 limit are read, as one frame and as a block."""
+    big = np.array([3e38, 3e38, np.nan, -3e38], np.float32)
+    one = {"stream": "s", "seq": 1, "t": 0.5, "angles": big.tobytes(), "observed": bytes([1, 1, 0, 1])}
+    f = w.decode(_pack({"v": 1, "type": "frame", **one}))
+    assert f.observed.tolist() == [True, True, False, True] and f.angles[0] == np.float32(3e38)
+    m = _check_bundle([one, {**one, "stream": "t"}], expect_block=True)
+    assert all(isinstance(x, w.Frame) for x in m.items)
