@@ -26,14 +26,20 @@ from daemon.schema import (
 
 
 # ---- encode ----------------------------------------------------------------------------------
+_F32_NATIVE = np.dtype(np.float32) if np.dtype(np.float32) == F32 else F32  # the dtype object numpy hands out
+_BOOL = np.dtype(np.bool_)
+
+
 def _b32(a: np.ndarray) -> bytes:
-    if type(a) is np.ndarray and a.dtype == F32 and a.flags.c_contiguous:
+    # (tobytes writes C order whatever the strides; the dtype is compared by identity, the
+    # cheap test that holds for every array the daemon builds, the full conversion otherwise)
+    if type(a) is np.ndarray and a.dtype is _F32_NATIVE:
         return a.tobytes()  # the daemon's own fills arrive like this: no conversion
     return np.ascontiguousarray(a, dtype=F32).tobytes()
 
 
 def _bmask(a: np.ndarray) -> bytes:
-    if type(a) is np.ndarray and a.dtype == np.bool_ and a.flags.c_contiguous:
+    if type(a) is np.ndarray and a.dtype is _BOOL:
         return a.tobytes()  # bool is one 0/1 byte each
     return np.ascontiguousarray(a, dtype=bool).astype(np.uint8).tobytes()
 

@@ -140,6 +140,8 @@ def _fill(rng, C, i):
     if rng.random() < 0.3:  # rows of a tick's (n, C) arrays, as the scheduler hands them over
         big = rng.normal(size=(3, C)).astype(np.float32)
         m.angles, m.std = big[1], big[2]
+    if rng.random() < 0.2:  # a strided column view: written in C order like any other
+        m.std = np.asfortranarray(rng.random((C, 2)).astype(np.float32))[:, 1]
     if rng.random() < 0.2:  # arrays not yet float32 / bool: converted the same either way
         m.angles, m.filled = m.angles.astype(np.float64), m.filled.astype(np.uint8)
     return m
@@ -158,9 +160,12 @@ def test_a_ticks_answers_packed_in_one_pass_are_the_bytes_of_encoding_each(rng):
         assert w.replies_of([w.to_map(m) for m in msgs], msgpack.Packer(use_bin_type=True).pack) == want
         back = w.decode(want)
         assert isinstance(back, w.Replies) and len(back.items) == len(msgs)
-        for m in msgs:
+        for m, b in zip(msgs, back.items):
             if isinstance(m, w.FillMsg):
                 assert _pack(w.fill_map(m)) == w.encode(m)
+                assert np.array_equal(b.angles, np.asarray(m.angles, np.float32))
+                assert np.array_equal(b.std, np.asarray(m.std, np.float32))
+                assert np.array_equal(b.filled, np.asarray(m.filled, bool))
 
 
 @pytest.mark.parametrize("n", [1, 64, w.MAX_BUNDLE])
