@@ -24,7 +24,6 @@ from daemon.schema import (
     WireError,
 )
 
-
 # ---- encode ----------------------------------------------------------------------------------
 _F32_NATIVE = np.dtype(np.float32) if np.dtype(np.float32) == F32 else F32  # the dtype object numpy hands out
 _BOOL = np.dtype(np.bool_)
