@@ -69,7 +69,7 @@ class HelloAck:
     parents: list[int] | None = None  # parent index per joint, -1 for a root
 
 
-@dataclass
+@dataclass(slots=True)
 class Frame:
     """One captured frame.
 
@@ -84,7 +84,7 @@ class Frame:
     observed: np.ndarray | None = None
 
 
-@dataclass
+@dataclass(slots=True)
 class FillMsg:
     """The filled frame, in the stream's channel order.
 
@@ -109,7 +109,7 @@ class FillMsg:
     positions: np.ndarray | None = None  # (J, 3) float32 metres, for a stream whose hello asked
 
 
-@dataclass
+@dataclass(slots=True)
 class Drop:
     """A frame received but not served: ``conflated`` (a newer frame of the stream replaced it),
     ``late`` (older than one already served), ``duplicate``."""

@@ -36,7 +36,6 @@ DRAIN_MAX = 2048  # messages read per socket per tick: keeps one busy socket fro
 DRAIN_MAX_BYTES = 1 << 20  # and bytes: a turn of big requests (hellos of 4096 names) is cut short
 UDP_MAX = 65535  # bytes
 _NOBLOCK = int(zmq.NOBLOCK)
-_RCVMORE = int(zmq.RCVMORE)
 _MORE_NOBLOCK = int(zmq.SNDMORE | zmq.NOBLOCK)
 FLUSH_MAX = 64  # held answers sent at once, at most (fewer when the hwm is small)
 ZMQ_MAXMSG_MARGIN = 64 << 10  # bytes a frame may exceed max_message_bytes and still be read (and answered too_large)
@@ -351,27 +350,29 @@ def _recv_bounded(sock_: Socket, keep: int, keyed: bool = False) -> list[Any]:
     its first ``keep`` frames and then the count of frames dropped (an int).  ``keyed`` (CURVE
     on a ROUTER): the result is a :class:`_Keyed` whose ``key`` is the message's ZAP User-Id,
     the peer's public key, so streams are owned by keys, not connections."""
-    recv, more = sock_.recv, sock_.getsockopt
+    # each frame is taken as a zmq.Frame (copy=False) and read with .bytes: its ``more`` flag
+    # comes with it, where recv() of bytes needs a getsockopt(RCVMORE) call per frame (about
+    # half the cost of reading a message)
+    recv = sock_.recv
+    f = recv(_NOBLOCK, copy=False)
     if not keyed:
-        parts: list[Any] = [recv(_NOBLOCK)]
+        parts: list[Any] = [f.bytes]
     else:
-        f = recv(_NOBLOCK, copy=False)
         try:
             got = f.get("User-Id")
             key = got if isinstance(got, str) else None
         except zmq.ZMQError:
             key = None
         parts = _Keyed([f.bytes], key)
-    while more(_RCVMORE):
+    while f.more:
+        f = recv(_NOBLOCK, copy=False)
         if len(parts) < keep:
-            parts.append(recv(_NOBLOCK))
+            parts.append(f.bytes)
             continue
-        dropped = 0
-        while True:
-            recv(_NOBLOCK, copy=False)
+        dropped = 1  # the frames beyond ``keep``: taken and let go, never copied
+        while f.more:
+            f = recv(_NOBLOCK, copy=False)
             dropped += 1
-            if not more(_RCVMORE):
-                break
         parts.append(dropped)
         break
     return parts
