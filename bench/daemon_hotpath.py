@@ -6,6 +6,9 @@ machine disturb it far less than round-trip latency; medians over repeats.
 
     .venv/bin/python bench/daemon_hotpath.py --repeats 7 --json bench/daemon_hotpath.json
 
+Run with ``PYTHONPATH=DIR`` to measure another checkout's daemon with this same driver (A/B
+across commits: ``PYTHONPATH=/tmp/perf-64e7005 python bench/daemon_hotpath.py ...``).
+
 ``--bundle`` adds rows where the 64 streams' frames of a tick come as one ``frames`` message.
 ``--gap-ms G`` sleeps G ms between ticks, as the live daemon waits between capture frames: the
 caches and the CPU are then as cold as they are live (back to back, the figure is the warm
@@ -19,6 +22,7 @@ import sys
 import tempfile
 import time
 
+import msgpack
 import numpy as np
 
 from daemon import config, wire
@@ -28,6 +32,7 @@ from daemon.server import Daemon
 from mocap.baselines import HoldModel, NearestNeighbourModel
 from mocap.protocols import get_protocol
 
+replies_of = getattr(wire, "replies_of", None)
 WARM_TICKS = 20  # a filter's first frames cost more (the HLM's posterior starts over every phase)
 
 
@@ -49,8 +54,9 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
 
     def serve():
         d._serve()
-        if held:
-            out.append(wire.replies_of(held))
+        if held:  # (a tree from before wire.replies_of encoded each answer and joined them)
+            out.append(replies_of(held) if replies_of else wire.join_replies([msgpack.packb(m, use_bin_type=True)
+                                                                              for m in held]))
             held.clear()
         out.clear()
 
