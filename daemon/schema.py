@@ -5,7 +5,7 @@ little-endian bytes (float32 angles/std, one uint8 per channel for masks), so a 
 channels costs 4*C bytes of angles whatever the client language.  The full schema, with
 examples, is in docs/PROTOCOL.md; this module is its executable form.
 
-daemon/decode.py turns bytes into these (or a :class:`WireError`), daemon/encode.py turns them
+daemon/decode.py turns bytes into these (or a :class:`WireError`), daemon/pack.py turns them
 back into bytes; daemon/wire.py is the one name the rest of the project imports them by.
 """
 from __future__ import annotations

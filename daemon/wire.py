@@ -4,13 +4,13 @@ Pure functions on bytes, no sockets.
 The data flow is in the file names: bytes from a transport are read by daemon/decode.py
 (:func:`decode`, or :func:`unpack` then :func:`decode_map`; a bundle's frames as arrays by
 daemon/block.py), the message types and limits are daemon/schema.py, and the answers go back
-to bytes through daemon/encode.py (:func:`encode`, :func:`join_replies`, a tick's fills at once
-by :func:`encode_fills`).  The full schema, with examples, is docs/PROTOCOL.md.
+to bytes through daemon/pack.py (:func:`encode`; a bundle's answers in one msgpack pass by
+:func:`replies_of`).  (daemon/encode.py is the step before: a tick's fills -> fill messages.)  The full schema, with examples, is docs/PROTOCOL.md.
 """
 from __future__ import annotations
 
 from daemon.decode import decode, decode_map, frame_key, unpack
-from daemon.encode import encode, error_for, fill_map, join_replies, replies_of, to_map
+from daemon.pack import encode, error_for, fill_map, join_replies, replies_of, to_map
 from daemon.schema import (
                            CONTROL_COMMANDS,
                            F32,

@@ -1,6 +1,6 @@
 """The vectorised wire path against the row-by-row one: a bundle read as arrays (daemon/block.py)
 gives exactly the frames and errors of reading each element alone, and a tick's answers packed
-in one pass (encode.replies_of) are the bytes of encoding each and joining them.  Real CMU
+in one pass (pack.replies_of) are the bytes of encoding each and joining them.  Real CMU
 frames and fuzzed ones; no sockets."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Wire messages -> bytes: :func:`encode` is :func:`daemon.decode.decode`'s inverse (fixed key
+"""Wire messages -> bytes (msgpack): :func:`encode` is :func:`daemon.decode.decode`'s inverse (fixed key
 order, so the same message always gives the same bytes)."""
 from __future__ import annotations
 
