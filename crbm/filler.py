@@ -26,13 +26,14 @@ Runtime knobs (not learned; the daemon turns them under load, see ``set_iteratio
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from scipy.special import expit
 
 from crbm.model import CRBM
 from lacuna.feature_model import CoreOut, FeatureModel
+from lacuna.filler import Fill, FillerState
 from mocap.representation import Representation
 
 MODES = ("gibbs", "mean-field")
@@ -78,6 +79,8 @@ class CRBMModel(FeatureModel):
 
     Degrading under load
     --------------------
+    ``step_batch(..., level=k)`` steps with K = k for that call only, leaving the model as it
+    is: the daemon's scheduler degrades that way (``quality_levels()``: K, K/2, ..., 1).
     ``set_iterations(k)`` changes K for every following step (k >= 1; cost is linear in k) and
     ``set_chains(s)`` changes S; both take effect at the next frame, keep all stream state, and
     the value used is returned in ``Fill.extras["gibbs_iterations"]`` / ``["chains"]``.  A daemon
@@ -124,6 +127,31 @@ class CRBMModel(FeatureModel):
         if level2 is not None:
             self._AB2 = np.ascontiguousarray(np.hstack([level2.A_, level2.B_]))
             self._cb2 = np.concatenate([level2.c_, level2.b_])
+
+    # ---- degradation levels (the daemon's scheduler; the model's own K is left as it is) --------
+    def quality_levels(self) -> list[int | None]:
+        """K, K/2, K/4, ..., 1 Gibbs iterations (cost is linear in K)."""
+        out: list[int | None] = [self.n_gibbs]
+        v = self.n_gibbs
+        while v > 1:
+            v = max(1, v // 2)
+            out.append(v)
+        return out
+
+    def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
+                   level: int | None = None) -> list[Fill]:
+        """``level``: K Gibbs iterations for this step only (None: the model's ``n_gibbs``)."""
+        if level is None or level == self.n_gibbs:
+            return super().step_batch(states, frames, observed)
+        if isinstance(level, bool) or int(level) != level or level < 1:
+            raise ValueError(f"Gibbs iterations must be an integer >= 1 (got {level!r})")
+        # (the kernels read n_gibbs; it is put back before the call returns, whatever happens,
+        # so no caller ever sees the model changed)
+        k, self.n_gibbs = self.n_gibbs, int(level)
+        try:
+            return super().step_batch(states, frames, observed)
+        finally:
+            self.n_gibbs = k
 
     # ---- runtime knobs ----------------------------------------------------------------------------
     def set_iterations(self, k: int) -> None:

@@ -24,7 +24,7 @@ CONTROL_COST = 8.0  # a status, list-models or reload
 MAX_KEYS = 4096
 
 
-def names_cost(m: dict) -> float:
+def names_cost(m: dict[str, Any]) -> float:
     """Units an unpacked hello map is charged before decoding: one per 64 names past the first 64."""
     ch = m.get("channels")
     n = len(ch) if type(ch) is list else 0

@@ -9,7 +9,7 @@ from typing import Any
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 
 
-def add_commands(cli) -> None:
+def add_commands(cli: Any) -> None:
     p = cli.command("serve", help="run the gap-filling daemon (ZeroMQ + OSC)")
     p.add_argument("--config", required=True, metavar="FILE", help="TOML config (see systemd/lacuna.toml)")
     p.add_argument("--check", action="store_true", help="validate the config and load the models, then exit")
@@ -49,7 +49,7 @@ def _status(args: argparse.Namespace) -> int:
         if not cfg.zmq_router:
             raise ValueError(f"{args.config}: zmq.router is not set, so the daemon takes no control requests")
         ep = cfg.zmq_router
-        if ep.endswith(":*") or ep.endswith(":0"):
+        if ep.endswith((":*", ":0")):
             raise ValueError(f"{args.config}: zmq.router {ep} is a wildcard port; the daemon logs the port it bound "
                              f"in its ready line: pass it with --connect")
     if bool(args.key) != bool(args.server_key):
@@ -69,8 +69,8 @@ def _f(v: Any) -> str:
 
 def render(st: dict[str, Any]) -> str:
     """The status map as the table `lacuna status` prints."""
-    L = [f"lacuna daemon pid {st.get('pid')}, up {_f(st.get('uptime_s'))} s, config {st.get('config')}, "
-         f"budget {_f(st.get('budget_ms'))} ms"]
+    L = [(f"lacuna daemon pid {st.get('pid')}, up {_f(st.get('uptime_s'))} s, config {st.get('config')}, "
+          f"budget {_f(st.get('budget_ms'))} ms")]
     lat = st.get("latency", {})
     L.append("processing latency (ms): " + "  ".join(f"{k[:-3]} {_f(lat.get(k))}" for k in
                                                       ("p50_ms", "p90_ms", "p99_ms", "p999_ms", "max_ms"))

@@ -7,43 +7,44 @@ import time
 from typing import Any
 
 from daemon import wire
+from daemon.parts import Parts
 from daemon.session import Origin, SessionError, principal
 
 STATUS_STREAMS = 256  # streams `status` details by default, most recently active first (`limit` asks for more)
 
 
-class Control:
+class Control(Parts):
     """(mixed into :class:`daemon.loop.Daemon`)"""
 
     # ---- control ----------------------------------------------------------------------------
     def _control(self, msg: wire.Control, origin: Origin) -> None:
         if msg.cmd == "status":
             if msg.stream is not None and msg.stream not in self.sessions.sessions:
-                self._send(origin, wire.ControlReply("status", False, {}, f"no open stream {msg.stream!r}"))
+                self._out.append((origin, wire.ControlReply("status", False, {}, f"no open stream {msg.stream!r}")))
                 return
             n = STATUS_STREAMS if msg.limit is None else msg.limit
             if n > STATUS_STREAMS and not self.budget.allow(principal(origin), (n - STATUS_STREAMS) / 64.0):
                 self._rate_limited(origin)  # (a long listing costs its length)
                 return
-            self._send(origin, wire.ControlReply("status", True, self.status(n, msg.stream)))
+            self._out.append((origin, wire.ControlReply("status", True, self.status(n, msg.stream))))
         elif msg.cmd == "list-models":
-            self._send(origin, wire.ControlReply("list-models", True, {"models": {n: m.info() for n, m in self.models.items()},
-                                                                         "default": self.cfg.default_model}))
+            self._out.append((origin, wire.ControlReply("list-models", True, {"models": {n: m.info() for n, m in self.models.items()},
+                                                                         "default": self.cfg.default_model})))
         elif msg.cmd == "reset":
             assert msg.stream is not None
-            ok, orphans = self.sessions.reset(msg.stream, principal(origin), self._operator(origin))  # type: ignore[union-attr]
+            ok, orphans = self.sessions.reset(msg.stream, principal(origin), self._operator(origin))
             for o, m in orphans:
-                self._send(o, m)
+                self._out.append((o, m))
             self.log("info", "stream_reset", stream=msg.stream, existed=ok)
-            self._send(origin, wire.ControlReply("reset", ok, {"stream": msg.stream},
-                                                 None if ok else f"no open stream {msg.stream!r}"))
+            self._out.append((origin, wire.ControlReply("reset", ok, {"stream": msg.stream},
+                                                 None if ok else f"no open stream {msg.stream!r}")))
         elif msg.cmd == "release":
             assert msg.stream is not None
             ok = self.sessions.release(msg.stream, principal(origin))
-            self._send(origin, wire.ControlReply("release", ok, {"stream": msg.stream},
-                                                 None if ok else f"no open stream {msg.stream!r}"))
+            self._out.append((origin, wire.ControlReply("release", ok, {"stream": msg.stream},
+                                                 None if ok else f"no open stream {msg.stream!r}")))
         elif msg.cmd == "reload":
-            if not self._operator(origin):  # type: ignore[union-attr]
+            if not self._operator(origin):
                 raise SessionError("not_operator", "reload needs an operator (with CURVE: a key listed in "
                                                    "security.operator_keys; SIGHUP reloads too)")
             self._start_reload(origin)

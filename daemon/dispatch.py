@@ -3,17 +3,22 @@
 ``Dispatch`` (a part of :class:`daemon.loop.Daemon`) turns each received message (bytes and the
 origin it came from) into what it means: a frame handed to its session (which keeps the newest
 per stream, see daemon/session.py), a hello, a bundle, a control request (daemon/control.py),
-or a refusal.  Its answers go out through ``Daemon._send``, which the transport holds until the
-turn's fills have gone (see daemon/loop.py).  Under a backlog, frames a newer frame of their
+or a refusal.  It touches no socket: :meth:`Dispatch.dispatch` returns the answers (to whom,
+what), and the loop hands them to the transport (daemon/loop.py).  Under a backlog, frames a newer frame of their
 stream superseded within the burst are set aside undecoded and answered after the fills
 (``_batch``, ``_answer_superseded``).
 """
 from __future__ import annotations
 
+from collections.abc import Generator
 from typing import Any
 
-from daemon import budget as budgets, osc, wire
+from daemon import budget as budgets
+from daemon import osc, wire
+from daemon.parts import Parts
 from daemon.session import Origin, SessionError, principal
+
+Answers = list[tuple[Origin, wire.Message]]  # (to whom, what): the loop hands them to the transport
 
 OSC_ERRORS_PER_S = 20  # error answers a second to one OSC source host; the rest are counted, not sent
 OSC_ERROR_FLOOR = 64  # bytes an OSC error answer may take even when what it answers was smaller (a reason code)
@@ -22,10 +27,10 @@ BATCH_MIN = 3  # messages in a turn from which frames superseded within it are a
 REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, summarised
 
 
-class Dispatch:
+class Dispatch(Parts):
     """The ingest half of the daemon (mixed into :class:`daemon.loop.Daemon`)."""
 
-    def _handle(self, data: bytes, origin: Origin, arrived: float, counted: bool = False) -> None:
+    def _take_bytes(self, data: bytes, origin: Origin, arrived: float, counted: bool = False) -> None:
         if not counted:
             self.metrics.inc("messages_in")
         if origin[0] != "osc":
@@ -47,21 +52,21 @@ class Dispatch:
             self._osc_in = len(data)
             self._take(osc.decode, data, origin, arrived)
 
-    def _handle_map(self, m: dict | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
-        """:meth:`_handle` for a message already unpacked by :meth:`_batch` (or its unpack error;
+    def _handle_map(self, m: dict[str, Any] | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
+        """:meth:`_take_bytes` for a message already unpacked by :meth:`dispatch` (or its unpack error;
         bytes: an OSC datagram, not unpacked), counted there."""
         if type(m) is bytes:
-            self._handle(m, origin, arrived, counted=True)
+            self._take_bytes(m, origin, arrived, counted=True)
         elif isinstance(m, wire.WireError):
             self._reject(origin, m.reason, m.detail, m.stream, m.seq)
-        elif m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
+        elif type(m) is dict and m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
                 not self.budget.allow(principal(origin), units):
             # (before decoding: checking a hello's names is the cost the budget is for)
             self._rate_limited(origin, m)
         else:
             self._take(_decode_map, m, origin, arrived)
 
-    def _rate_limited(self, origin: Origin, m: dict | None = None) -> None:
+    def _rate_limited(self, origin: Origin, m: dict[str, Any] | None = None) -> None:
         sid = m.get("stream") if m is not None else None
         self._reject(origin, "rate_limited", f"over this peer's budget for hello/control requests "
                                              f"({budgets.RATE:g} cost units a second, bursts of {budgets.BURST:g}; "
@@ -82,7 +87,7 @@ class Dispatch:
         except wire.WireError as e:
             self._reject(origin, e.reason, e.detail, e.stream, e.seq)
             return
-        except Exception as e:  # a decoder bug must cost one message, never the loop
+        except Exception as e:  # noqa: BLE001 - a decoder bug must cost one message, never the loop
             self._internal("decode", e, origin, None, None)
             return
         for m in got if type(got) is list else (got,):
@@ -96,8 +101,21 @@ class Dispatch:
         self.log("error", "internal_error", where=where, stream=sid, error=f"{type(e).__name__}: {e}"[:300])
         self._reject(origin, "internal", f"{type(e).__name__} while handling the message", sid, seq)
 
-    def _batch(self, items: list[tuple[bytes, Origin, float]]) -> None:
-        """A turn's ZeroMQ messages, in arrival order.  Under a backlog most of them are frames
+    def dispatch_few(self, items: list[tuple[bytes, Origin, float]]) -> Answers:
+        """:meth:`dispatch` for a turn of fewer than BATCH_MIN messages (nothing is set aside,
+        nothing to slice): each taken in order; returns the answers.  (No generator: a live
+        stream's turn is most often one frame, and a generator costs a few microseconds.)"""
+        for data, origin, arrived in items:
+            self._take_bytes(data, origin, arrived)
+        return self._take_out()
+
+    def dispatch(self, items: list[tuple[bytes, Origin, float]]) -> Generator[Answers, None, Answers]:
+        """A turn's messages (bytes, origin, receipt time), in arrival order, to their sessions.
+        Sends nothing: it yields the answers so far each time the frames taken so far should be
+        served before the rest (a slice of a long burst of costly requests, see below), and
+        returns the rest of its answers.  The loop hands them to the transport.
+
+        Under a backlog most of them are frames  Under a backlog most of them are frames
         that a newer frame of the same stream in the same burst supersedes; only the newest is
         served.  Those superseded frames are set aside, each burst only unpacked, and handled
         after the turn's fills went out (:meth:`_answer_superseded`), so the frames served do
@@ -110,18 +128,16 @@ class Dispatch:
         waiting, or when the frame meant to supersede them is not taken (malformed, say): then
         they are handled at once, in order."""
         if len(items) < BATCH_MIN:
-            for data, origin, arrived in items:
-                self._handle(data, origin, arrived)
-            return
+            return self.dispatch_few(items)
         self.metrics.inc("messages_in", len(items))
         maxb = self.cfg.max_message_bytes
-        maps: list[dict | wire.WireError | bytes] = []
+        maps: list[dict[str, Any] | wire.WireError | bytes] = []
         keys: list[tuple[str, int] | None] = []
         barrier = False
         for data, origin, _ in items:
             k = None
             if origin[0] == "osc":  # OSC is decoded on its own path, in order
-                m: dict | wire.WireError | bytes = data
+                m: dict[str, Any] | wire.WireError | bytes = data
                 barrier = True
             else:
                 try:
@@ -177,13 +193,14 @@ class Dispatch:
                 continue
             if i and not i % slice_at and self.clock() - t_slice > self.sched.budget_s / 4:
                 if self.metrics.counters.get("frames_in", 0) != frames_seen:
-                    self._serve()
+                    yield self._take_out()  # (the loop serves the frames taken so far)
                     frames_seen = self.metrics.counters.get("frames_in", 0)
                 t_slice = self.clock()
             self._handle_map(m, origin, arrived)
-            sid = heads.get(i)
-            if sid is None:
+            head = heads.get(i)
+            if head is None:
                 continue
+            sid = head
             order = sorted(chains[sid] + [i])  # the stream's frames of the burst, in arrival order
             s = self.sessions.sessions[sid]
             p = s.pending
@@ -195,51 +212,40 @@ class Dispatch:
                 for d in order:
                     if d != i:
                         self._handle_map(maps[d], items[d][1], items[d][2])
+        return self._take_out()
 
-    def _frame_answers(self, out: list) -> None:
+    def _take_out(self) -> Answers:
+        out, self._out = self._out, []
+        return out
+
+    def _frame_answers(self, out: Answers) -> None:
         """A session's immediate answers to a frame: a ``conflated`` drop (of the frame it
         replaced) waits for the turn's fills (:meth:`_answer_superseded`), the rest go now."""
         for o, m in out:
             if type(m) is wire.Drop and m.reason == "conflated":
                 self._conflated.append((o, m))
             else:
-                self._send(o, m)
+                self._out.append((o, m))
 
-    def _answer_superseded(self) -> None:
-        """After the turn's fills: the ``conflated`` drops of the turn, and the frames
-        :meth:`_batch` set aside, each decoded and taken by its session as it would have been
-        in arrival order, before the frame that was served (the stream's last answered seq put
-        back, no frame waiting), so it gets the answer it would have had then (``drop``
-        conflated, late or duplicate, or an ``error``)."""
-        self._send_conflated()
+    def superseded_answers(self) -> Answers:
+        """After the turn's fills: the ``conflated`` and ``overdue`` drops of the turn, and the
+        answers to the frames :meth:`dispatch` set aside, each decoded and taken by its session
+        as it would have been in arrival order (``SessionTable.replay``), so it gets the answer
+        it would have had then (``drop`` conflated, late or duplicate, or an ``error``)."""
+        out, self._conflated = self._conflated, []
         todo, self._superseded = self._superseded, []
         for s, last_seq, served, chain in todo:
-            # (the burst held no hello or reset, so the session is the same object; a SIGHUP swap
-            # runs between turns and keeps it)
-            assert self.sessions.sessions.get(s.sid) is s and s.pending is None
-            now_seq, s.last_seq = s.last_seq, last_seq
-            try:
-                for item in chain:
-                    if item is None:  # where the served frame came: it supersedes the one waiting
-                        self._frame_answers(self.sessions.conflate(s))
-                        s.pending = served  # (frames after it are late or duplicates against it)
-                    else:
-                        self._handle_map(*item)
-            finally:
-                s.last_seq = now_seq
-                s.pending = None
-        self._send_conflated()
-
-    def _send_conflated(self) -> None:
-        todo, self._conflated = self._conflated, []
-        for o, m in todo:
-            self._send(o, m)
+            self.sessions.replay(s, last_seq, served, chain, self._handle_map, self._frame_answers)
+        out += self._take_out()
+        out += self._conflated
+        self._conflated = []
+        return out
 
     def _dispatch(self, msg: Any, origin: Origin, arrived: float) -> None:
         try:
             if isinstance(msg, wire.Frame):
                 self.metrics.inc("frames_in")
-                self._frame_answers(self.sessions.frame(msg, origin, arrived, principal(origin)))  # type: ignore[union-attr]
+                self._frame_answers(self.sessions.frame(msg, origin, arrived, principal(origin)))
             elif isinstance(msg, wire.Bundle):
                 self._bundle(msg, origin, arrived)
             elif isinstance(msg, (wire.Hello, wire.Control)) and \
@@ -247,26 +253,26 @@ class Dispatch:
                                           else budgets.CONTROL_COST):
                 self._rate_limited(origin)
             elif isinstance(msg, wire.Hello):
-                ack, orphans = self.sessions.hello(msg, principal(origin))  # type: ignore[union-attr]
+                ack, orphans = self.sessions.hello(msg, principal(origin))
                 for o, m in orphans:
-                    self._send(o, m)
+                    self._out.append((o, m))
                 self.log("info", "stream_hello", stream=msg.stream, model=ack.model, channels=len(ack.channels),
                          passthrough=len(ack.passthrough), missing=len(ack.missing))
-                self._send(origin, ack)
+                self._out.append((origin, ack))
             elif isinstance(msg, wire.Control):
                 self._control(msg, origin)
             else:
                 self._reject(origin, "unknown_type", f"{type(msg).__name__} is an answer, not a request", None, None)
         except SessionError as e:
             self._reject(origin, e.reason, e.detail, getattr(msg, "stream", None), getattr(msg, "seq", None))
-        except Exception as e:  # a bug must cost one message, never the loop
+        except Exception as e:  # noqa: BLE001 - a bug must cost one message, never the loop
             self._internal("handle", e, origin, getattr(msg, "stream", None), getattr(msg, "seq", None))
 
     def _bundle(self, msg: wire.Bundle, origin: Origin, arrived: float) -> None:
         """Each frame of a bundle as if it had come alone, at the bundle's arrival; over ROUTER
         their answers are marked to go back together (a third origin element, see Transports)."""
         self.metrics.inc("bundles_in")
-        who = principal(origin)  # type: ignore[union-attr]
+        who = principal(origin)
         if origin[0] == "router":
             origin = (*origin, "bundle")
         for f in msg.items:
@@ -278,7 +284,7 @@ class Dispatch:
                 self._frame_answers(self.sessions.frame(f, origin, arrived, who))
             except SessionError as e:  # one frame's refusal is its own answer; the rest go on
                 self._reject(origin, e.reason, e.detail, f.stream, f.seq)
-            except Exception as e:
+            except Exception as e:  # noqa: BLE001 - the loop goes on
                 self.metrics.inc("internal_errors")
                 self.log("error", "internal_error", where="bundle", stream=f.stream, error=f"{type(e).__name__}: {e}"[:300])
                 self._reject(origin, "internal", f"{type(e).__name__} while handling the frame", f.stream, f.seq)
@@ -287,7 +293,7 @@ class Dispatch:
         self.metrics.reject(reason)
         s = self.sessions.sessions.get(sid) if sid else None
         if s is not None and reason != "not_owner":  # (someone else's message: counted `foreign` on the stream)
-            s.counts["rejected"] += 1
+            s.count("rejected")
         # a flood of bad input must not turn into a flood of log lines: at most REJECT_LOG_PER_S
         # a second are written, the rest are summed into one line per housekeeping tick
         now = self.clock()
@@ -307,7 +313,7 @@ class Dispatch:
             else:
                 self._osc_error(origin, wire.ErrorMsg(reason, detail, sid, seq))
             return
-        self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
+        self._out.append((origin, wire.ErrorMsg(reason, detail, sid, seq)))
 
     # ---- OSC error answers: bounded (no amplification, no reflection flood) ---------------
     def _osc_summary(self, origin: Origin, errs: list[tuple[str, str]]) -> None:
@@ -335,10 +341,10 @@ class Dispatch:
                 self.metrics.inc("osc_errors_unanswered")
                 return
             msg = wire.ErrorMsg(msg.reason, msg.detail.encode()[:keep].decode(errors="ignore"), msg.stream, msg.seq)
-        self._send(origin, msg)
+        self._out.append((origin, msg))
 
 
 
-def _decode_map(m: dict, max_bytes: int) -> wire.Message:
+def _decode_map(m: dict[str, Any], max_bytes: int) -> wire.Message:
     return wire.decode_map(m)  # (already unpacked, within max_bytes)
 

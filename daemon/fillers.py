@@ -7,7 +7,8 @@ to relay a stream unchanged.  Hold-last-value under overload is done by the sess
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -18,23 +19,21 @@ class PassThroughModel(Model):
     """Marks nothing filled; missing values stay NaN with std 0."""
 
     method = "passthrough"
+    passthrough = True
 
     def __init__(self, channels: list[str] | None = None):
         # no channel list = "any": a stream's handshake (or its first frame's width) decides,
         # which is what a latency-floor measurement wants
         self.channels = list(channels or [])
 
-    @property
-    def any_channels(self) -> bool:
-        return not self.channels
-
-    def stream(self) -> "PassThroughState":
+    def stream(self) -> PassThroughState:
         return PassThroughState(self)
 
-    def info(self) -> dict:
+    def info(self) -> dict[str, Any]:
         return {"method": self.method, "channels": len(self.channels) or "any", "causal": True}
 
-    def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray) -> list[Fill]:
+    def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
+                   level: int | None = None) -> list[Fill]:
         frames = np.asarray(frames, dtype=np.float64)
         observed = np.asarray(observed, dtype=bool)
         out = np.where(observed, frames, np.nan)

@@ -18,14 +18,16 @@ import os
 import signal
 import sys
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import zmq
 
+from daemon import budget as budgets
 from daemon import config as config_mod
-from daemon import budget as budgets, wire
+from daemon import wire
 from daemon.control import Control
-from daemon.dispatch import OSC_ERRORS_PER_S, Dispatch
+from daemon.dispatch import BATCH_MIN, OSC_ERRORS_PER_S, Dispatch
 from daemon.log import Log
 from daemon.metrics import Metrics
 from daemon.metrics_http import MetricsHTTP
@@ -36,7 +38,8 @@ from daemon.prewarm import Prewarm
 from daemon.realtime import Realtime
 from daemon.reload import Reloader, Reloading
 from daemon.scheduler import Scheduler
-from daemon.session import Origin, SessionTable
+from daemon.session import Origin
+from daemon.sessions import SessionTable
 from daemon.stalls import Stalls
 from daemon.tick import Tick
 from daemon.transport import Transports
@@ -79,6 +82,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         # (session, its last answered seq before the burst, the served frame's Pending,
         #  [(unpacked map, origin, arrived) or None where the served frame came, ...])
         self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
+        self._out: list[tuple[Origin, wire.Message]] = []  # the dispatcher's answers not yet handed over
         self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` and `overdue` drops, sent after its fills
         self._drop_overdue = self.cfg.overdue == "drop"
         self.prewarm = Prewarm(cfg.prewarm_ms)
@@ -93,7 +97,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         return self.cfg.busy_poll_ms / 1000.0   # read each time: a reload may change it
 
     # ---- models -----------------------------------------------------------------------------
-    def _resolve(self, requested: str | None, sid: str):
+    def _resolve(self, requested: str | None, sid: str) -> tuple[str, Any]:
         name = requested or self.cfg.stream_models.get(sid) or self.cfg.default_model
         if name not in self.models:
             raise KeyError(f"model {name!r} is not loaded (loaded: {', '.join(sorted(self.models))})")
@@ -110,7 +114,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         self._install(table)
         self.reloader = Reloader(self._reload_work, self._reload_started)
         # the log object changes on reload (level): look it up at each call
-        self.net = Transports(self.cfg, self._handle, self._reject, self.metrics, lambda *a, **k: self.log(*a, **k),
+        self.net = Transports(self.cfg, self._handle, self._refuse, self.metrics, lambda *a, **k: self.log(*a, **k),
                               self._batch)
         self.net.open()
         if self.cfg.metrics_http:
@@ -231,7 +235,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
             if self._superseded or self._conflated:
                 self._send_held()  # what came since the fills (they are out already)
                 self._answer_superseded()
-        except Exception as e:  # never let a bug end the service: log, count, go on
+        except Exception as e:  # noqa: BLE001 - never let a bug end the service: log, count, go on
             self.metrics.inc("internal_errors")
             self.log("error", "internal_error", where="loop", error=f"{type(e).__name__}: {e}"[:300])
             self._abandon_pending(f"{type(e).__name__} while serving")
@@ -252,12 +256,12 @@ class Daemon(Dispatch, Tick, Control, Reloading):
             if now >= self._next_house:
                 self._next_house = now + HOUSEKEEPING_S
                 self._housekeeping(now)
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001 - the loop goes on
             self.metrics.inc("internal_errors")
             self.log("error", "internal_error", where="housekeeping", error=f"{type(e).__name__}: {e}"[:300])
         return aside
 
-    def _spin(self, timeout_ms: int) -> dict:
+    def _spin(self, timeout_ms: int) -> dict[Any, Any]:
         """Busy-poll (``busy_poll_ms``): for that long after the last message arrived, poll without
         sleeping, so the next frame is picked up as soon as it lands instead of after the kernel
         wakes the thread (0.3-1 ms on a virtual machine, most of a loopback round trip).  Costs a
@@ -273,6 +277,39 @@ class Daemon(Dispatch, Tick, Control, Reloading):
 
 
     # ---- output -----------------------------------------------------------------------------
+    def _batch(self, items: list[tuple[bytes, Origin, float]]) -> None:
+        """What the transport read (its ``on_batch``): the dispatcher's answers handed to the
+        transport, the frames taken so far served between two slices of a long burst."""
+        if len(items) < BATCH_MIN:
+            self._deliver(self.dispatch_few(items))
+            return
+        gen = self.dispatch(items)
+        while True:
+            try:
+                answers = next(gen)
+            except StopIteration as done:
+                self._deliver(done.value)
+                return
+            self._deliver(answers)
+            self._serve()
+
+    def _handle(self, data: bytes, origin: Origin, arrived: float) -> None:
+        """One message as :meth:`_batch` takes a turn's (the transport's ``on_message``)."""
+        self._batch([(data, origin, arrived)])
+
+    def _answer_superseded(self) -> None:
+        """After the turn's fills: its drops, and the answers to the frames set aside."""
+        self._deliver(self.superseded_answers())
+
+    def _refuse(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
+        """A refusal answered at once (the transport's own, a fill that cannot be encoded)."""
+        self._reject(origin, reason, detail, sid, seq)
+        self._deliver(self._take_out())
+
+    def _deliver(self, answers: list[tuple[Origin, wire.Message]]) -> None:
+        for origin, msg in answers:
+            self._send(origin, msg)
+
     def _send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
         if self.net is not None:
             self.net.send(origin, msg, publish)

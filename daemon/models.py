@@ -10,10 +10,10 @@ import os
 from dataclasses import dataclass, field
 from typing import Any
 
+from daemon import positions
 from daemon.config import Config, ModelSpec
 from daemon.fillers import PassThroughModel
 from daemon.safeopen import NotRegularFile, proc_path, regular_fd
-from daemon import positions
 from daemon.scheduler import CostModel, Scheduler
 from lacuna.filler import Model
 from lacuna.modelfile import ModelFileError, load_model
@@ -32,7 +32,7 @@ class Loaded:
         d: dict[str, Any] = {"file": self.spec.file, "builtin": self.spec.builtin, "loaded_at": self.loaded_at}
         try:
             d.update(self.model.info())
-        except Exception as e:  # info() is cosmetic; a model bug there must not break status
+        except Exception as e:  # noqa: BLE001 - info() is cosmetic; a model bug there must not break status
             d["info_error"] = f"{type(e).__name__}: {e}"[:200]
         return {k: v for k, v in d.items() if v is not None and isinstance(v, (str, int, float, bool, list))}
 
@@ -53,7 +53,8 @@ def _load_regular(path: str) -> Model:
         with regular_fd(path) as fd:
             via = proc_path(fd)
             try:
-                return load_model(via or path)
+                got: Model = load_model(via or path)
+                return got
             except ModelFileError as e:
                 raise ModelFileError(str(e).replace(via, path) if via else str(e)) from None
     except NotRegularFile as e:
@@ -79,10 +80,10 @@ def load_one(spec: ModelSpec, budget_ms: float) -> Loaded:
     if C:
         try:
             tmp.warm_up(model, C)
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001 - the loop goes on
             raise ModelFileError(f"{spec.file or spec.name}: model failed its warm-up step ({type(e).__name__}: {e})") from None
     positions.warm(model, spec.name)  # FK of its skeleton compiled now, not in a stream's hello
-    now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     return Loaded(spec.name, model, spec, stamp, now, tmp.costs)
 
 

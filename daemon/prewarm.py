@@ -23,7 +23,8 @@ import time
 from typing import Any
 
 from daemon import wire
-from daemon.scheduler import Scheduler, fill_message, levels_of, model_inputs
+from daemon.encode import fill_message, model_inputs
+from daemon.scheduler import Scheduler, levels_of
 from daemon.session import Pending, Session
 from lacuna.filler import FillerState, Model
 
@@ -99,15 +100,16 @@ class Prewarm:
             got = self._shadows.get(id(model))
             if got is None or got[0] is not model:
                 got = self._shadows[id(model)] = (model, model.stream())
-            sh = Session(s.sid, s.model_name, model, s.mapping, got[1], last_seq=s.last_seq)
             g = wire.decode(encode(f))
-            sh.pending = Pending(g, ("router", []), t0)  # type: ignore[arg-type]
+            assert isinstance(g, wire.Frame)
+            sh = Session(s.sid, s.model_name, model, s.mapping, got[1], last_seq=s.last_seq,
+                         pending=Pending(g, ("router", []), t0))
             sched.plan(model, [sh], t0)  # (pure: reads the costs)
             mf, mo = model_inputs([sh], s.mapping.n_model)
             fill = model.step_batch([sh.state], mf, mo)[0]
             encode(fill_message(sh, fill, "ok", time.perf_counter()))
             self.count += 1
-        except Exception as e:  # a rehearsal must never cost a frame: count it and go on
+        except Exception as e:  # noqa: BLE001 - a rehearsal must never cost a frame: count it and go on
             self.errors += 1
             self.last_error = f"{type(e).__name__}: {e}"[:300]
             self._shadows.pop(id(s.model), None)

@@ -22,17 +22,20 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
-from daemon import config as config_mod, wire
+from daemon import config as config_mod
+from daemon import wire
 from daemon.log import Log
 from daemon.models import Loaded, load_all
+from daemon.parts import Parts
 from daemon.realtime import ordinary
 from daemon.session import Origin
 
 RELOAD_SWITCH_S = 0.0005  # sys.setswitchinterval while a reload thread runs (see _reload_started)
 
-Result = tuple[Any, dict, dict]  # (new config or None, model table, {what: error})
+Result = tuple[Any, dict[str, Any], dict[str, str]]  # (new config or None, model table, {what: error})
 
 
 class Reloader:
@@ -108,7 +111,7 @@ class Reloader:
                 self._result = res
 
 
-class Reloading:
+class Reloading(Parts):
     """The daemon's side of a reload: start, work (on the Reloader's thread), swap in
     (mixed into :class:`daemon.loop.Daemon`)."""
 
@@ -137,15 +140,15 @@ class Reloading:
             new_cfg = config_mod.load(path) if path else self.cfg
         except config_mod.ConfigError as e:
             return None, old, {"config": str(e)}
-        except Exception as e:  # an escaped exception would leave the reload unanswered and unlogged
+        except Exception as e:  # noqa: BLE001 - an escaped exception would leave the reload unanswered and unlogged
             return None, old, {"config": f"{path}: {type(e).__name__}: {e}"[:500]}
         try:
             table, errors = load_all(new_cfg, old)
-        except Exception as e:  # same: refuse the reload, keep the old models, say why
+        except Exception as e:  # noqa: BLE001 - same: refuse the reload, keep the old models, say why
             return None, old, {"models": f"{type(e).__name__}: {e}"[:500]}
         return new_cfg, table, errors
 
-    def _finish_reload(self, result: tuple, waiters: list[Origin]) -> None:
+    def _finish_reload(self, result: Result, waiters: list[Origin]) -> None:
         new_cfg, table, errors = result
         table = table or dict(self.models)  # (the worker's last resort keeps the models serving)
         sys.setswitchinterval(self._switch)

@@ -5,8 +5,9 @@ pending slot conflates), groups them by model and steps each group through
 ``model.step_batch``.  Before stepping it compares an estimate of the step's cost with the time
 left before the oldest frame's budget runs out and, if it would overrun, degrades:
 
-1. fewer Gibbs iterations, where the model has the knob (``set_iterations(k)`` and
-   ``n_gibbs``, as crbm.filler.CRBMModel does): K, K/2, K/4, ..., 1;
+1. a cheaper level, where the model offers some (``Model.quality_levels()``: for
+   crbm.filler.CRBMModel K, K/2, K/4, ..., 1 Gibbs iterations), passed to that one step
+   (``step_batch(..., level=k)``): the model itself is never changed;
 2. hold-last-value for the streams that still do not fit (the ones held most recently go
    first next time, so no stream starves).
 
@@ -16,16 +17,15 @@ squares over recent steps and seeded by a warm-up step when a model is loaded.
 """
 from __future__ import annotations
 
-import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from daemon import wire
-from daemon.fillers import PassThroughModel
-from daemon.session import Out, Session
+from daemon.encode import STACK_MIN, fill_message, fill_messages, model_inputs
+from daemon.session import Session
 from lacuna.filler import Fill, Model
 
 SAFETY = 1.25  # multiply cost estimates: better to degrade a little early than overrun
@@ -33,7 +33,6 @@ DISCOUNT = 0.97  # per observation, for the cost fit
 PROBE_S = 1.0  # seconds: a model held on every stream gets one real step this often
 OUTLIER = 4.0  # clip a cost observation at this multiple of the current fit
 REPLY_COST_S = 30e-6  # first guess of encode+send per reply, refined online
-STACK_MIN = 4  # streams from which a tick's inputs and replies are built as (n, C) arrays (fewer: row by row is cheaper)
 HOLD_COST_S = 20e-6  # per stream, what hold-last-value costs in the session (numpy overhead)
 
 
@@ -87,15 +86,17 @@ class StepPlan:
 
 
 def levels_of(model: Model) -> list[int | None]:
-    """Cost levels a model offers: [None] (no knob) or [K, K/2, ..., 1] Gibbs iterations."""
-    k = getattr(model, "n_gibbs", None)
-    if not callable(getattr(model, "set_iterations", None)) or not isinstance(k, int) or k < 1:
-        return [None]
-    out, v = [k], k
-    while v > 1:
-        v = max(1, v // 2)
-        out.append(v)
-    return out
+    """Cost levels a model offers, full quality first: [None] (none) or, for a CRBM, [K, K/2,
+    ..., 1] Gibbs iterations (``Model.quality_levels``)."""
+    return model.quality_levels()
+
+
+def _step_batch(model: Model, states: list[Any], frames: np.ndarray, observed: np.ndarray,
+                level: int | None) -> list[Fill]:
+    """``model.step_batch`` at ``level`` (None: full quality, called as every other caller does)."""
+    if level is None:
+        return model.step_batch(states, frames, observed)
+    return model.step_batch(states, frames, observed, level=level)
 
 
 class Scheduler:
@@ -181,7 +182,7 @@ class Scheduler:
 
     def plan(self, model: Model, group: list[Session], now: float) -> StepPlan:
         """Decide level and which streams step (the rest hold).  Pure apart from reading costs."""
-        if isinstance(model, PassThroughModel):
+        if model.passthrough:
             return StepPlan(group, [], None, False)
         deadline = min(s.pending.arrived for s in group) + self.budget_s  # type: ignore[union-attr]
         avail = deadline - now - self.reply_cost * len(group)
@@ -218,7 +219,7 @@ class Scheduler:
         return StepPlan(order[:n], order[n:], levels[-1], levels[-1] != levels[0])
 
     # ---- stepping ---------------------------------------------------------------------------
-    def run(self, groups: dict[int, tuple[Model, list[Session]]], now: float) -> list[tuple[Session, Fill, str]]:
+    def run(self, groups: dict[Any, tuple[Model, list[Session]]], now: float) -> list[tuple[Session, Fill, str]]:
         """Step every group; returns (session, fill in model space, status) for each pending frame."""
         results: list[tuple[Session, Fill, str]] = []
         for model, sessions in groups.values():
@@ -253,92 +254,72 @@ class Scheduler:
 
     @staticmethod
     def _held(s: Session, out: np.ndarray, std: np.ndarray, filled: np.ndarray) -> tuple[Session, Fill, str]:
-        s.last_out = out
-        # the filter skips held frames rather than predicting them later: replaying them when
-        # the stream steps again would cost the time the daemon is short of (a death spiral)
-        if s.model_seq is not None:
-            s.model_seq = s.pending.frame.seq  # type: ignore[union-attr]
-        s.held_streak += 1
-        s.counts["held"] += 1
+        s.held(out)
         return s, Fill(out, std, filled, {}, True), "degraded"
 
     def _step(self, model: Model, plan: StepPlan) -> list[tuple[Session, Fill, str]]:
         group = plan.step
         for s in group:
             if s.model_seq is not None and self._gap(s) > self.max_gap:
-                s.restart()
-                s.counts["restarts"] += 1
+                s.gap_restart()
         gaps = [self._gap(s) for s in group]
         C = group[0].mapping.n_model
         levels = levels_of(model)
-        knob = plan.iterations is not None and plan.iterations != levels[0]
+        level = plan.iterations if plan.iterations != levels[0] else None  # (None: full quality)
         t0 = self.clock()
         try:
-            if knob:
-                model.set_iterations(plan.iterations)  # type: ignore[attr-defined]
-            try:
-                # frames that never arrived: prediction steps, all channels missing (batched by round)
-                for r in range(max(gaps, default=0)):
-                    who = [s for s, g in zip(group, gaps) if g > r]
-                    model.step_batch([s.state for s in who], np.full((len(who), C), np.nan), np.zeros((len(who), C), bool))
-                    for s in who:
-                        s.counts["predicted"] += 1
-                mf, mo = model_inputs(group, C)
-                fills = model.step_batch([s.state for s in group], mf, mo)
-            finally:
-                if knob:
-                    model.set_iterations(levels[0])  # type: ignore[attr-defined]
-        except Exception as e:  # a model bug must not stop the daemon: pass the frames through
+            # frames that never arrived: prediction steps, all channels missing (batched by round)
+            for r in range(max(gaps, default=0)):
+                who = [s for s, g in zip(group, gaps) if g > r]
+                _step_batch(model, [s.state for s in who], np.full((len(who), C), np.nan), np.zeros((len(who), C), bool),
+                            level)
+                for s in who:
+                    s.count("predicted")
+            mf, mo = model_inputs(group, C)
+            fills = _step_batch(model, [s.state for s in group], mf, mo, level)
+        except Exception as e:  # noqa: BLE001 - a model bug must not stop the daemon: pass the frames through
             self.step_errors += 1
             self.last_error = f"{type(e).__name__}: {e}"[:300]
             out = []
             for s in group:
-                f, o = s.to_model(s.pending.frame)  # type: ignore[union-attr]
+                f, _ = s.to_model(s.pending.frame)  # type: ignore[union-attr]
                 s.restart()
                 out.append((s, Fill(f, np.zeros(C), np.zeros(C, bool)), "passthrough"))
             return out
         self.last_step[id(model)] = self.clock()
         dt = self.clock() - t0
         self.cost(model, plan.iterations).observe(len(group), dt / (1 + max(gaps, default=0)))
-        status = "passthrough" if isinstance(model, PassThroughModel) else ("degraded" if plan.degraded else "ok")
+        status = "passthrough" if model.passthrough else ("degraded" if plan.degraded else "ok")
         out = []
         for s, fill in zip(group, fills):
-            s.model_seq = s.pending.frame.seq  # type: ignore[union-attr]
-            s.last_out = np.asarray(fill.frame, dtype=np.float64)
-            s.held_streak = 0
+            s.stepped(fill.frame)
             out.append((s, fill, status))
         return out
 
     def warm_up(self, model: Model, n_channels: int, sizes: tuple[int, ...] = (1, 4, 16)) -> None:
         """Seed the cost model (and surface a broken model before it serves): a few throwaway
         steps on all-missing frames of fresh states."""
-        if isinstance(model, PassThroughModel):
+        if model.passthrough:
             return
         C = n_channels
         lvls = levels_of(model)
         for lv in lvls:
-            knob = lv is not None and lv != lvls[0]
-            if knob:
-                model.set_iterations(lv)  # type: ignore[attr-defined]
-            try:
-                for n in sizes:
-                    states = [model.stream() for _ in range(n)]
-                    # half the channels observed (zeros), like a frame with markers lost: an
-                    # all-missing frame can take a cheap path and would underestimate the cost
-                    obs = np.zeros((n, C), bool)
-                    obs[:, ::2] = True
-                    frames = np.where(obs, 0.0, np.nan)
-                    for rep in range(4):
-                        t0 = self.clock()
-                        fills = model.step_batch(states, frames, obs)
-                        if rep >= 2:  # first calls fill caches and lags: keep the steady state
-                            self.cost(model, lv).observe(n, self.clock() - t0)
-                    if len(fills) != n or any(np.shape(f.frame) != (C,) for f in fills):
-                        raise ValueError(f"step_batch returned {len(fills)} fills of shape "
-                                         f"{np.shape(fills[0].frame) if fills else None} for {n} streams of {C} channels")
-            finally:
-                if knob:
-                    model.set_iterations(lvls[0])  # type: ignore[attr-defined]
+            level = lv if lv != lvls[0] else None
+            for n in sizes:
+                states = [model.stream() for _ in range(n)]
+                # half the channels observed (zeros), like a frame with markers lost: an
+                # all-missing frame can take a cheap path and would underestimate the cost
+                obs = np.zeros((n, C), bool)
+                obs[:, ::2] = True
+                frames = np.where(obs, 0.0, np.nan)
+                for rep in range(4):
+                    t0 = self.clock()
+                    fills = _step_batch(model, states, frames, obs, level)
+                    if rep >= 2:  # first calls fill caches and lags: keep the steady state
+                        self.cost(model, lv).observe(n, self.clock() - t0)
+                if len(fills) != n or any(np.shape(f.frame) != (C,) for f in fills):
+                    raise ValueError(f"step_batch returned {len(fills)} fills of shape "
+                                     f"{np.shape(fills[0].frame) if fills else None} for {n} streams of {C} channels")
 
 
 def _hold_rows(frame: np.ndarray, obs: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -350,124 +331,4 @@ def _hold_rows(frame: np.ndarray, obs: np.ndarray, last: np.ndarray) -> tuple[np
     return out, std, filled
 
 
-def fill_message(s: Session, fill: Fill, status: str, now: float) -> wire.FillMsg:
-    """Model-space fill -> the studio's channel order, as a wire message."""
-    p = s.pending
-    assert p is not None
-    mp = s.mapping
-    f = p.frame
-    sent = f.observed if f.observed is not None else np.isfinite(f.angles)
-    if mp.identity:
-        # observed values exactly as sent, whatever the model returned
-        angles = np.where(sent, f.angles, np.asarray(fill.frame, np.float32))
-        filled = np.asarray(fill.filled) & ~sent
-        std = np.asarray(fill.std, np.float32)
-    else:
-        # channels passed through (the model lacks them) come back as sent where observed, NaN
-        # where not: whatever was sent under a mask is not a measurement
-        angles = np.where(sent, f.angles, np.float32(np.nan)).astype(np.float32, copy=False)
-        filled = np.zeros(mp.n_in, bool)
-        std = np.zeros(mp.n_in, np.float32)
-        angles[mp.s_idx] = np.asarray(fill.frame)[mp.m_idx]
-        filled[mp.s_idx] = np.asarray(fill.filled)[mp.m_idx]
-        std[mp.s_idx] = np.asarray(fill.std)[mp.m_idx]
-        angles[sent] = f.angles[sent]   # observed values exactly as sent, whatever the model returned
-        filled &= ~sent
-    ex: dict[str, Any] = fill.extras or {}
-    style = ex.get("style")
-    phase = ex.get("phase")
-    gap = 0 if s.last_seq is None else max(0, f.seq - s.last_seq - 1)
-    msg = wire.FillMsg(f.stream, f.seq, f.t, angles, filled, std, status, s.model_name,
-                       int((now - p.arrived) * 1e6),
-                       None if style is None else np.asarray(style, np.float32).ravel(),
-                       None if phase is None or not np.isfinite(phase) else float(phase), gap)
-    if s.fk is not None:  # the stream's hello asked for positions
-        msg.positions = s.fk(fill.frame, angles)
-    return msg
-
-
-def model_inputs(group: list[Session], C: int) -> tuple[np.ndarray, np.ndarray]:
-    """The pending studio frames of a step group -> model space: (n, C) float64 frames (NaN
-    where missing) and (n, C) observed masks.  Streams that send the model's own channels in
-    its order (the usual case) are stacked in one go; the others are mapped one by one."""
-    frames = [s.pending.frame for s in group]  # type: ignore[union-attr]
-    if len(group) >= STACK_MIN and all(s.mapping.identity for s in group):
-        a = np.array([f.angles for f in frames], dtype=np.float64)
-        if all(f.observed is None for f in frames):
-            mo = np.isfinite(a)
-        else:
-            mo = np.array([np.isfinite(f.angles) if f.observed is None else f.observed for f in frames], dtype=bool)
-        return np.where(mo, a, np.nan), mo
-    mf = np.empty((len(group), C))
-    mo = np.empty((len(group), C), bool)
-    for i, (s, f) in enumerate(zip(group, frames)):
-        mf[i], mo[i] = s.to_model(f)
-    return mf, mo
-
-
-def fill_messages(results: list[tuple[Session, Fill, str]], now: float) -> list[wire.FillMsg | Exception]:
-    """:func:`fill_message` for a whole tick, with the streams that need no channel mapping done
-    as (n, C) arrays at once.  Each entry is the message, or the exception that made it
-    impossible (the daemon answers that stream with an error and keeps serving the rest)."""
-    out: list[wire.FillMsg | Exception | None] = [None] * len(results)
-    by_width: dict[int, list[int]] = {}
-    small = len(results) < STACK_MIN
-    for i, (s, fill, status) in enumerate(results):
-        if s.mapping.identity and not small:
-            by_width.setdefault(s.mapping.n_in, []).append(i)
-        else:
-            out[i] = _fill_message_or_error(s, fill, status, now)
-    for C, rows in by_width.items():
-        try:
-            msgs = _identity_fills([results[i] for i in rows], C, now)
-        except Exception:  # noqa: BLE001 - some fill does not fit the array: find which, one by one
-            msgs = [_fill_message_or_error(*results[i], now) for i in rows]
-        for i, m in zip(rows, msgs):
-            out[i] = m
-    return out  # type: ignore[return-value]
-
-
-def _fill_message_or_error(s: Session, fill: Fill, status: str, now: float) -> wire.FillMsg | Exception:
-    try:
-        return fill_message(s, fill, status, now)
-    except Exception as e:  # noqa: BLE001 - reported per stream by the caller
-        return e
-
-
-def _identity_fills(items: list[tuple[Session, Fill, str]], C: int, now: float) -> list[wire.FillMsg]:
-    """fill_message's identity branch over n streams of width C, as array operations."""
-    n = len(items)
-    fr = [s.pending.frame for s, _, _ in items]  # type: ignore[union-attr]
-    given = np.array([f.angles for f in fr], dtype=np.float32)
-    sent = np.array([np.isfinite(f.angles) if f.observed is None else f.observed for f in fr], dtype=bool)
-    model_out = np.array([fl.frame for _, fl, _ in items], dtype=np.float32)
-    std = np.array([fl.std for _, fl, _ in items], dtype=np.float32)
-    filled = np.array([fl.filled for _, fl, _ in items], dtype=bool)
-    if not (given.shape == sent.shape == model_out.shape == std.shape == filled.shape == (n, C)):
-        raise ValueError(f"fills do not stack to ({n}, {C})")
-    angles = np.where(sent, given, model_out)  # observed values exactly as sent, whatever the model returned
-    filled &= ~sent
-    exs = [fl.extras or _NONE for _, fl, _ in items]
-    styles: Any = [ex.get("style") for ex in exs]
-    if None not in styles:
-        try:  # every stream has a style posterior: one (n, K) float32 array, a row each
-            styles = np.array(styles, dtype=np.float32).reshape(n, -1)
-        except ValueError:  # posteriors of different lengths (two models' streams): one by one
-            styles = [np.asarray(st, np.float32).ravel() for st in styles]
-    else:
-        styles = [None if st is None else np.asarray(st, np.float32).ravel() for st in styles]
-    msgs = []
-    for j, (s, fill, status) in enumerate(items):
-        f = fr[j]
-        phase = exs[j].get("phase")
-        msg = wire.FillMsg(f.stream, f.seq, f.t, angles[j], filled[j], std[j], status, s.model_name,
-                           int((now - s.pending.arrived) * 1e6),  # type: ignore[union-attr]
-                           styles[j], None if phase is None or not math.isfinite(phase) else float(phase),
-                           0 if s.last_seq is None else max(0, f.seq - s.last_seq - 1))
-        if s.fk is not None:  # the stream's hello asked for positions
-            msg.positions = s.fk(fill.frame, angles[j])
-        msgs.append(msg)
-    return msgs
-
-
-_NONE: dict[str, Any] = {}
+__all__ = ["STACK_MIN", "CostModel", "Scheduler", "StepPlan", "fill_message", "fill_messages", "levels_of", "model_inputs"]

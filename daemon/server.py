@@ -14,7 +14,7 @@ from daemon import security, wire
 from daemon.log import LEVELS, Log
 from daemon.loop import Daemon, serve
 
-__all__ = ["LEVELS", "Daemon", "Log", "serve", "control"]
+__all__ = ["LEVELS", "Daemon", "Log", "control", "serve"]
 
 
 def control(endpoint: str, cmd: str, stream: str | None = None, timeout_s: float = 5.0,

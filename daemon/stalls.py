@@ -13,6 +13,7 @@ daemon/session.py).
 from __future__ import annotations
 
 import time
+from typing import Any
 
 THRESHOLDS_S = (0.004, 0.1, 1.0)
 
@@ -33,8 +34,7 @@ class Stalls:
         took = time.perf_counter() - self._woke_at
         if took < THRESHOLDS_S[0]:
             return
-        if took > self.max_turn_s:
-            self.max_turn_s = took
+        self.max_turn_s = max(self.max_turn_s, took)
         for i, t in enumerate(THRESHOLDS_S):
             if took >= t:
                 self.long[i] += 1
@@ -46,13 +46,12 @@ class Stalls:
         late = now - due
         if late < THRESHOLDS_S[0]:
             return
-        if late > self.max_s:
-            self.max_s = late
+        self.max_s = max(self.max_s, late)
         for i, t in enumerate(THRESHOLDS_S):
             if late >= t:
                 self.over[i] += 1
 
-    def info(self) -> dict:
+    def info(self) -> dict[str, Any]:
         return {"turns": self.turns, "max_stall_ms": round(self.max_s * 1e3, 1),
                 "stalls_over": {f"{int(t * 1000)}ms": n for t, n in zip(THRESHOLDS_S, self.over)},
                 "max_turn_ms": round(self.max_turn_s * 1e3, 1),

@@ -9,10 +9,11 @@ from __future__ import annotations
 from typing import Any
 
 from daemon import wire
-from daemon.scheduler import fill_messages
+from daemon.encode import fill_messages
+from daemon.parts import Parts
 
 
-class Tick:
+class Tick(Parts):
     """The serving half of the daemon (mixed into :class:`daemon.loop.Daemon`)."""
 
     def _serve(self) -> None:
@@ -31,7 +32,7 @@ class Tick:
                 pend = [s for s, x in zip(pend, late) if not x]
                 if not pend:
                     return
-        groups: dict[tuple[int, int], tuple[Any, list]] = {}
+        groups: dict[tuple[int, int], tuple[Any, list[Any]]] = {}
         for s in pend:
             # by width too: a pass-through "any channels" model serves streams of different
             # widths, and one batch stacks frames of one width
@@ -50,11 +51,12 @@ class Tick:
         n, budget, sent_at = len(results), self.sched.budget_s, self.sched.sent_at
         for k, ((s, fill, status), msg) in enumerate(zip(results, msgs)):
             p = s.pending
+            assert p is not None
             if isinstance(msg, Exception):  # a fill the wire cannot carry: answer with an error, keep serving
-                s.last_seq, s.pending = p.frame.seq, None
+                s.answered()
                 e = msg
                 self.log("error", "internal_error", where="fill_message", stream=s.sid, error=f"{type(e).__name__}: {e}"[:300])
-                self._reject(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
+                self._refuse(p.origin, "internal", f"{type(e).__name__} while encoding the fill", s.sid, p.frame.seq)
                 continue
             now = self.clock()
             # (a bundle's answers leave together, in one `replies`, after the tick's other answers)
@@ -65,14 +67,10 @@ class Tick:
                 self.metrics.inc("overdue_after_step")
                 self._conflated.extend(self.sessions.overdue(s))
                 continue
-            s.last_seq = p.frame.seq
-            s.pending = None
-            s.late_streak = 0
+            s.filled(status == "degraded")
             # receipt to this reply's encoding (it is sent with the tick's other replies, below)
             msg.proc_us = int((now - p.arrived) * 1e6)
-            s.counts["frames_out"] += 1
             if status == "degraded":
-                s.counts["degraded"] += 1
                 self.metrics.inc("degraded")
                 # held (hold-last-value) vs stepped with fewer Gibbs iterations
                 self.metrics.inc("degraded_held" if fill.degraded else "degraded_iterations")
@@ -95,7 +93,7 @@ class Tick:
             for s, arrived in sent:
                 lat(t2 - arrived)
                 if t2 - arrived > budget:
-                    s.counts["over_budget"] += 1
+                    s.count("over_budget")
                     over += 1
             if over:
                 self.metrics.inc("over_budget", over)
@@ -119,22 +117,21 @@ class Tick:
         superseded) with an error rather than retrying the same failure in a tight loop."""
         todo, self._superseded = self._superseded, []
         try:
-            self._send_conflated()  # (those frames were answered already: drops owed, not errors)
-        except Exception:
-            self._conflated = []
-        owed = [(p.origin, s.sid, p.frame.seq) for s in self.sessions.sessions.values() if (p := s.pending) is not None]
+            todo_drops, self._conflated = self._conflated, []
+            self._deliver(todo_drops)  # (those frames were answered already: drops owed, not errors)
+        except Exception:  # noqa: BLE001, S110 - a failing send must not keep the frames below unanswered
+            pass
+        owed: list[tuple[Any, str, int | None]] = list(self.sessions.abandon())
         owed += [(origin, s.sid, k[1] if isinstance(m, dict) and (k := wire.frame_key(m)) else None)
                  for s, _, _, chain in todo for m, origin, _ in filter(None, chain)]
-        for s in self.sessions.sessions.values():
-            s.pending = None
         for origin, sid, seq in owed:
             try:
-                self._reject(origin, "internal", why, sid, seq)
-            except Exception:  # the answer itself failing must not stop the loop either
+                self._refuse(origin, "internal", why, sid, seq)
+            except Exception:  # noqa: BLE001, S110 - the answer itself failing must not stop the loop either
                 pass
 
 
-def _arrival(r: tuple) -> tuple[float, int]:
+def _arrival(r: tuple[Any, ...]) -> tuple[float, int]:
     # (frames read together, a bundle's: the streams that were dropped `overdue` most go first)
     return r[0].pending.arrived, -r[0].late_streak
 

@@ -92,7 +92,14 @@ class Model(abc.ABC):
 
     method: ClassVar[str] = "?"
     causal: ClassVar[bool] = True
+    # fills nothing (frames go back as they came): a scheduler neither plans nor warms it up
+    passthrough: ClassVar[bool] = False
     channels: list[str]
+
+    def quality_levels(self) -> list[int | None]:
+        """The degradation levels ``step_batch`` takes, full quality first (cheaper after it).
+        ``[None]``: none, every step is at full quality."""
+        return [None]
 
     @property
     def n_channels(self) -> int:
@@ -107,8 +114,11 @@ class Model(abc.ABC):
         states: Sequence[FillerState],
         frames: np.ndarray,
         observed: np.ndarray,
+        level: int | None = None,
     ) -> list[Fill]:
-        """Step many streams at once.  frames, observed: (n_streams, n_channels)."""
+        """Step many streams at once.  frames, observed: (n_streams, n_channels).  ``level``:
+        one of :meth:`quality_levels` for this step only (None: full quality); the model is not
+        changed by it."""
         return [s.step(f, o) for s, f, o in zip(states, frames, observed)]
 
     def fill_offline(self, frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,8 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 from daemon import config, osc, wire
 from daemon.fillers import PassThroughModel
 from daemon.scheduler import CostModel, Scheduler, fill_message, levels_of
-from daemon.session import SessionError, SessionTable
+from daemon.session import SessionError
+from daemon.sessions import SessionTable
 from lacuna.filler import Fill
 from mocap.baselines import HoldModel
 
@@ -302,18 +303,22 @@ def test_cost_model_recovers_affine_cost():
 
 
 class KnobModel(HoldModel):
-    """A hold model with a CRBM-style Gibbs knob (set_iterations / n_gibbs), to test planning."""
+    """A hold model with CRBM-style levels (K, K/2, ..., 1 Gibbs iterations), to test planning."""
 
     def __init__(self, *a, k=30):
         super().__init__(*a)
         self.n_gibbs = k
         self.calls: list[int] = []
 
-    def set_iterations(self, k: int) -> None:
-        self.n_gibbs = int(k)
+    def quality_levels(self):
+        out, v = [self.n_gibbs], self.n_gibbs
+        while v > 1:
+            v = max(1, v // 2)
+            out.append(v)
+        return out
 
-    def step_batch(self, states, frames, observed):
-        self.calls.append(self.n_gibbs)
+    def step_batch(self, states, frames, observed, level=None):
+        self.calls.append(self.n_gibbs if level is None else level)
         return super().step_batch(states, frames, observed)
 
 
@@ -341,7 +346,7 @@ def test_levels_and_plan_degrades_iterations_then_holds():
     sched.budget_s = 1.0
     plan = sched.plan(m, group, now=0.0)
     assert plan.iterations == 30 and not plan.degraded and len(plan.step) == 10
-    # the knob is used for a degraded step and restored afterwards
+    # a degraded step is given its level as an argument; the model is left as it was
     sched.budget_s = 1e-3
     for s in group:
         s.pending.arrived = time.perf_counter()
@@ -456,12 +461,26 @@ def test_tick_inputs_and_replies_built_as_arrays_equal_the_row_by_row_ones():
 
 
 # ---- a burst's superseded frames, answered after the step (server.Daemon._batch) ---------------
+class FakeClock:
+    """The daemon's clock in a test (``Daemon(cfg, clock=...)``): it moves only when told."""
+
+    def __init__(self, t: float = 1000.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, s: float) -> None:
+        self.t += s
+
+
 class _Recording:
     """server.Daemon whose answers are kept in order instead of sent (the burst logic is tested
     here, in process, against in-order handling; tests/test_daemon_e2e.py has it over sockets)."""
 
     @staticmethod
-    def make(batch_min: int, budget_ms: float = 100.0, overdue: str = "serve"):
+    def make(batch_min: int, budget_ms: float = 100.0, overdue: str = "serve", clock=time.perf_counter,
+             idle_timeout_s: float = 30.0):
         # (these tests give frames made-up receipt times: "serve" keeps the overdue check, which
         # reads the clock, out of them; the overdue tests below pass "drop")
         from daemon import dispatch, server
@@ -477,9 +496,10 @@ class _Recording:
                 finally:
                     dispatch.BATCH_MIN = old
 
-        cfg = config.from_dict({"daemon": {"budget_ms": budget_ms, "max_streams": 8, "log_level": "error", "overdue": overdue},
+        cfg = config.from_dict({"daemon": {"budget_ms": budget_ms, "max_streams": 8, "log_level": "error", "overdue": overdue,
+                                           "idle_timeout_s": idle_timeout_s},
                                 "models": {"pt": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
-        d = D(cfg, server.Log("error"))
+        d = D(cfg, server.Log("error"), clock=clock)
         d.sent = []
         from daemon.models import load_all
 
@@ -508,7 +528,7 @@ def _turn(d, items) -> int:
     return d.turn(d.clock(), items=items)
 
 
-def _burst(rng, C: int, turn: int) -> list[tuple[bytes, tuple, float]]:
+def _burst(rng, C: int, turn: int, clock=time.perf_counter) -> list[tuple[bytes, tuple, float]]:
     """Frames of streams a, b (open) and c (sometimes new), in and out of order, duplicates,
     some malformed (wrong width, infinity, not msgpack, bad seq), now and then a hello."""
     items = []
@@ -537,7 +557,7 @@ def _burst(rng, C: int, turn: int) -> list[tuple[bytes, tuple, float]]:
             vals[rng.random(C) < 0.3] = np.nan
             data = wire.encode(wire.Frame(sid, max(seqs[sid], 0), 0.0, vals))
         # (fresh: none is late; each stream from its own peer, which owns it: docs/PROTOCOL.md)
-        items.append((data, ("router", [f"peer-{sid}".encode()]), time.perf_counter()))
+        items.append((data, ("router", [f"peer-{sid}".encode()]), clock()))
     return items
 
 
@@ -547,13 +567,17 @@ def test_burst_answers_equal_in_order_handling(seed):
     session counter and global counter equals handling each message in arrival order."""
     rng = np.random.default_rng(seed)
     C = 5
-    fast, ref = _Recording.make(3), _Recording.make(10**9)
+    # (one fake clock for both: a turn takes no time, so no frame is late, over budget or served
+    # early in a slice however loaded the machine is; the clock moves a frame period a turn)
+    clock = FakeClock()
+    fast, ref = _Recording.make(3, clock=clock), _Recording.make(10**9, clock=clock)
     for d in (fast, ref):
         for sid in ("a", "b"):
             d.sessions.hello(wire.Hello(sid, [f"ch{i}" for i in range(C)]), ("conn", f"peer-{sid}".encode()))
     set_aside = 0
     for turn in range(10):
-        items = _burst(rng, C, turn)
+        clock.advance(1 / 120)
+        items = _burst(rng, C, turn, clock)
         fast.sent.clear()
         ref.sent.clear()
         set_aside += _turn(fast, list(items))
@@ -692,8 +716,8 @@ def test_reply_cost_estimates_shrug_off_one_stretched_send():
     assert sched.reply_cost == pytest.approx(0.9 * 10e-6 + 0.1 * 15e-6)
 
 
-def _overdue_daemon(overdue: str, budget_ms: float = 50.0):
-    d = _Recording.make(3, budget_ms=budget_ms, overdue=overdue)
+def _overdue_daemon(overdue: str, budget_ms: float = 50.0, clock=time.perf_counter):
+    d = _Recording.make(3, budget_ms=budget_ms, overdue=overdue, clock=clock)
     d.sessions.hello(wire.Hello("a", ["ch0", "ch1", "ch2"]))
     return d
 
@@ -737,15 +761,16 @@ def test_a_step_that_overruns_turns_its_fill_into_an_overdue_drop():
     """The plan thought the step fitted (its cost estimate says so), the step then took three
     budgets (as when the OS takes the CPU away): the fill would leave over budget, so the frame
     is answered `overdue` instead; the filter has taken it."""
-    d = _overdue_daemon("drop", budget_ms=50.0)
+    clock = FakeClock()
+    d = _overdue_daemon("drop", budget_ms=50.0, clock=clock)
     model = d.models["pt"].model
     step = model.step_batch
 
-    def slow(states, frames, observed):
-        time.sleep(0.15)
+    def slow(states, frames, observed, level=None):
+        clock.advance(0.15)  # (the daemon's clock: three budgets pass during the step)
         return step(states, frames, observed)
 
-    _send_frame(d, 0, time.perf_counter())
+    _send_frame(d, 0, clock())
     model.step_batch = slow
     try:
         d._serve()
@@ -813,3 +838,42 @@ def test_the_reload_thread_puts_itself_back_on_the_ordinary_policy():
     t.start()
     t.join()
     assert seen == {"inherited": os.SCHED_RR, "after": os.SCHED_OTHER}
+
+
+def test_a_step_within_budget_on_the_same_fake_clock_is_answered_with_its_fill():
+    """(the counterpart of the overrun above: the same step taking a fifth of the budget)"""
+    clock = FakeClock()
+    d = _overdue_daemon("drop", budget_ms=50.0, clock=clock)
+    model = d.models["pt"].model
+    step = model.step_batch
+
+    def quick(states, frames, observed, level=None):
+        clock.advance(0.01)
+        return step(states, frames, observed)
+
+    model.step_batch = quick
+    try:
+        d.turn(clock(), items=[(wire.encode(wire.Frame("a", 0, 0.0, np.zeros(3, np.float32))), ("router", [b"p"]), clock())])
+    finally:
+        del model.step_batch
+    assert [(type(m).__name__, m.seq) for _, m in d.sent] == [("FillMsg", 0)]
+    assert d.metrics.counters.get("overdue_after_step", 0) == 0 and d.sessions.sessions["a"].counts["frames_out"] == 1
+
+
+def test_idle_stream_expires_when_the_daemons_clock_passes_its_timeout():
+    """Idle expiry reads the daemon's clock: advanced past idle_timeout_s, the next turn's
+    housekeeping ends the silent stream and keeps the active one; nobody sleeps."""
+    clock = FakeClock()
+    d = _Recording.make(3, clock=clock, idle_timeout_s=2.0)
+    hello = [(wire.encode(wire.Hello(sid, ["ch0", "ch1", "ch2"])), ("router", [sid.encode()]), clock())
+             for sid in ("quiet", "busy")]
+    d.turn(clock(), items=hello)
+    assert set(d.sessions.sessions) == {"quiet", "busy"}
+    for k in range(3):  # 3 x 0.9 s: "busy" sends a frame each time, "quiet" nothing
+        clock.advance(0.9)
+        d.turn(clock(), items=[(wire.encode(wire.Frame("busy", k, 0.0, np.zeros(3, np.float32))), ("router", [b"busy"]),
+                                clock())])
+        if k < 1:
+            assert "quiet" in d.sessions.sessions  # 0.9 s idle: under the 2 s timeout
+    assert set(d.sessions.sessions) == {"busy"}  # 2.7 s idle: expired at the turn that saw it
+    assert d.metrics.counters["expired"] == 1 and d.sessions.expired == 1
