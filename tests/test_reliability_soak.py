@@ -3,6 +3,11 @@ filler over twelve real walks (a batched step for 64 streams costs several times
 with six walks a quiet machine kept up with most of the load and the overload check below
 became a coin toss), for SOAK_S seconds, against the real daemon process.
 
+The daemon runs with ``overdue = "serve"`` (late frames are filled, not answered `overdue`): the
+point here is the overload path (degrade, conflate, count), and on a starved machine the
+default deadline would answer every frame `overdue` before the model is reached;
+bench/reliability_soak.py runs the default.
+
 What must hold, and how it is checked:
 * the daemon was really overloaded: most served frames were degraded (hold-last-value instead of
   the model), and on a busy machine it also conflated (dropped) frames;
@@ -43,12 +48,13 @@ P99_BOUND_MS = 250.0  # (bench/reliability_soak.py --check) far above any budget
 
 
 def soak(tmp_path, n_streams=N_STREAMS, rate_hz=RATE_HZ, seconds=SOAK_S, budget_ms=BUDGET_MS, n_train=12,
-         sample_s=0.5) -> dict:
-    """Run one soak; returns the load result, daemon status before/after and the RSS samples."""
+         sample_s=0.5, overdue: str | None = None) -> dict:
+    """Run one soak; returns the load result, daemon status before/after and the RSS samples.
+    ``overdue``: the daemon's policy for a frame read past its budget (None: the default, drop)."""
     seqs = [load_trial(t).frames for t in SUBJECT35_WALKS[1:1 + n_train]]
     channels = list(load_trial("35_01").channels)
     NearestNeighbourModel.fit(seqs, channels).save(str(tmp_path / "nn.npz"))
-    ep = write_config(tmp_path / "lacuna.toml", {"nn": {"file": "nn.npz"}}, daemon={"budget_ms": budget_ms})
+    ep = write_config(tmp_path / "lacuna.toml", {"nn": {"file": "nn.npz"}}, daemon={"budget_ms": budget_ms, **({"overdue": overdue} if overdue else {})})
     d = Daemon(tmp_path / "lacuna.toml", tmp_path / "daemon.log").start()
     S = Sockets()
     rss: list[tuple[float, int]] = []
@@ -95,7 +101,13 @@ def soak(tmp_path, n_streams=N_STREAMS, rate_hz=RATE_HZ, seconds=SOAK_S, budget_
 def thirds(a) -> tuple[np.ndarray, np.ndarray]:
     a = np.asarray(a, dtype=np.float64)
     k = len(a) // 3
-    return a[:k], a[-k:]
+    return a[:k], a[len(a) - k:]
+
+
+def pct(a, q: float) -> float:
+    """Percentile q of a, NaN when a is empty (a short soak on a starved machine may serve nothing)."""
+    a = np.asarray(a, dtype=np.float64)
+    return float(np.percentile(a, q)) if a.size else float("nan")
 
 
 def summary(r: dict) -> dict:
@@ -109,13 +121,13 @@ def summary(r: dict) -> dict:
         "offered_per_s": res.sent / res.seconds, "served_per_s": res.served / res.seconds, "sent": res.sent,
         "served": res.served, "degraded": res.degraded, "dropped": res.dropped, "lost": res.lost,
         "errors": res.errors, "unsent": getattr(res, "unsent", 0),
-        "proc_p50_ms": float(np.percentile(proc, 50)), "proc_p99_ms": float(np.percentile(proc, 99)),
-        "proc_max_ms": float(proc.max()), "proc_within_budget": float((proc <= BUDGET_MS).mean()),
-        "rtt_p50_ms": float(np.percentile(rtt, 50)), "rtt_p99_ms": float(np.percentile(rtt, 99)),
-        "proc_p50_first_third_ms": float(np.median(thirds(proc)[0])),
-        "proc_p50_last_third_ms": float(np.median(thirds(proc)[1])),
-        "rtt_p50_first_third_ms": float(np.median(thirds(rtt)[0])),
-        "rtt_p50_last_third_ms": float(np.median(thirds(rtt)[1])),
+        "proc_p50_ms": pct(proc, 50), "proc_p99_ms": pct(proc, 99),
+        "proc_max_ms": pct(proc, 100), "proc_within_budget": float((proc <= BUDGET_MS).mean()) if proc.size else float("nan"),
+        "rtt_p50_ms": pct(rtt, 50), "rtt_p99_ms": pct(rtt, 99),
+        "proc_p50_first_third_ms": pct(thirds(proc)[0], 50),
+        "proc_p50_last_third_ms": pct(thirds(proc)[1], 50),
+        "rtt_p50_first_third_ms": pct(thirds(rtt)[0], 50),
+        "rtt_p50_last_third_ms": pct(thirds(rtt)[1], 50),
         "rss_start_kib": int(rss[0]), "rss_quarter_kib": int(rss[q]), "rss_end_kib": int(rss[-1]),
         "rss_max_kib": int(rss.max()), "daemon_cpu_s": r["daemon_cpu_s"], "seconds": res.seconds,
         "daemon_frames_in": c.get("frames_in", 0), "daemon_frames_out": c.get("frames_out", 0),
@@ -126,14 +138,18 @@ def summary(r: dict) -> dict:
 
 @pytest.mark.slow
 def test_overload_soak_answers_every_frame_counts_every_drop_memory_flat(tmp_path, data):
-    r = soak(tmp_path)
+    # overdue = "serve": with the default ("drop") a daemon that gets a sliver of a loaded machine
+    # reads every frame past its 4 ms budget and answers them all `overdue` (seen: 0 of 153,600
+    # served), which is the deadline's behaviour, not the overload's; bench/reliability_soak.py
+    # measures the default
+    r = soak(tmp_path, overdue="serve")
     s = summary(r)
     print("\nsoak: " + ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in s.items()))
     assert r["alive"]
     res = r["res"]
     # overloaded: most frames could only be served by the cheaper path (on a quiet machine the
     # degraded path keeps up and nothing is conflated; on a busy one frames are also dropped)
-    assert s["degraded"] > 0.5 * s["served"]
+    assert s["served"] > 0 and s["degraded"] > 0.5 * s["served"]
     # every frame got exactly one answer, and both sides count the same
     assert s["lost"] == 0 and s["errors"] == 0
     assert s["sent"] == s["served"] + s["dropped"]
