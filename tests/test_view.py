@@ -74,7 +74,7 @@ def _stream_until(clients: list[Client], take, k: int, observed, until) -> int:
     while not until(k):
         due = t0 + n * PERIOD_S
         while time.perf_counter() < due:
-            time.sleep(0.0005)
+            time.sleep(0.0005)  # (pacing, not waiting: the streams run at 120 Hz)
         for c in clients:
             msg = c.fill(take.frames[k % take.n_frames], observed, seq=k)
             assert isinstance(msg, wire.FillMsg), msg
