@@ -1,4 +1,4 @@
-"""Fill docs/BENCHMARKS.md `## Daemon latency (lacuna bench)` with `lacuna bench` measurements.
+"""Fill bench/NOTEBOOK.md `## Daemon latency (lacuna bench)` with `lacuna bench` measurements.
 
     .venv/bin/python bench/latency.py [--repeats 3] [--seconds 10] [--waits sleep,busy] [--out bench/out] [--no-write]
 
@@ -10,7 +10,7 @@ daemon and client spin on their sockets) it runs
 ``lacuna bench --model FILE --floor`` ``--repeats`` times (a fresh daemon each time) and records
 the median over repeats of every percentile, the spread of p99, the counts and the daemon's
 CPU, beside the pass-through floor measured in the same run.  Per-run JSON and histogram PNGs
-go to ``--out``; the table replaces the section in docs/BENCHMARKS.md.
+go to ``--out``; the table replaces the section in bench/NOTEBOOK.md.
 """
 from __future__ import annotations
 
@@ -145,7 +145,7 @@ def table(rows: list[dict], repeats: int, seconds: float) -> str:
 
 
 def write_section(text: str) -> None:
-    p = ROOT / "docs" / "BENCHMARKS.md"
+    p = ROOT / "bench" / "NOTEBOOK.md"  # the dated runs (docs/BENCHMARKS.md is the short page for users)
     doc = p.read_text()
     i = doc.index(SECTION)
     m = re.search(r"^## ", doc[i + len(SECTION):], flags=re.M)
@@ -170,7 +170,7 @@ def main() -> int:
                     help="every daemon's serving threads run SCHED_RR at PRIO (lacuna bench --realtime)")
     ap.add_argument("--waits", default="sleep,busy",
                     help=f"comma-separated: sleep (both sides sleep in poll), busy (--busy-poll {BUSY_POLL_MS:g}: both spin)")
-    ap.add_argument("--no-write", action="store_true", help="print the section instead of writing docs/BENCHMARKS.md")
+    ap.add_argument("--no-write", action="store_true", help="print the section instead of writing bench/NOTEBOOK.md")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -130,7 +130,7 @@ def test_bridge_fills_then_passes_through_while_daemon_is_away_then_fills_again(
                 break
             assert f["status"] == "passthrough"
             k += 1
-            time.sleep(0.05)
+            time.sleep(0.05)  # (pacing the probe frames, not waiting: the loop ends on the event, a fill `ok`)
         assert f["status"] == "ok" and f["seq"] == k and f["filled"][1]
     finally:
         d.stop()

@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 import pytest
+from waiting import wait_until
 
 from clients import demo, demo_score, synth
 from lacuna.cli import main
@@ -138,7 +139,6 @@ def test_demo_ctrl_c_stops_the_daemon_it_started(tmp_path):
     import signal
     import subprocess
     import sys
-    import time
 
     out = tmp_path / "demo"
     p = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "demo", "--source", "synthetic", "--methods", "none",
@@ -146,13 +146,12 @@ def test_demo_ctrl_c_stops_the_daemon_it_started(tmp_path):
     log = out / "daemon" / "daemon.log"
     pid = None
     try:
-        deadline = time.monotonic() + 60
-        while pid is None and time.monotonic() < deadline and p.poll() is None:
-            time.sleep(0.2)
-            if log.exists() and "stream_hello" in log.read_text():  # the replay is under way
-                ready = [json.loads(x) for x in log.read_text().splitlines() if '"ready"' in x]
-                pid = ready[0]["pid"]
-        assert pid is not None, "the demo never got to its replay"
+        def replaying() -> bool:  # the replay is under way (or the demo ended early: reported below)
+            return p.poll() is not None or (log.exists() and "stream_hello" in log.read_text())
+
+        wait_until(replaying, 60, "the demo's replay to start", 0.2)
+        assert p.poll() is None, "the demo ended before its replay"
+        pid = next(json.loads(x) for x in log.read_text().splitlines() if '"ready"' in x)["pid"]
         p.send_signal(signal.SIGINT)
         p.communicate(timeout=30)
     finally:

@@ -65,21 +65,23 @@ def test_record_then_replay_the_recording(daemon, tmp_path):
     done = threading.Event()
     box: dict = {}
     t = threading.Thread(target=lambda: box.setdefault("n", record(daemon.zmq_opts["pub"], "studio-a", str(path),
-                                                                   channels=names, fps=120.0, stop=done.is_set,
+                                                                   channels=names, fps=120.0, frames=40, stop=done.is_set,
                                                                    progress=False, ready=ready.set)))
     t.start()
     ready.wait(5)
-    time.sleep(1.0)  # the SUB's subscription reaches the PUB (ZeroMQ slow joiner); generous on a busy machine
+    # the SUB's subscription reaches the PUB (ZeroMQ slow joiner); generous on a busy machine.  The one
+    # sleep left in place of an event: record() reports no first message and a PUB cannot tell who
+    # has joined (an XPUB could), and a join frame on this stream would be recorded with the rest
+    time.sleep(1.0)
     obs = np.ones(frames.shape, bool)
     obs[10:20, names.index("lhumerus.rx")] = False
     replies = []
     with Client(daemon.endpoint, "studio-a", names, timeout_s=5.0) as c:
         for k in range(40):
             replies.append(c.fill(frames[k], obs[k], t=k / 120.0))
-    time.sleep(0.5)
+    t.join(30)  # the recorder stops by itself once it has written its 40 frames
     done.set()
-    t.join(5)
-    assert box["n"] == 40
+    assert box.get("n") == 40
     rec = read_recording(str(path))
     assert rec.channels == names and rec.fps == 120.0
     np.testing.assert_array_equal(rec.observed, obs)
@@ -157,7 +159,7 @@ def test_lacuna_record_process_writes_what_the_daemon_published(daemon, tmp_path
             while p.poll() is None and k < 3000:
                 c.fill(frames[k % len(frames)], t=k / 120.0)
                 k += 1
-                time.sleep(0.005)
+                time.sleep(0.005)  # (pacing: a 200 Hz stream until the recorder, a process, exits)
         so, se = p.communicate(timeout=20)
     finally:
         if p.poll() is None:

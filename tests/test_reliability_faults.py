@@ -32,6 +32,7 @@ from lacuna import modelfile
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial
 from reliability_daemon import Daemon, LockStep, Sockets, Supervisor, control, recv_msg, status, write_config
+from waiting import wait_until
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +77,7 @@ VANISHING_CLIENT = textwrap.dedent("""
         s.send(wire.encode(wire.Frame("ghost", seq, seq / 120.0, np.zeros(C, np.float32))))
         if seq == 200:
             print("sending", flush=True)
-        time.sleep(0.0005)
+        time.sleep(0.0005)  # (pacing, not waiting: a stream at ~2 kHz, killed mid-stream)
 """)
 
 
@@ -111,8 +112,7 @@ def test_client_vanishing_mid_stream_leaves_the_daemon_serving(tmp_path, walk):
         n0 = len(good.answers)
         d.wait_for("stream_expired", 10, stream="ghost")
         d.wait_for("stream_expired", 10, stream="oscghost")
-        time.sleep(0.3)
-        assert len(good.answers) > n0  # served all along
+        wait_until(lambda: len(good.answers) > n0, 10, "the good stream answered after the expiries")  # served all along
         st = status(S, ep["router"])
         assert "ghost" not in st["streams"] and "oscghost" not in st["streams"]
         assert st["expired"] >= 2
@@ -155,22 +155,19 @@ def test_daemon_sigkilled_is_restarted_and_clients_resume(tmp_path, walk):
         push = S.make(zmq.PUSH, ep["pull"])
         for c in clients:
             c.start()
-        time.sleep(1.0)
+        wait_until(lambda: all(len(c.answers) > 10 for c in clients), 30, "10 answers to each client")
         before = {c.sid: len(c.answers) for c in clients}
-        assert all(n > 10 for n in before.values())
         pid = sup.daemon.pid
         os.kill(pid, signal.SIGKILL)
         t_kill = time.perf_counter()
-        deadline = time.monotonic() + 60
-        while sup.restarts < 1 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: sup.restarts >= 1, 60, f"the supervisor's restart (errors: {sup.errors})")
         assert sup.restarts == 1 and sup.daemon.pid != pid, sup.errors
         # every client's stream goes on: answers for new sequence numbers from the new daemon
-        while time.monotonic() < deadline and any(len(c.answers) < before[c.sid] + 50 for c in clients):
-            time.sleep(0.05)
+        wait_until(lambda: all(len(c.answers) >= before[c.sid] + 50 for c in clients), 60,
+                   "50 more answers to each client from the restarted daemon")
         resumed = min(c.got_at[before[c.sid] + 5] for c in clients) - t_kill
         st = status(S, ep["router"])
-        assert st["pid"] == sup.daemon.pid and st["uptime_s"] < 60
+        assert st["pid"] == sup.daemon.pid  # the restarted daemon answers
         for c in clients:  # (a frame in flight at the kill was sent again after 0.5 s: c.retries)
             assert c.sid in st["streams"] and st["streams"][c.sid]["frames_out"] >= 45
         # the PULL/PUB path reconnects by itself too (ZeroMQ reconnects both sockets)
@@ -239,10 +236,7 @@ def test_broken_model_file_on_sighup_keeps_the_old_model_serving(tmp_path, walk)
             assert words in rec["error"], (what, rec["error"])
             assert "old model keeps serving" in rec["detail"]
             d.wait_for("reload_done", 15, ok=False)
-            deadline = time.monotonic() + 10
-            while len(ls.answers) < n0 + 5 and time.monotonic() < deadline:
-                time.sleep(0.01)
-            assert len(ls.answers) >= n0 + 5, what  # serving through every refusal
+            wait_until(lambda n0=n0: len(ls.answers) >= n0 + 5, 10, f"5 answers after refusing {what}")  # serving throughout
         st = status(S, ep["router"])
         assert st["reload"]["ok"] is False and "walk" in st["reload"]["errors"]
         assert st["counters"]["reload_failures"] == len(_broken_files(path, good_bytes, len(channels)))
@@ -252,7 +246,8 @@ def test_broken_model_file_on_sighup_keeps_the_old_model_serving(tmp_path, walk)
         d.signal(signal.SIGHUP)
         d.wait_for("model_swapped", 15, model="walk")
         d.wait_for("reload_done", 15, ok=True)
-        time.sleep(0.2)
+        n_swap = len(ls.answers)
+        wait_until(lambda: len(ls.answers) >= n_swap + 5, 10, "5 answers from the new model")
         ls.finish()
         all_filled(ls, "walk")
         assert ls.answers and all(m.status in ("ok", "degraded") for m in ls.answers.values())
@@ -290,7 +285,11 @@ def test_slow_consumers_make_the_daemon_drop_output_never_block(tmp_path, walk):
         stuck_udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         stuck_udp.bind(("127.0.0.1", 0))
         push = S.make(zmq.PUSH, ep["pull"])
-        time.sleep(0.2)  # let the stuck subscriber's subscription reach the PUB
+        wide_join = np.zeros(len(channels), np.float32)
+        # the stuck subscriber has joined once it gets a first fill (then it never reads again)
+        joins = iter(range(10**6))
+        wait_until(lambda: push.send(wire.encode(wire.Frame("join", next(joins), 0.0, wide_join))) or stuck_sub.poll(50),
+                   10, "the stuck subscriber's first fill")
         rss0 = d.rss_kib()
         good.start()
         n_flood = 6000
@@ -301,25 +300,24 @@ def test_slow_consumers_make_the_daemon_drop_output_never_block(tmp_path, walk):
             stuck_dealer.send(wire.encode(wire.Frame(f"dealer{k}", seq // 64, 0.0, wide)))
             if seq % 4 == 0:
                 stuck_udp.sendto(fuzzgen.osc_frame(f"osc{k}", seq // 64, 0.0, wide[:400]), ep["osc"])
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
+        def flood_in() -> bool:  # every ZeroMQ frame is in (UDP ones may have been dropped by the kernel)
             st = status(S, ep["router"])
-            if st["counters"].get("frames_in", 0) - sum(v["frames_in"] for k, v in st["streams"].items() if k == "good") \
-                    >= 2 * n_flood:
-                break  # every ZeroMQ frame is in (UDP ones may have been dropped by the kernel)
-            time.sleep(0.2)
+            return st["counters"].get("frames_in", 0) - sum(
+                v["frames_in"] for k, v in st["streams"].items() if k == "good") >= 2 * n_flood
+
+        wait_until(flood_in, 60, "the daemon to take in every flooded ZeroMQ frame", interval=0.2)
         n_good = len(good.answers)
-        time.sleep(0.5)
-        assert len(good.answers) > n_good  # still serving after the flood, with every consumer stuck
+        # still serving after the flood, with every consumer stuck
+        wait_until(lambda: len(good.answers) > n_good, 10, "an answer to the good stream after the flood")
         good.finish()
         all_filled(good, "walk")
-        deadline = time.monotonic() + 20
-        while True:  # frames still in their streams' pending slots are neither served nor dropped yet
+
+        def settled() -> dict | None:  # frames still in their streams' pending slots are neither served nor dropped yet
             c = status(S, ep["router"])["counters"]
-            dropped = sum(v for k, v in c.items() if k.startswith("dropped_"))
-            if c["frames_in"] == c["frames_out"] + dropped or time.monotonic() > deadline:
-                break
-            time.sleep(0.1)
+            return c if c["frames_in"] == c["frames_out"] + sum(v for k, v in c.items() if k.startswith("dropped_")) else None
+
+        c = wait_until(settled, 20, "every frame taken in to be served or dropped", interval=0.1)
+        dropped = sum(v for k, v in c.items() if k.startswith("dropped_"))
         fills_published = c["frames_out"]
         fills_received = 0
         while stuck_sub.poll(300):
@@ -349,21 +347,24 @@ def test_timestamp_and_sequence_jumps(tmp_path, walk):
     try:
         s = S.make(zmq.DEALER, ep["router"])
         ts = [100.0, 100.008, 99.0, 99.0, 0.0, -5.0, 1e9, 1e300, -1e300, 1.7e9, 100.0, 5e-324]
-        answers = []
+        answers, rtt_us = [], []
         for seq, t in enumerate(ts):  # capture clock jumps back, to zero, negative, far forward
+            t0 = time.perf_counter()
             s.send(wire.encode(wire.Frame("clock", seq, t, frames[seq])))
             answers.append(recv_msg(s))
+            rtt_us.append((time.perf_counter() - t0) * 1e6)
         assert all(isinstance(m, wire.FillMsg) for m in answers), answers
         assert [m.t for m in answers] == ts  # echoed untouched, ordered by seq only
-        assert all(0 <= m.proc_us < 5_000_000 for m in answers)  # measured on the daemon's monotonic clock
+        # proc_us is measured on the daemon's monotonic clock, not from the capture times: it lies
+        # inside the round trip that carried it (a bound of the same machine's clocks, not a figure)
+        assert all(0 <= m.proc_us <= r for m, r in zip(answers, rtt_us)), [(m.proc_us, r) for m, r in zip(answers, rtt_us)]
         # sequence jumps: a small gap is predicted, a huge one restarts the filter at once
         seq = len(ts) - 1
         for jump in (5, 10**12, 2**62):
             seq += jump
-            t0 = time.perf_counter()
             s.send(wire.encode(wire.Frame("clock", seq, 0.0, frames[seq % len(frames)])))
             m = recv_msg(s)
-            assert isinstance(m, wire.FillMsg) and m.seq == seq and time.perf_counter() - t0 < 5
+            assert isinstance(m, wire.FillMsg) and m.seq == seq  # (recv_msg fails the test if no answer comes)
             if jump - 1 <= 12:  # predicted; a longer gap restarts the filter (what `gap` then says is
                 assert m.gap == jump - 1  # the daemon's choice: docs/PROTOCOL.md says "frames predicted")
         s.send(wire.encode(wire.Frame("clock", 2**63 - 1, 0.0, frames[0])))  # the largest seq there is
@@ -407,10 +408,7 @@ def test_broken_config_on_sighup_keeps_the_old_config_serving(tmp_path, walk):
             assert rec["ok"] is False, what
             st = status(S, ep["router"])
             assert words in st["reload"]["errors"]["config"], (what, st["reload"])
-            deadline = time.monotonic() + 10
-            while len(ls.answers) < n0 + 5 and time.monotonic() < deadline:
-                time.sleep(0.01)
-            assert len(ls.answers) >= n0 + 5, what
+            wait_until(lambda n0=n0: len(ls.answers) >= n0 + 5, 10, f"5 answers after refusing {what}")
         cfg.write_text(good_text)
         d.signal(signal.SIGHUP)
         assert d.wait_for("reload_done", 15)["ok"] is True

@@ -34,6 +34,7 @@ from daemon import wire
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial
 from reliability_daemon import Daemon, Sockets, control, recv_msg, status, udp_queue, write_config
+from waiting import wait_until
 
 N_ZMQ_DEALER = 30_000
 N_ZMQ_PUSH = 30_000
@@ -109,11 +110,8 @@ def real_frames(rng: np.random.Generator) -> tuple[np.ndarray, list[str], HoldMo
 
 def pace_udp(port: int, need: int) -> None:
     """Wait until the daemon's UDP receive queue leaves room for ``need`` more bytes."""
-    deadline = time.monotonic() + 30
-    while udp_queue(port)[0] + need > RCVBUF * 2 // 3:
-        if time.monotonic() > deadline:
-            raise TimeoutError("the daemon stopped reading its OSC socket")
-        time.sleep(0.0005)
+    wait_until(lambda: udp_queue(port)[0] + need <= RCVBUF * 2 // 3, 30,
+               "the daemon to read its OSC socket down", interval=0.0005)
 
 
 @pytest.mark.slow
@@ -138,9 +136,7 @@ def test_fuzz_100k_malformed_messages_over_zmq_and_osc_while_a_good_stream_is_se
         fz = S.make(zmq.DEALER, ep["router"])
         fz.send(wire.encode(wire.Hello("victim", channels)))
         assert isinstance(recv_msg(fz), wire.HelloAck)
-        deadline = time.monotonic() + 10
-        while good.sent < 5 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_until(lambda: good.sent >= 5, 10, "the good stream's first 5 frames")
         for i in range(MAX_STREAMS - 2):
             victim.send(wire.encode(wire.Frame(f"filler{i}", 0, 0.0, frames[0])))
             assert isinstance(recv_msg(victim), wire.FillMsg)
@@ -235,11 +231,12 @@ def test_fuzz_100k_malformed_messages_over_zmq_and_osc_while_a_good_stream_is_se
                     break
         kernel_drops = udp_queue(osc_port)[1] - drops0
         want_total = before["counters"].get("rejected", 0) + n_total - kernel_drops
-        while True:
-            after = status(S, ep["router"])
-            if after["counters"].get("rejected", 0) >= want_total or time.monotonic() > deadline:
-                break
-            time.sleep(0.2)
+
+        def counted() -> dict | None:
+            st = status(S, ep["router"])
+            return st if st["counters"].get("rejected", 0) >= want_total else None
+
+        after = wait_until(counted, max(1.0, deadline - time.monotonic()), f"{want_total} rejections counted", 0.2)
         t_all = time.perf_counter() - t0
         good.stop_flag.set()
         good.join(30)
@@ -283,14 +280,13 @@ def test_fuzz_100k_malformed_messages_over_zmq_and_osc_while_a_good_stream_is_se
                 assert after["streams"][sid]["rejected"] - before["streams"][sid]["rejected"] == n, sid
         # the log: a bounded number of "rejected" lines, the rest summed in "rejected_not_logged"
         # lines (written by the daemon's housekeeping), together exactly the rejections
-        deadline = time.monotonic() + 10
-        while True:
+        def log_counts() -> tuple[int, int]:
             recs = d.records()
-            logged = sum(1 for r in recs if r.get("event") == "rejected")
-            held = sum(r["count"] for r in recs if r.get("event") == "rejected_not_logged")
-            if logged + held >= rejected or time.monotonic() > deadline:
-                break
-            time.sleep(0.5)
+            return (sum(1 for r in recs if r.get("event") == "rejected"),
+                    sum(r["count"] for r in recs if r.get("event") == "rejected_not_logged"))
+
+        wait_until(lambda: sum(log_counts()) >= rejected, 10, "every rejection logged or summed", 0.5)
+        logged, held = log_counts()
         log_bytes = os.path.getsize(d.log_path)
         print(f"daemon log: {logged} rejection lines, {held} summed in rejected_not_logged lines, {log_bytes} bytes")
         assert logged + held == rejected

@@ -13,6 +13,7 @@ import urllib.request
 
 import numpy as np
 import pytest
+from waiting import wait_until
 
 from clients import Client
 from clients.daemon_proc import DaemonProcess, free_port
@@ -57,6 +58,14 @@ def daemon(tmp_path_factory, data):
     proc.stop()
 
 
+def _state_when(url: str, ok, what: str) -> dict:
+    """The view's state once ``ok(state)`` holds (polled; fails after PAGE_TIMEOUT_S naming ``what``)."""
+    def look() -> dict | None:
+        st = _state(url)
+        return st if ok(st) else None
+    return wait_until(look, PAGE_TIMEOUT_S, what, 0.05)
+
+
 def _stream_until(clients: list[Client], take, k: int, observed, until) -> int:
     """Send frames k, k+1, ... of every client's stream at 120 Hz (wall-clock capture times) until
     ``until(k)``; returns the next k."""
@@ -65,7 +74,7 @@ def _stream_until(clients: list[Client], take, k: int, observed, until) -> int:
     while not until(k):
         due = t0 + n * PERIOD_S
         while time.perf_counter() < due:
-            time.sleep(0.0005)
+            time.sleep(0.0005)  # (pacing, not waiting: the streams run at 120 Hz)
         for c in clients:
             msg = c.fill(take.frames[k % take.n_frames], observed, seq=k)
             assert isinstance(msg, wire.FillMsg), msg
@@ -187,12 +196,8 @@ def test_view_plays_a_recording(data, tmp_path):
                     wire.FillMsg("rec-1", k, k / take.fps, take.frames[k].astype(np.float32), leg,
                                  np.where(leg, 3.5, 0).astype(np.float32), "ok", "m", 100))
     with ViewProcess(["--play", str(path), "--speed", "4", "--loop", "--skeleton-file", str(trial_path("07_01"))]) as v:
-        deadline = time.monotonic() + PAGE_TIMEOUT_S
-        st = _state(v.url)
-        while not (st["update"] and st["update"]["streams"] and "pos" in st["update"]["streams"][0]):
-            assert time.monotonic() < deadline, st
-            time.sleep(0.05)
-            st = _state(v.url)
+        st = _state_when(v.url, lambda st: st["update"] and st["update"]["streams"] and "pos" in st["update"]["streams"][0],
+                         "a drawn frame (positions) in the view's state")
     meta, upd = st["meta"], st["update"]["streams"][0]
     assert meta["mode"] == "play" and upd["id"] == "rec-1" and upd["proc_ms"] is None
     joints = meta["skeleton"]["joints"]
@@ -227,12 +232,8 @@ def test_view_plays_a_bvh_take_on_its_own_skeleton(data):
     m = read_motion(path)
     kin = Kinematics.from_motion(m)
     with ViewProcess(["--play", path, "--loop"]) as v:
-        deadline = time.monotonic() + PAGE_TIMEOUT_S
-        st = _state(v.url)
-        while not (st["update"] and st["update"]["streams"] and "pos" in st["update"]["streams"][0]):
-            assert time.monotonic() < deadline, st
-            time.sleep(0.05)
-            st = _state(v.url)
+        st = _state_when(v.url, lambda st: st["update"] and st["update"]["streams"] and "pos" in st["update"]["streams"][0],
+                         "a drawn frame (positions) in the view's state")
     assert st["meta"]["skeleton"]["joints"] == kin.joints
     upd = st["update"]["streams"][0]
     from view.feed import TO_Y_UP
@@ -248,12 +249,7 @@ def test_view_draws_on_the_skeleton_a_model_file_was_trained_on(daemon, capsys):
 
     hlm = str(daemon.workdir.parent / "hlm.npz")
     with ViewProcess(["--connect", daemon.zmq_opts["pub"], "--channels", hlm]) as v:
-        deadline = time.monotonic() + PAGE_TIMEOUT_S
-        st = _state(v.url)
-        while "skeleton" not in st["meta"]:
-            assert time.monotonic() < deadline, st
-            time.sleep(0.05)
-            st = _state(v.url)
+        st = _state_when(v.url, lambda st: "skeleton" in st["meta"], "the skeleton in the view's meta")
     assert st["meta"]["skeleton"]["joints"] == Kinematics.from_motion(load_trial("07_02")).joints
     assert "training skeleton" in st["meta"]["skeleton"]["source"]
     hold = str(daemon.workdir.parent / "hold.npz")
