@@ -76,15 +76,43 @@ def octave_fill_runs(a: argparse.Namespace) -> int:
     runs = {}
     for p in a.octave_fills:
         sc = anchor.octave_fills(p, data)
-        runs[os.path.basename(p)] = {f"{t} {g}": {"mean": float(np.mean(v)), "std": float(np.std(v)), "runs": v}
+        runs[os.path.basename(p)] = {f"{t} {g}": {"mean": float(np.mean(v)), "std": float(np.std(v, ddof=1)), "runs": v}
                                      for (t, g), v in sorted(sc.items())}
-        print(f"{os.path.basename(p)}: " + ", ".join(f"{t} {g} {np.mean(v):.2f} +-{np.std(v):.2f} ({len(v)} fills)"
+        print(f"{os.path.basename(p)}: " + ", ".join(f"{t} {g} {np.mean(v):.2f} +-{np.std(v, ddof=1):.2f} ({len(v)} fills)"
                                                      for (t, g), v in sorted(sc.items())), flush=True)
+    md = compare_table(runs, a.compare) if a.compare else ""
+    print(md)
     if a.out:
         os.makedirs(os.path.dirname(a.out) or ".", exist_ok=True)
         with open(a.out, "w") as fh:
-            json.dump({"scorer": "crbm.anchor.cumulative_scaled, plain training variance", "runs": runs}, fh, indent=2)
+            json.dump({"scorer": "crbm.anchor.cumulative_scaled, plain training variance", "runs": runs, "table": md},
+                      fh, indent=2)
     return 0
+
+
+def compare_table(octave: dict, ours_json: list[str]) -> str:
+    """Markdown: per case, the released code's fills (one column per saved .mat = training seed)
+    and ours (every variant run of the given bench JSONs), each the mean of its fills on the one
+    scorer; then the mean and std over training seeds and ours / released."""
+    import numpy as np
+
+    from crbm.experiment import ANCHOR_METRIC
+
+    ours: dict[str, dict[str, float]] = {}
+    for path in ours_json:
+        with open(path) as fh:
+            for name, v in json.load(fh)["variants"].items():
+                ours[name] = {k: sc[ANCHOR_METRIC] for k, sc in v["scores"].items()}
+    cases = sorted(next(iter(octave.values())))
+    lines = ["| case | released code, per seed | mean +- std (seeds) | ours, per seed | mean +- std (seeds) | ours / released |",
+             "|---|---|---|---|---|---|"]
+    for c in cases:
+        r = [v[c]["mean"] for v in octave.values()]
+        o = [v[c] for v in ours.values()]
+        lines.append(f"| {c} | {' / '.join(f'{x:.2f}' for x in r)} | {np.mean(r):.2f} +- {np.std(r, ddof=1):.2f} | "
+                     f"{' / '.join(f'{x:.2f}' for x in o)} | {np.mean(o):.2f} +- {np.std(o, ddof=1):.2f} | "
+                     f"{np.mean(o) / np.mean(r):.3f} |")
+    return "\n".join(lines)
 
 
 def main() -> int:
@@ -107,6 +135,8 @@ def main() -> int:
                     "crbm.anchor) and score as its crbmfill.m does; variants 'faithful' and 'paper-text' only")
     ap.add_argument("--octave-model", nargs="+", default=[], metavar="MAT",
                     help="score models trained by the anchor's train.m with our filler on its input, then exit")
+    ap.add_argument("--compare", nargs="+", default=[], metavar="JSON",
+                    help="with --octave-fills: a table of those against our runs saved by this script's --out")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     if a.octave_fills:
