@@ -5,11 +5,13 @@ The anchor differs from ``lacuna``'s taylor2007 protocol in two places that are 
 
 * its input: the 62 raw channels of ``cmu35WalkJog.mat`` (root position and Euler angles as
   captured, no unwrapping), constant channels (std <= 1e-6) dropped, z-scored with the plain
-  population mean and std.  ``lacuna`` models the paper's body-centred root (section 4; the
-  released ``Motion/preprocess1.m`` does the same) and unwraps the angles.
+  population mean and std.  The faithful ``crbm`` models the same raw root
+  (``crbm.released.RELEASED_INPUT``) but unwraps the angles, which changes rhand.rz only; the
+  improved variants model the paper's body-centred root (section 4).
 * its score: the cumulative scaled error divides by the plain variance of the training frames;
   the protocol divides angles by the variance about the circular mean.  They differ on rhand.rz
-  only (``crbm.experiment.ANCHOR_METRIC``).
+  only.  ``cumulative_scaled`` is that score, used for the released code's saved fills
+  (``octave_fills``) and ours (``crbm.experiment.ANCHOR_METRIC``) alike.
 
 This module runs our CRBM and our filler core on exactly the anchor's input, and loads a model
 the anchor trained (its ``.mat``) into our filler, so each difference can be measured alone:
