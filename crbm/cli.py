@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crbm.released import RELEASED
+from crbm.released import RELEASED, RELEASED_INPUT
 from lacuna.errors import LacunaError
 
 
@@ -32,6 +32,9 @@ def add_commands(cli) -> None:
                    help="biases start from N(0, this^2) (default 0.01, the released code; 0 = zeros)")
     p.add_argument("--batches", choices=["fixed", "reshuffle"], default=RELEASED["batches"],
                    help="mini-batches cut once (default, the released code) or reshuffled every epoch")
+    p.add_argument("--root-mode", choices=["raw", "relative"], default=RELEASED_INPUT["root_mode"],
+                   help="root channels as captured (default, the released code's input) or body-centred "
+                   "(heading-relative, the paper's section 4; the improved variants' choice)")
     p.add_argument("--average-last", type=float, default=0.0,
                    help="return the parameters averaged over this final fraction of epochs (0 = the paper)")
     p.add_argument("--levels", type=int, choices=[1, 2], default=1, help="2 adds the section-6 second level")
@@ -91,7 +94,8 @@ def _run_train(args: argparse.Namespace) -> int:
 
         ms = [_read_amc(p, args.asf, args.quiet) for p in args.data]
         channels = ms[0].channels
-        skelmap.Binding.of(channels, args.skeleton, args.data[0])  # relative root: the map must fit
+        if args.root_mode == "relative":
+            skelmap.Binding.of(channels, args.skeleton, args.data[0])  # relative root: the map must fit
         for m in ms[1:]:
             if m.channels != channels:
                 raise LacunaError(f"{m.source}: channels differ from {ms[0].source}")
@@ -108,7 +112,7 @@ def _run_train(args: argparse.Namespace) -> int:
                             bias_init_std=args.bias_init_std, batches=args.batches,
                             average_last=args.average_last, levels=args.levels, members=args.members,
                             n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, bias_rate=args.bias_rate,
-                            names=names, fps=fps, skeleton=args.skeleton,
+                            names=names, fps=fps, skeleton=args.skeleton, root_mode=args.root_mode,
                             progress=not args.quiet)
     if not args.protocol:
         from mocap.fk import skeleton_record

@@ -12,8 +12,9 @@ from typing import Any
 
 import numpy as np
 
+from crbm.anchor import cumulative_scaled
 from lacuna import registry
-from mocap.protocols import get_protocol, wrapped_error
+from mocap.protocols import get_protocol
 
 METRIC = "cumulative_scaled_error"
 # The same error scaled by the plain (not circular) variance of the training frames, as the
@@ -38,8 +39,9 @@ def score_model(model: Any, repeats: int = 1, seed: int = 0, protocol: str = "ta
             for row in proto.score(case, filled):
                 acc.setdefault(row["metric"], []).append(row["value"])
             if plain is not None:
-                e = wrapped_error(case, filled)[case.info["first_erased"]:, case.scored]
-                acc.setdefault(ANCHOR_METRIC, []).append(float(np.mean(np.sum(e**2, 0) / plain[case.scored])))
+                # the one scorer shared with the released code's saved fills (crbm.anchor)
+                acc.setdefault(ANCHOR_METRIC, []).append(cumulative_scaled(
+                    filled, case.truth, np.flatnonzero(case.scored), case.info["first_erased"], plain))
         res = {k: float(np.mean(v)) for k, v in acc.items()}
         res.update({f"{k} std": float(np.std(v)) for k, v in acc.items() if k in (METRIC, ANCHOR_METRIC)})
         out[(case.test, case.erased)] = res

@@ -2,7 +2,8 @@
 
 * ``crbm``         the paper, faithfully, trained as Taylor's released code trains (CD-1 of
                    section 3 with N(0, 1) noise on the conditioning history, hidden probabilities
-                   in the data term, biases from N(0, 0.01^2), fixed mini-batches), fill by K = 30
+                   in the data term, biases from N(0, 0.01^2), fixed mini-batches) on its input
+                   (the raw root channels, not body-centred), fill by K = 30
                    clamped Gibbs iterations plus a final mean-field step, one chain (section 5).
 * ``crbm-mf``      deterministic mean-field fill (hidden probabilities, no noise) of a CRBM
                    trained as the paper's text says (section 3: sampled hiddens in the data term,
@@ -22,7 +23,7 @@ from __future__ import annotations
 from typing import Any
 
 from crbm.persist import METHODS, load_model_arrays
-from crbm.released import PAPER_TEXT
+from crbm.released import PAPER_TEXT, RELEASED_INPUT
 from crbm.train import train_model
 from lacuna.modelfile import register_loader
 from lacuna.registry import MethodSpec, register_method
@@ -34,7 +35,9 @@ _OPTIONS = ("hidden", "members", "order", "epochs", "seed", "history_noise", "po
             "progress_every", "root_mode", "final_step")
 
 VARIANTS: dict[str, dict[str, Any]] = {
-    "crbm": {},
+    # the released code's input (raw root channels, crbm.released.RELEASED_INPUT) and training
+    # (train_model's defaults = crbm.released.RELEASED)
+    "crbm": dict(RELEASED_INPUT),
     # trained and filled as ``crbm`` was before 2026-12-01 (the paper's text), as their figures
     # in docs/BENCHMARKS.md ## CRBM were measured; with the released code's training the
     # mean-field fill's 35_29 upper body was 14.2 (training seed 1) against 12.8 (seed 0) before

@@ -11,3 +11,9 @@ RELEASED = {"history_noise": 1.0, "positive_hidden": "prob", "bias_init_std": 0.
 # what ``crbm`` trained with before 2026-12-01 (the paper's text, fresh mini-batches every epoch);
 # ``crbm-imp`` and ``crbm-ens`` keep it
 PAPER_TEXT = {"history_noise": 0.0, "positive_hidden": "sample", "bias_init_std": 0.0, "batches": "reshuffle"}
+# The released code's input (the anchor's train.m, which produced the figures issue 17 quotes):
+# the raw channels of cmu35WalkJog.mat, root position and Euler angles as captured, z-scored.
+# ``crbm`` models them so (representation root_mode "raw"); our angles stay unwrapped about their
+# circular mean (identical on every channel but those crossing +-180 deg).  The improved variants
+# keep the paper's body-centred root (section 4).
+RELEASED_INPUT = {"root_mode": "raw"}

@@ -72,13 +72,13 @@ def test_train_replay_eval_on_each_naming(naming, tmp_path, capsys):
 
 
 def test_crbm_with_a_heading_relative_root_on_a_mixamo_take(tmp_path, capsys):
-    """CRBM's default root mode is heading-relative: on a Mixamo take (Zrotation Xrotation
-    Yrotation, ``mixamorig:`` names) it goes through mocap.rootframe."""
+    """CRBM's heading-relative root (``--root-mode relative``; the faithful default is the raw root):
+    on a Mixamo take (Zrotation Xrotation Yrotation, ``mixamorig:`` names) it goes through mocap.rootframe."""
     take = tmp_path / "mixamo.bvh"
     take.write_text(bvh_text(NAMINGS["humanik"](), 480))
     model = tmp_path / "c.npz"
     assert main(["train", "crbm", str(take), "-o", str(model), "--epochs", "5", "--hidden", "20", "--fps", "120",
-                 "-q"]) == 0
+                 "--root-mode", "relative", "-q"]) == 0
     from crbm.persist import load
 
     rep = load(str(model)).representation

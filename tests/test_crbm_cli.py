@@ -32,6 +32,8 @@ def test_issue4_train_writes_a_loadable_model(small_model):
     m = load_model(str(small_model))
     assert m.method == "crbm" and m.crbm.n_hidden == 20 and m.crbm.n_epochs_done_ == 15
     assert m.meta["training"]["data"] == ["35_01", "35_17"] and m.meta["training"]["fps"] == 30.0
+    # the faithful crbm models the released code's input: the root channels as captured
+    assert m.representation.root_mode == "raw" and m.representation.root is None
 
 
 def test_issue4_generate_writes_amc_with_the_seed_skeleton(small_model, data, tmp_path):

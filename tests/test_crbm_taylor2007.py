@@ -59,9 +59,9 @@ def improved(proto):
 @pytest.fixture(scope="module")
 def faithful(proto):
     # half the schedule to save test time; it only has to beat nearest neighbour here.  Trained
-    # as the released code trains (since 2026-12-01); the full 2000-epoch runs give 35_29 8.9 /
-    # 16.1, ratios 0.67 / 0.68, mean of training seeds 0-2 (docs/BENCHMARKS.md, "CRBM against the
-    # released code", which compares it with the released code itself; too slow for this test)
+    # as the released code trains, on its raw-root input (since 2026-12-01); the full 2000-epoch
+    # runs give 35_29 8.12 / 13.41, ratios 0.62 / 0.57, mean of training seeds 0-4
+    # (bench/notebook/crbm2.md compares it with the released code itself; too slow for this test)
     return _train(proto, "crbm", epochs=1000)
 
 
