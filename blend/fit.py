@@ -151,13 +151,16 @@ CELL_EDGES = (0.0, 1.5 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 1e9)  # seconds si
 
 
 def fit_weights(model: DefaultModel, data: dict[str, np.ndarray], ridge: float = 1e-2, smooth: float = 1.0,
-                coverage: float = 0.95, rounds: int = 40, per_group: tuple = (0,), target: float = 1.0) -> Weights:
+                coverage: float = 0.95, rounds: int = 40, per_group: tuple = (0,), target: float = 1.0,
+                unboosted: tuple = (ROOT_POS,)) -> Weights:
     """Stacking weights by weighted least squares; then, while some (activity, time since onset[,
     joint group]) cell has an MSE above ``target``^2 x hold's, that cell's values weigh more
     (up to ``rounds`` refits).  The groups in ``per_group`` (the root's angles: they were worse than
     hold on walks behind the others' gains) have cells of their own; the rest share (activity, time
     since onset) cells (cells per group for all of them cost a third of the gain over hold on 2
-    folds of VALIDATION, bench/notebook/fill.md);
+    folds of VALIDATION, bench/notebook/fill.md); the groups in ``unboosted`` (the root's
+    translation, in length units, not degrees) are fitted but their cells never boosted (boosting
+    them drove the root position back toward hold: 2-fold RMS/hold on walks 0.78 against 0.25);
     ``target`` < 1 leaves a margin for takes the weights never saw (chosen by 2 folds on VALIDATION,
     bench/default_cells.py)."""
     G, K = len(GROUP_NAMES), len(model.knots)
@@ -174,7 +177,8 @@ def fit_weights(model: DefaultModel, data: dict[str, np.ndarray], ridge: float =
     cell = data["act"] * 100 + np.searchsorted(CELL_EDGES, t, side="right")
     own = np.isin(data["g"], np.asarray(per_group, int))
     cell = cell * 100 + np.where(own, data["g"] + 1, 0)
-    cells = np.unique(cell)
+    cell = np.where(np.isin(data["g"], np.asarray(unboosted, int)), -1, cell)  # fitted, never boosted
+    cells = np.unique(cell[cell >= 0])
     boost = np.ones(len(y))
     for _ in range(rounds):
         w = Weights.initial(G, K)
