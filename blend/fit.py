@@ -111,10 +111,10 @@ def occlusion(name: str, T: int, channels: Sequence[str], fps: float, seed: int,
 
 def collect(model: DefaultModel, takes: Sequence[tuple[str, np.ndarray, str]], seeds: Sequence[int]) -> dict[str, np.ndarray]:
     """Run the stream over (name, frames, activity) with occlusions; one row per erased value."""
-    rows: dict[str, list] = {k: [] for k in ("k", "g", "H", "V", "W", "R", "amp", "gate", "weak", "y", "act", "ch")}
+    rows: dict[str, list] = {k: [] for k in ("k", "g", "H", "V", "W", "R", "amp", "gate", "weak", "y", "act", "ch", "take")}
     acts = sorted({a for _, _, a in takes})
     for seed in seeds:
-        for name, frames, act in takes:
+        for ti, (name, frames, act) in enumerate(takes):
             obs, _ = occlusion(name, frames.shape[0], model.channels, model.settings.fps, seed)
             st = model.stream()
             st.collect = True
@@ -129,6 +129,7 @@ def collect(model: DefaultModel, takes: Sequence[tuple[str, np.ndarray, str]], s
                 rows["k"].append(c.k); rows["g"].append(model.group[c.idx]); rows["H"].append(H)
                 rows["V"].append(c.V); rows["W"].append(c.W); rows["R"].append(c.R); rows["amp"].append(c.amp); rows["gate"].append(c.gate); rows["weak"].append(c.weak); rows["y"].append(y)
                 rows["act"].append(np.full(len(c.idx), acts.index(act))); rows["ch"].append(c.idx)
+                rows["take"].append(np.full(len(c.idx), ti))
     out = {k: np.concatenate(v) if v else np.zeros(0) for k, v in rows.items()}
     out["activities"] = np.array(acts)
     return out
@@ -150,9 +151,18 @@ CELL_EDGES = (0.0, 1.5 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 1e9)  # seconds si
 
 
 def fit_weights(model: DefaultModel, data: dict[str, np.ndarray], ridge: float = 1e-2, smooth: float = 1.0,
-                coverage: float = 0.95, rounds: int = 8) -> Weights:
-    """Stacking weights by weighted least squares; then, while some (activity, time-since-onset)
-    cell is worse than hold, that cell's values weigh more (up to ``rounds`` refits)."""
+                coverage: float = 0.95, rounds: int = 40, per_group: tuple = (0,), target: float = 1.0,
+                unboosted: tuple = (ROOT_POS,)) -> Weights:
+    """Stacking weights by weighted least squares; then, while some (activity, time since onset[,
+    joint group]) cell has an MSE above ``target``^2 x hold's, that cell's values weigh more
+    (up to ``rounds`` refits).  The groups in ``per_group`` (the root's angles: they were worse than
+    hold on walks behind the others' gains) have cells of their own; the rest share (activity, time
+    since onset) cells (cells per group for all of them cost a third of the gain over hold on 2
+    folds of VALIDATION, bench/notebook/fill.md); the groups in ``unboosted`` (the root's
+    translation, in length units, not degrees) are fitted but their cells never boosted (boosting
+    them drove the root position back toward hold: 2-fold RMS/hold on walks 0.78 against 0.25);
+    ``target`` < 1 leaves a margin for takes the weights never saw (chosen by 2 folds on VALIDATION,
+    bench/default_cells.py)."""
     G, K = len(GROUP_NAMES), len(model.knots)
     t = data["k"] / model.settings.fps
     Phi = _hat(model, t)
@@ -165,7 +175,10 @@ def fit_weights(model: DefaultModel, data: dict[str, np.ndarray], ridge: float =
         sel = data["act"] == a
         sw[sel] = 1.0 / max(np.mean(y[sel] ** 2), 1e-9) / sel.sum()
     cell = data["act"] * 100 + np.searchsorted(CELL_EDGES, t, side="right")
-    cells = np.unique(cell)
+    own = np.isin(data["g"], np.asarray(per_group, int))
+    cell = cell * 100 + np.where(own, data["g"] + 1, 0)
+    cell = np.where(np.isin(data["g"], np.asarray(unboosted, int)), -1, cell)  # fitted, never boosted
+    cells = np.unique(cell[cell >= 0])
     boost = np.ones(len(y))
     for _ in range(rounds):
         w = Weights.initial(G, K)
@@ -182,9 +195,9 @@ def fit_weights(model: DefaultModel, data: dict[str, np.ndarray], ridge: float =
             sel = cell == c
             r = e2[sel].sum() / max(h2[sel].sum(), 1e-12)
             worst = max(worst, r)
-            if r > 1.0:
-                boost[sel] *= r**8
-        if worst <= 1.0:
+            if r > target**2:
+                boost[sel] *= (r / target**2) ** 8
+        if worst <= target**2:
             break
     ratio = np.abs(data["y"] - fill) / np.maximum(data["amp"], 1e-9)
     w.sc[:] = _scale(ratio, data["g"], Phi, G, K, coverage)

@@ -16,8 +16,8 @@ observed value:
 
 The fill is H + w_v(g, t) (V - H) + w_l(g, t) (W - H) + (w_r(g, t) gamma'_g + w_g(g, t) gamma_g) (R - H): stacking weights per joint group g and
 time since onset t (piecewise linear over ``knots`` seconds), fitted by least squares on the
-VALIDATION split (blend.fit); w = 0 is hold, so on the data they were fitted on the blend
-cannot be worse than hold in any group or time bin.  Root channels take no regression (their
+VALIDATION split (blend.fit); w = 0 is hold, and the fit re-weighs any (activity, time since
+onset) cell, and any cell of the root's own angles, that is worse than hold there.  Root channels take no regression (their
 values are heading- and place-dependent), only hold and velocity: heading continues at its
 yaw rate, so a fill follows a turn.
 
