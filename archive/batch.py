@@ -27,6 +27,7 @@ TASK_RETRIES = 2
 PROGRESS_WIDTH = 28
 # Dask runs higher priorities first; the takes' priorities are their sizes in bytes
 WARM_PRIORITY = 1 << 40
+WARM_WAIT_S = 30
 
 
 @dataclass
@@ -164,6 +165,13 @@ def run_batch(jobs: list[TakeJob], spec: FillSpec, model_file: str | None, clien
                 row = {"index": j.index, "source": j.source, "output": j.output, "status": "failed",
                        "error": f"task failed on the cluster: {type(e).__name__}: {e}", "seconds": {"total": 0.0}}
             take(row)
+        if warming:  # a worker that got no take may still be warming up: its record, briefly waited for
+            from distributed import wait
+
+            try:
+                wait(warming, timeout=WARM_WAIT_S)
+            except TimeoutError:
+                pass
         res.warm = [f.result() for f in warming if f.status == "finished"]
         del ref, warming
     res.rows = [rows[j.index] for j in todo]

@@ -56,4 +56,10 @@ def warm(model_blob: tuple[str, bytes] | None = None) -> dict:
         from archive.fill import model_from_bytes
 
         model_from_bytes(*model_blob)
-    return {"pid": os.getpid(), "imports_s": t1 - t0, "model_s": time.perf_counter() - t1}
+    # the thread pools a worker's numpy/numba may start: Dask's nanny sets the BLAS and OpenMP ones to 1
+    # (distributed.nanny.pre-spawn-environ); the processes are the parallelism, so every one should be 1
+    threads = {k: os.environ.get(k) for k in THREAD_VARS}
+    return {"pid": os.getpid(), "imports_s": t1 - t0, "model_s": time.perf_counter() - t1, "threads": threads}
+
+
+THREAD_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS", "NUMBA_NUM_THREADS")
