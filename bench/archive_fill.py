@@ -14,6 +14,13 @@ cluster already up; its start is reported apart), the model's scatter, every tak
 worker), from which the scheduling gap (a worker idle between the end of one take and the start
 of its next) is measured per take, and the workers' CPU time (getrusage) over the batch.
 
+Two rates per run: ``takes_per_s`` over the batch's wall time (cluster up; it includes the
+workers' warm-up, ``archive.worker.warm``, and the model's scatter) and ``e2e_takes_per_s`` over
+that plus the cluster's start, i.e. what ``lacuna fill`` takes from the first worker process to the
+last output.  ``process`` runs the batch in this process (no Dask: a worker's own cost); a
+``-cold`` suffix (``local-2-cold``) skips the warm-up task (each worker's first take then pays the
+imports and the model).  ``tail_s``: one worker idle at the end while the other finishes.
+
 ``loopback-N`` starts ``dask scheduler`` and N ``dask worker`` processes, each in its own session;
 ``local-N`` is ``lacuna fill``'s LocalCluster, whose workers share the caller's session.  On a
 Linux machine with autogroup scheduling (``/proc/sys/kernel/sched_autogroup_enabled``) and other
