@@ -25,6 +25,9 @@ from archive.takes import TakeJob
 # a task that raised inside the worker (not a bad take: those come back as rows) is tried again
 TASK_RETRIES = 2
 PROGRESS_WIDTH = 28
+# Dask runs higher priorities first; the takes' priorities are their sizes in bytes
+WARM_PRIORITY = 1 << 40
+WARM_WAIT_S = 30
 
 
 @dataclass
@@ -35,6 +38,7 @@ class BatchResult:
     ship_s: float = 0.0                        # model scattered to the workers
     workers: int = 0
     scheduler: str = ""
+    warm: list[dict[str, Any]] = field(default_factory=list)   # archive.worker.warm's timers per worker
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -101,8 +105,9 @@ def sweep_temporaries(jobs: list[TakeJob]) -> int:
 
 
 def run_batch(jobs: list[TakeJob], spec: FillSpec, model_file: str | None, client=None, progress: bool = True,
-              on_row: Callable[[dict[str, Any]], None] | None = None) -> BatchResult:
-    """Fill every take of ``jobs`` not already done; on ``client``'s cluster, else in this process."""
+              on_row: Callable[[dict[str, Any]], None] | None = None, warm: bool = True) -> BatchResult:
+    """Fill every take of ``jobs`` not already done; on ``client``'s cluster, else in this process.
+    ``warm``: each worker first runs ``archive.worker.warm`` (imports, model) as a task of its own."""
     t0 = time.perf_counter()
     todo, done = pending(jobs, spec, model_file)
     blob = None
@@ -134,6 +139,15 @@ def run_batch(jobs: list[TakeJob], spec: FillSpec, model_file: str | None, clien
         ref = client.scatter(blob, broadcast=True, hash=False) if blob is not None else None
         res.ship_s = time.perf_counter() - ts
         token = uuid.uuid4().hex[:12]
+        warming = []
+        if warm:
+            from archive.worker import warm as warm_fn
+
+            # one start-up task per worker (imports, model), ahead of every take; not waited for: a
+            # worker lost meanwhile leaves its warm-up to run on another one or not at all
+            for i, addr in enumerate(client.scheduler_info()["workers"]):
+                warming.append(client.submit(warm_fn, ref, key=f"lacuna-warm-{token}-{i}", workers=[addr],
+                                             allow_other_workers=True, pure=False, priority=WARM_PRIORITY))
         by_key = {}
         futures = []
         for j in todo:
@@ -151,7 +165,15 @@ def run_batch(jobs: list[TakeJob], spec: FillSpec, model_file: str | None, clien
                 row = {"index": j.index, "source": j.source, "output": j.output, "status": "failed",
                        "error": f"task failed on the cluster: {type(e).__name__}: {e}", "seconds": {"total": 0.0}}
             take(row)
-        del ref
+        if warming:  # a worker that got no take may still be warming up: its record, briefly waited for
+            from distributed import wait
+
+            try:
+                wait(warming, timeout=WARM_WAIT_S)
+            except TimeoutError:
+                pass
+        res.warm = [f.result() for f in warming if f.status == "finished"]
+        del ref, warming
     res.rows = [rows[j.index] for j in todo]
     sweep_temporaries(jobs)
     res.wall_s = time.perf_counter() - t0

@@ -62,6 +62,8 @@ def _run(args: argparse.Namespace) -> int:
               + (f", drop {args.drop}" if args.drop else ""), file=sys.stderr, flush=True)
     from archive.batch import pending
 
+    up = None
+
     if not pending(jobs, spec, args.model)[0]:
         res = run_batch(jobs, spec, args.model, None, progress=False)   # every take is done: no cluster needed
     elif args.workers == 0:
@@ -69,12 +71,18 @@ def _run(args: argparse.Namespace) -> int:
             raise LacunaError("--workers 0 fills in this process; it cannot be combined with --scheduler")
         res = run_batch(jobs, spec, args.model, None, progress=not args.quiet)
     else:
+        import time
+
         from archive.cluster import open_client
 
+        t0 = time.perf_counter()
         with open_client(args.scheduler, args.workers) as client:
+            up = time.perf_counter() - t0
             res = run_batch(jobs, spec, args.model, client, progress=not args.quiet)
     summ = {"method": method, "model": args.model, "model_sha256": sha, "drop": args.drop, "out": args.out,
             **res.summary()}
+    if up is not None:  # the cluster's start (or connection), apart from the batch's wall time
+        summ["cluster_start_s"] = round(up, 3)
     _print_table(summ, res.rows)
     if args.json_out:
         from mocap.atomic import atomic_write_text

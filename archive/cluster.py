@@ -56,8 +56,11 @@ def open_client(scheduler: str | None = None, workers: int | None = None, quiet:
     n = workers or default_workers()
     # BLAS and numba threads: one per worker process, the processes are the parallelism
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    from archive.worker import THREAD_VARS
+
+    # every thread pool in a worker at 1 (BLAS, OpenMP, numba's parallel layer): n workers on n cores
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                           silence_logs=logging.ERROR if quiet else logging.WARNING)
+                           silence_logs=logging.ERROR if quiet else logging.WARNING, env={k: "1" for k in THREAD_VARS})
     try:
         client = Client(cluster)
         try:

@@ -35,11 +35,15 @@ def _chunk_task(X: np.ndarray, lengths: np.ndarray, Baug: np.ndarray, plam: np.n
                 want_G: bool) -> dict:
     from archive.worker import tune_malloc
 
+    import time
+
     tune_malloc()  # the nanny's MALLOC_TRIM_THRESHOLD_ doubled this task's CPU (archive/worker.py)
     # one BLAS thread: a Dask worker's nanny sets OPENBLAS_NUM_THREADS=1 (pre-spawn-environ)
+    t0 = time.perf_counter()
     st = pi_stats(X, lengths, Baug, plam, log_d)
     if not want_G:
         st["G"] = None
+    st["compute_s"] = time.perf_counter() - t0   # the task's own time, for DaskEStep.timings
     return st
 
 
@@ -58,6 +62,9 @@ class DaskEStep:
         self.n_chunks = n_chunks or CHUNKS_PER_WORKER * max(1, len(client.nthreads()))
         self._runs: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
         self.calls = 0
+        # per call: (wall seconds of the call, its longest task's compute seconds); the difference is
+        # what the cluster adds (sending the tables, scheduling, results back, stacking them)
+        self.timings: list[tuple[float, float]] = []
 
     def _layout(self, em) -> list[tuple[np.ndarray, int, object]]:
         """Per chunk: (sequence indices, T_max of the chunk, scattered frames or None)."""
@@ -74,7 +81,10 @@ class DaskEStep:
         return self._runs[em]
 
     def __call__(self, em, Baug: np.ndarray, plam: np.ndarray, log_d: np.ndarray) -> dict:
+        import time
+
         self.calls += 1
+        t0 = time.perf_counter()
         chunks = self._layout(em)
         futures = []
         for idx, T, ref in chunks:
@@ -92,6 +102,7 @@ class DaskEStep:
                 out[k][idx] = st[k]
             if em.has_missing:
                 out["G"][:T, idx] = st["G"]
+        self.timings.append((time.perf_counter() - t0, max(st["compute_s"] for st in parts)))
         return out
 
 

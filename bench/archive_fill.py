@@ -14,6 +14,13 @@ cluster already up; its start is reported apart), the model's scatter, every tak
 worker), from which the scheduling gap (a worker idle between the end of one take and the start
 of its next) is measured per take, and the workers' CPU time (getrusage) over the batch.
 
+Two rates per run: ``takes_per_s`` over the batch's wall time (cluster up; it includes the
+workers' warm-up, ``archive.worker.warm``, and the model's scatter) and ``e2e_takes_per_s`` over
+that plus the cluster's start, i.e. what ``lacuna fill`` takes from the first worker process to the
+last output.  ``process`` runs the batch in this process (no Dask: a worker's own cost); a
+``-cold`` suffix (``local-2-cold``) skips the warm-up task (each worker's first take then pays the
+imports and the model).  ``tail_s``: one worker idle at the end while the other finishes.
+
 ``loopback-N`` starts ``dask scheduler`` and N ``dask worker`` processes, each in its own session;
 ``local-N`` is ``lacuna fill``'s LocalCluster, whose workers share the caller's session.  On a
 Linux machine with autogroup scheduling (``/proc/sys/kernel/sched_autogroup_enabled``) and other
@@ -79,15 +86,18 @@ def _gaps(stream: list[dict], t_submit: float) -> dict:
         for ss in ev["startstops"]:
             if ss["action"] == "compute":
                 by_w.setdefault(ev["worker"], []).append((ss["start"], ss["stop"]))
-    gaps, comp, first = [], [], []
+    gaps, comp, first, last = [], [], [], []
     for w, iv in by_w.items():
         iv.sort()
         first.append(iv[0][0] - t_submit)
+        last.append(iv[-1][1])
         comp += [b - a for a, b in iv]
         gaps += [iv[i + 1][0] - iv[i][1] for i in range(len(iv) - 1)]
     return {"tasks": len(comp), "compute_s_mean": float(np.mean(comp)) if comp else None,
             "gap_s_mean": float(np.mean(gaps)) if gaps else None, "gap_s_max": float(np.max(gaps)) if gaps else None,
-            "first_start_s": float(np.mean(first)) if first else None}
+            "first_start_s": float(np.mean(first)) if first else None,
+            # the end: one worker idle while the other finishes its last take
+            "tail_s": float(max(last) - min(last)) if last else None}
 
 
 def _cpu() -> float:
@@ -109,26 +119,36 @@ def run_one(kind: str, jobs_paths: list[str], spec, model: str, work: Path) -> d
     jobs = discover(jobs_paths, str(out))
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
-    n = int(kind.split("-")[1])
-    loop = kind.startswith("loopback")
-    cm = dask_cluster(n) if loop else open_client(None, n)
-    with cm as c:
-        client = c.client if loop else c
-        t_up = time.perf_counter() - t0
-        cpu0 = client.run(_cpu)
-        t_submit = time.time()
-        with get_task_stream(client=client) as ts:
-            res = run_batch(jobs, spec, model, client, progress=False)
-        stream = ts.data
-        cpu1 = client.run(_cpu)
-    worker_cpu = sum(cpu1[w] - cpu0[w] for w in cpu1)
+    if kind == "process":  # no Dask: run_batch in this process, the reference for a worker's own cost
+        c0 = _cpu()
+        res = run_batch(jobs, spec, model, None, progress=False)
+        t_up, n, g, worker_cpu, client_cpu = 0.0, 1, {}, _cpu() - c0, 0.0
+    else:
+        n = int(kind.split("-")[1])
+        loop = kind.startswith("loopback")
+        cm = dask_cluster(n) if loop else open_client(None, n)
+        with cm as c:
+            client = c.client if loop else c
+            t_up = time.perf_counter() - t0
+            cpu0 = client.run(_cpu)
+            c0 = _cpu()
+            t_submit = time.time()
+            with get_task_stream(client=client) as ts:
+                res = run_batch(jobs, spec, model, client, progress=False, warm=not kind.endswith("-cold"))
+            client_cpu = _cpu() - c0   # this process: the client and, for local-N, the scheduler
+            stream = ts.data
+            cpu1 = client.run(_cpu)
+        worker_cpu = sum(cpu1[w] - cpu0[w] for w in cpu1)
+        g = _gaps(stream, t_submit)
     rows = res.rows
     secs = {k: float(np.sum([r["seconds"].get(k, 0.0) for r in rows])) for k in ("model", "read", "fill", "write", "total")}
     s = res.summary()
-    g = _gaps(stream, t_submit)
+    e2e = t_up + s["wall_s"]
     return {"config": kind, "cluster_start_s": round(t_up, 2), "wall_s": s["wall_s"], "takes": s["filled"],
             "failed": s["failed"], "frames": s["frames"], "takes_per_s": s["takes_per_s"], "frames_per_s": s["frames_per_s"],
+            "e2e_wall_s": round(e2e, 3), "e2e_takes_per_s": round(s["filled"] / e2e, 3),
             "model_ship_s": s["model_ship_s"], "work_s": secs, "worker_cpu_s": round(worker_cpu, 2),
+            "client_cpu_s": round(client_cpu, 2), "warm": res.warm,
             "cpu_share": round(worker_cpu / (n * s["wall_s"]), 3), "task_stream": g, "load1_before": load0,
             "load1_after": os.getloadavg()[0],
             "rehearsal_rms_deg_mean": float(np.mean([r["rehearsal"]["rms_deg"] for r in rows
@@ -164,20 +184,25 @@ def main() -> int:
                 runs.append(res)
                 ts = res["task_stream"]
                 print(f"round {r} {kind:>10}: {res['takes_per_s']:.3f} takes/s {res['frames_per_s']:.0f} frames/s "
-                      f"wall {res['wall_s']:.1f} s, up {res['cluster_start_s']:.1f} s, ship {res['model_ship_s'] * 1e3:.1f} ms, "
-                      f"fill/take {res['work_s']['fill'] / res['takes']:.3f} s, gap/take {ts['gap_s_mean'] or 0:.4f} s, "
+                      f"wall {res['wall_s']:.1f} s, up {res['cluster_start_s']:.1f} s (with it {res['e2e_takes_per_s']:.3f} "
+                      f"takes/s), ship {res['model_ship_s'] * 1e3:.1f} ms, tail {ts.get('tail_s') or 0:.2f} s, "
+                      f"fill/take {res['work_s']['fill'] / res['takes']:.3f} s, gap/take {ts.get('gap_s_mean') or 0:.4f} s, "
+                      f"client CPU {res['client_cpu_s']:.1f} s, "
                       f"worker CPU {res['worker_cpu_s']:.1f} s ({res['cpu_share']:.2f} of each worker's wall), "
                       f"load {res['load1_before']:.1f}->{res['load1_after']:.1f}", file=sys.stderr, flush=True)
     summ = {}
     for kind in configs:
         rs = [x for x in runs if x["config"] == kind]
         summ[kind] = {"takes_per_s_median": float(np.median([x["takes_per_s"] for x in rs])),
+                      "e2e_takes_per_s_median": float(np.median([x["e2e_takes_per_s"] for x in rs])),
                       "frames_per_s_median": float(np.median([x["frames_per_s"] for x in rs]))}
-    for a1, a2 in (("local-1", "local-2"), ("loopback-1", "loopback-2")):
+    for a1, a2 in (("local-1", "local-2"), ("loopback-1", "loopback-2"), ("local-1-cold", "local-2-cold")):
         if a1 in summ and a2 in summ:
-            summ[f"speedup_{a2}_over_{a1}_per_round"] = [
-                y["takes_per_s"] / x["takes_per_s"] for x, y in
-                zip([x for x in runs if x["config"] == a1], [y for y in runs if y["config"] == a2])]
+            pairs = list(zip([x for x in runs if x["config"] == a1], [y for y in runs if y["config"] == a2]))
+            summ[f"speedup_{a2}_over_{a1}_per_round"] = [round(y["takes_per_s"] / x["takes_per_s"], 3) for x, y in pairs]
+            summ[f"e2e_speedup_{a2}_over_{a1}_per_round"] = [round(y["e2e_takes_per_s"] / x["e2e_takes_per_s"], 3)
+                                                           for x, y in pairs]
+            summ[f"load1_{a1}_{a2}_per_round"] = [[x["load1_before"], y["load1_after"]] for x, y in pairs]
     out = {"takes": a.takes, "method": spec.method, "model": a.model, "drop": "gaps", "runs": runs, "summary": summ,
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cpus": os.cpu_count()}
     print(json.dumps(summ, indent=1))

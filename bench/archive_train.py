@@ -98,13 +98,19 @@ def run(kind: str, seqs, ch, kw) -> dict:
             client = c.client if loop else c
             up = time.perf_counter() - t0
             t0 = time.perf_counter()
-            mapper = Timed(DaskEStep(client))
+            inner = DaskEStep(client)
+            mapper = Timed(inner)
             with estep_map(mapper):
                 model = train_model(seqs, ch, **kw)
+            tm = np.array(inner.timings)
     wall = time.perf_counter() - t0
+    split = {} if kind == "process" else {
+        # the E-step's calls: the longest chunk's compute on its worker, and the rest of each call
+        "estep_task_s": round(float(tm[:, 1].sum()), 2), "estep_overhead_s": round(float((tm[:, 0] - tm[:, 1]).sum()), 2),
+        "first_call_s": round(float(tm[0, 0]), 3)}
     b = model.meta["training"]["bounds"]
     return {"config": kind, "wall_s": round(wall, 2), "cluster_start_s": round(up, 2), "estep_s": round(mapper.seconds, 2),
-            "estep_calls": mapper.calls, "rest_s": round(wall - mapper.seconds, 2), "final_bound": b[-1], "bounds": b,
+            "estep_calls": mapper.calls, "rest_s": round(wall - mapper.seconds, 2), **split, "final_bound": b[-1], "bounds": b,
             "load1_before": load0, "load1_after": os.getloadavg()[0],
             "params": {k: getattr(model.params, k) for k in ("mu", "lam", "tau")}}
 
@@ -125,7 +131,8 @@ def main() -> int:
     for kind in a.configs.split(","):
         r = run(kind, seqs, ch, kw)
         print(f"{kind:>10}: {r['wall_s']:.1f} s (E-step {r['estep_s']:.1f} s in {r['estep_calls']} calls, rest "
-              f"{r['rest_s']:.1f} s; cluster up {r['cluster_start_s']:.1f} s), bound {r['final_bound']:.10g}, "
+              f"{r['rest_s']:.1f} s; cluster up {r['cluster_start_s']:.1f} s; longest task {r.get('estep_task_s', 0):.1f} s, "
+              f"overhead {r.get('estep_overhead_s', 0):.1f} s), bound {r['final_bound']:.10g}, "
               f"load {r['load1_before']:.1f}->{r['load1_after']:.1f}", file=sys.stderr, flush=True)
         runs.append(r)
     ref = runs[-1]

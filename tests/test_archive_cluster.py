@@ -254,3 +254,22 @@ def test_local_cluster_workers_each_lead_a_session_of_their_own():
     assert len(got) == 2
     for pid, sid in got.values():
         assert sid == pid != os.getsid(0)
+
+
+def test_every_worker_warms_up_once_before_its_takes_with_one_thread_per_pool(data, tmp_path):
+    """archive.worker.warm runs as one task per worker ahead of the takes (imports and the model:
+    no take's timers carry them), inside workers whose BLAS/OpenMP/numba pools have one thread."""
+    from archive.batch import run_batch
+    from archive.cluster import open_client
+    from archive.fill import FillSpec
+    from archive.takes import discover
+
+    jobs = discover([str(data / t) for t in TAKES[:2]], str(tmp_path / "out"))
+    with open_client(workers=2) as client:
+        res = run_batch(jobs, FillSpec("interp", drop="gaps"), None, client, progress=False)
+        pids = set(client.run(os.getpid).values())
+    assert [r["status"] for r in res.rows] == ["filled", "filled"]
+    assert sorted(w["pid"] for w in res.warm) == sorted(pids)      # one warm-up on each worker
+    for w in res.warm:
+        assert w["threads"] == {"OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+                                "NUMBA_NUM_THREADS": "1"}
