@@ -25,6 +25,7 @@ from daemon import config as config_mod
 from daemon import budget as budgets, osc, security, wire
 from daemon.metrics import Metrics
 from daemon.metrics_http import MetricsHTTP
+from view import in_daemon
 from daemon.models import Loaded, load_all
 from daemon.notify import Notifier
 from daemon.pmqos import CpuLatency
@@ -134,7 +135,7 @@ class Daemon:
         self.net.open()
         if self.cfg.metrics_http:
             self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom,
-                                    allow=self.cfg.metrics_networks)
+                                    allow=self.cfg.metrics_networks, view=in_daemon.from_config(self.cfg, self.models))
         self._request_cpu_latency()
         self._request_realtime()  # (after every thread the daemon starts for good, so only these get it)
         self._prom = self.metrics.prometheus(self.status())
