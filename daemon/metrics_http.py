@@ -96,7 +96,7 @@ class MetricsHTTP:
     def _run(self) -> None:
         while not self._stop:
             try:
-                wait = TICK_S if self.view is None else min(TICK_S, self.view.due_in(time.monotonic()))
+                wait = TICK_S if self.view is None or not self.view.watched else min(TICK_S, self.view.due_in(time.monotonic()))
                 events = self.sel.select(wait)
                 now = time.monotonic()
                 for key, mask in events:
@@ -104,8 +104,11 @@ class MetricsHTTP:
                         self._accept(now)
                     else:
                         self._io(key.data, mask)
-                if self.view is not None and self.view.due_in(now) <= 0:
-                    self._view_tick(now)
+                if self.view is not None:
+                    pages = sum(c.feed for c in self.conns.values())
+                    self.view.watch(pages)
+                    if pages and self.view.due_in(now) <= 0:
+                        self._view_tick(now)
                 self._expire(now)
             except Exception as e:  # noqa: BLE001 - the endpoint must outlive any bug in it
                 self.counts["errors"] += 1

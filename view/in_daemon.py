@@ -7,7 +7,8 @@ what the daemon published on its own PUB socket since the last one through a SUB
 (ZeroMQ drops what a slow subscriber does not take: the daemon never waits for it), keeps only
 the newest message of each stream (the topic), decodes those few, and turns them into one page
 update with :class:`view.feed.Feed` (one batched FK call for all streams).  The serving loop's
-cost is the PUB send it already does; the view's is about N decodes and one FK call per tick.
+cost is the PUB send it already does; the view's is about N decodes and one FK call per tick,
+and nothing at all while no page is open (the SUB subscribes only while one is).
 
 Per-frame latency figures are sampled at the display rate (the newest fill of each tick), not
 taken from every fill as the standalone ``lacuna view`` does.
@@ -45,12 +46,18 @@ class DaemonView:
         self.sub = self.ctx.socket(zmq.SUB)
         self.sub.setsockopt(zmq.LINGER, 0)
         self.sub.setsockopt(zmq.RCVHWM, RCVHWM)
-        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
         self.sub.connect(local_endpoint(pub_endpoint))
+        self.watched = False  # subscribed only while a page is open: with none, PUB sends it nothing
         self.meta_sent = -1
         self.meta_chunk = b""
         self.read = self.decoded = self.undecodable = self.ticks = 0
         self.last_sent = time.monotonic()
+
+    def watch(self, pages: int) -> None:
+        """``pages`` feeds are open: subscribe at the first, unsubscribe after the last."""
+        if (pages > 0) != self.watched:
+            self.watched = pages > 0
+            self.sub.setsockopt(zmq.SUBSCRIBE if self.watched else zmq.UNSUBSCRIBE, b"")
 
     def due_in(self, now: float) -> float:
         return max(0.0, self.next_t - now)
