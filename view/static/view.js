@@ -95,7 +95,9 @@
     el("figcaption", "", side, "gait phase");
     const phaseCv = el("canvas", "phase", side); phaseCv.width = 130; phaseCv.height = 90;
     sizeCanvas(cv);
-    const s = { id, card, model, info, problem, cv, styleCv, phaseCv, last: null, pose: null, dirty: false,
+    // opaque (every pixel is painted each draw): the compositor need not blend what is under it
+    const ctx = cv.getContext("2d", { alpha: false });
+    const s = { id, card, model, info, problem, cv, ctx, styleCv, phaseCv, last: null, pose: null, dirty: false,
                 frame: null, px: {}, rgb: [], lat: [], stats: null, meta: null };
     st.streams[id] = s;
     st.order.push(id);
@@ -174,7 +176,7 @@
       if (stamp[bi[j]] !== s.draws) { stamp[bi[j]] = s.draws; used[nUsed++] = bi[j]; }
     }
     s.rgb = null;  // joints() looks colours up when asked
-    const cv = s.cv, ctx = s.ctx || (s.ctx = cv.getContext("2d")), gap = Math.round(PANEL_GAP * dpr);
+    const cv = s.cv, ctx = s.ctx, gap = Math.round(PANEL_GAP * dpr);
     const W = Math.floor((cv.width - 2 * gap) / 3), H = cv.height, root = s.root;
     ctx.fillStyle = "#1b2126"; ctx.fillRect(0, 0, cv.width, H);
     ctx.lineCap = "round";
