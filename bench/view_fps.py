@@ -51,6 +51,15 @@ SETTLE_S = 2.0
 BROWSER_NICE = 10  # the first part of a bench run (streams starting, the page catching up) is not counted
 
 
+# the renderer main thread's busy time by kind (DevTools Performance.getMetrics, seconds)
+METRICS = {"task": "TaskDuration", "script": "ScriptDuration", "layout": "LayoutDuration", "style": "RecalcStyleDuration"}
+
+
+def renderer_metrics(b: Browser) -> dict[str, float]:
+    got = {m["name"]: m["value"] for m in b.call("Performance.getMetrics")["metrics"]}
+    return {k: float(got.get(name, 0.0)) for k, name in METRICS.items()}
+
+
 def bench_run(router: str, n: int, seconds: float, out: str, sub: str | None = None) -> dict:
     """One ``lacuna bench`` run; ``sub``: with a bare subscriber process on that PUB endpoint."""
     s = None
@@ -92,10 +101,12 @@ def with_view(daemon: DaemonProcess, model_file: str, n: int, seconds: float, ou
                          f" return ids.length >= {n} && ids.every(i => s.streams[i].pose) }})()")
                 b.wait_for(probe, 60)
                 time.sleep(SETTLE_S)
-                read = "[lacunaView.state.raf, performance.now(), lacunaView.state.updates, lacunaView.state.draws]"
-                r0 = b.evaluate(read)
+                read = ("[lacunaView.state.raf, performance.now(), lacunaView.state.updates, lacunaView.state.draws,"
+                        " lacunaView.state.drawMs]")
+                b.call("Performance.enable")
+                r0, m0 = b.evaluate(read), renderer_metrics(b)
                 time.sleep(max(1.0, seconds - SETTLE_S - 3.0))
-                r1 = b.evaluate(read)
+                r1, m1 = b.evaluate(read), renderer_metrics(b)
                 if shot:
                     b.screenshot(shot)
         finally:
@@ -111,6 +122,8 @@ def with_view(daemon: DaemonProcess, model_file: str, n: int, seconds: float, ou
         dt = (r1[1] - r0[1]) / 1000.0
         row.update(page_fps=(r1[0] - r0[0]) / dt, page_updates_per_s=(r1[2] - r0[2]) / dt,
                    page_draws_per_s=(r1[3] - r0[3]) / dt, page_window_s=dt,
+                   page_js_draw_percent=100.0 * (r1[4] - r0[4]) / 1000.0 / dt,
+                   **{f"renderer_{k}_percent": 100.0 * (m1[k] - m0[k]) / dt for k in METRICS},
                    chromium_cpu_percent=100.0 * (bcpu1 - bcpu0) / wall)
     return row
 
@@ -145,7 +158,9 @@ def main() -> int:
                         row = with_view(daemon, model, n, a.seconds, out, cond == "page", shot, a.browser_nice)
                     row.update(round=r, condition=cond)
                     rows.append(row)
-                    fps = (f", page {row['page_fps']:.1f} fps, chromium {row['chromium_cpu_percent']:.0f}% CPU"
+                    fps = (f", page {row['page_fps']:.1f} fps ({row['page_updates_per_s']:.0f} updates/s), chromium "
+                           f"{row['chromium_cpu_percent']:.0f}% CPU, renderer main thread busy {row['renderer_task_percent']:.0f}% "
+                           f"(script {row['renderer_script_percent']:.0f}%, draw JS {row['page_js_draw_percent']:.0f}%)"
                            if cond == "page" else "")
                     if cond in ("view", "page"):
                         fps += f", view {row['view_cpu_percent']:.1f}% CPU"
@@ -165,7 +180,8 @@ def main() -> int:
             if cond == "page":
                 s[cond]["page_fps_min"] = float(min(x["page_fps"] for x in rr))
                 s[cond]["page_fps_median"] = float(np.median([x["page_fps"] for x in rr]))
-                s[cond]["chromium_cpu_percent"] = float(np.median([x["chromium_cpu_percent"] for x in rr]))
+                for k in ["chromium_cpu_percent", "page_js_draw_percent", "page_updates_per_s"] + [f"renderer_{m}_percent" for m in METRICS]:
+                    s[cond][k] = float(np.median([x[k] for x in rr]))
         summary[str(n)] = s
     res = {"take": "CMU 07_01 streamed by lacuna bench (gaps-protocol dropouts); hold model fitted on 07_02",
            "rate_hz": 120, "seconds": a.seconds, "browser_nice": a.browser_nice, "rounds": a.rounds, "view_rate": 30, "summary": summary, "rows": rows}

@@ -73,6 +73,7 @@ class Config:
     osc_send: tuple[str, int] | None = None
     metrics_http: tuple[str, int] | None = None
     metrics_allow: list[str] | None = None  # source addresses/networks the metrics endpoint answers (needed off loopback)
+    metrics_view: bool = False  # the metrics endpoint also serves the live view at /view/ (view/in_daemon.py)
     security: Any = None  # daemon.security.SecuritySpec, set by security.apply_config
     metrics_networks: Any = None  # metrics_allow parsed (security.apply_config)
 
@@ -111,7 +112,7 @@ _SCHEMA: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "hwm": (int, (1, 10_000_000)),
     },
     "osc": {"listen": (str, None), "send": (str, None)},
-    "metrics": {"http": (str, None), "allow": (list, None)},
+    "metrics": {"http": (str, None), "allow": (list, None), "view": (bool, None)},
 }
 
 
@@ -250,6 +251,9 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
         if not all(isinstance(a, str) for a in m["allow"]):
             raise ConfigError(f"{where}: metrics.allow must be a list of addresses or networks (got {m['allow']!r:.60})")
         cfg.metrics_allow = list(m["allow"])
+    cfg.metrics_view = bool(m.get("view"))
+    if cfg.metrics_view and not (cfg.metrics_http and cfg.zmq_pub):
+        raise ConfigError(f"{where}: metrics.view needs metrics.http (where the page is served) and zmq.pub (what it shows)")
     if not (cfg.zmq_router or cfg.zmq_pull or cfg.zmq_sub or cfg.osc_listen):
         raise ConfigError(f"{where}: no input configured (set zmq.router, zmq.pull, zmq.sub or osc.listen)")
     if (cfg.zmq_pull or cfg.zmq_sub) and not cfg.zmq_pub:

@@ -43,6 +43,7 @@ from daemon.sessions import SessionTable
 from daemon.stalls import Stalls
 from daemon.tick import Tick
 from daemon.transport import Transports
+from view import in_daemon
 
 PROM_STREAMS = 64  # streams with per-stream series in the metrics snapshot
 IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
@@ -119,7 +120,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         self.net.open()
         if self.cfg.metrics_http:
             self.http = MetricsHTTP(self.cfg.metrics_http[0], self.cfg.metrics_http[1], lambda: self._prom,
-                                    allow=self.cfg.metrics_networks)
+                                    allow=self.cfg.metrics_networks, view=in_daemon.from_config(self.cfg, self.models))
         self._request_cpu_latency()
         self._request_realtime()  # (after every thread the daemon starts for good, so only these get it)
         self._prom = self.metrics.prometheus(self.status())

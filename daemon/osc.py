@@ -76,9 +76,12 @@ def decode(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES) -> wire.Message
             if len(args) != 5 or not isinstance(args[3], bytes) or not isinstance(args[4], bytes):
                 raise wire.WireError("bad_type", f"OSC {addr}: needs stream, seq, t, angles blob, observed blob", sid, seq)
             return _via_wire({"type": "frame", "stream": sid, "seq": seq, "t": t, "angles": args[3], "observed": args[4]})
-        if addr == "/lacuna/hello":
+        if addr in ("/lacuna/hello", "/lacuna/hello/positions"):  # the second: fills carry joint positions
             sid, model = _str(args, 0, addr), _str(args, 1, addr)
-            return _via_wire({"type": "hello", "stream": sid, "channels": args[2:], "model": model or None})
+            d = {"type": "hello", "stream": sid, "channels": args[2:], "model": model or None}
+            if addr == "/lacuna/hello/positions":
+                d["positions"] = True
+            return _via_wire(d)
         if addr == "/lacuna/reset":
             return wire.Control("reset", _str(args, 0, addr))
     except wire.WireError:
@@ -86,7 +89,7 @@ def decode(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES) -> wire.Message
     except Exception as e:
         raise wire.WireError("malformed", f"OSC {addr} could not be read ({type(e).__name__})") from None
     raise wire.WireError("unknown_type", f"OSC address {addr[:60]!r} is not one of /lacuna/frame, /lacuna/frame/masked, "
-                                         f"/lacuna/hello, /lacuna/reset")
+                                         f"/lacuna/hello, /lacuna/hello/positions, /lacuna/reset")
 
 
 def _precheck(data: bytes) -> None:
@@ -191,10 +194,19 @@ def encode(msg: wire.Message) -> bytes:
             bb.add_content(_msg("/lacuna/style", [sid, seq] + [(float(v), "f") for v in msg.style]).build())
         if msg.phase is not None and math.isfinite(msg.phase):
             bb.add_content(_msg("/lacuna/phase", [sid, seq, (float(msg.phase), "f")]).build())
+        if msg.positions is not None:  # (J, 3) metres, x y z of each joint in the hello-ack's /lacuna/joints order
+            bb.add_content(_msg("/lacuna/positions", [sid, seq] + [(float(v), "f") for v in np.ravel(msg.positions)]).build())
         return bb.build().dgram
     if isinstance(msg, wire.HelloAck):
-        return _msg("/lacuna/hello-ack", [(msg.stream, "s"), (msg.model, "s"), (len(msg.channels), "i"),
-                                          (len(msg.passthrough), "i"), (len(msg.missing), "i")]).build().dgram
+        ack = _msg("/lacuna/hello-ack", [(msg.stream, "s"), (msg.model, "s"), (len(msg.channels), "i"),
+                                         (len(msg.passthrough), "i"), (len(msg.missing), "i")]).build()
+        if msg.joints is None:
+            return ack.dgram
+        bb = OscBundleBuilder(IMMEDIATELY)  # a hello that asked for positions: the joints they are of
+        bb.add_content(ack)
+        bb.add_content(_msg("/lacuna/joints", [(msg.stream, "s")] + [(j, "s") for j in msg.joints]).build())
+        bb.add_content(_msg("/lacuna/parents", [(msg.stream, "s")] + [(int(p), "i") for p in msg.parents or ()]).build())
+        return bb.build().dgram
     if isinstance(msg, wire.Drop):
         return _msg("/lacuna/drop", [(msg.stream, "s"), (msg.seq, "h"), (msg.reason, "s")]).build().dgram
     if isinstance(msg, wire.ErrorMsg):

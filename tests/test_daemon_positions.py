@@ -15,7 +15,7 @@ import pytest
 import zmq
 
 from clients.client import Client
-from clients.daemon_proc import DaemonProcess
+from clients.daemon_proc import DaemonProcess, free_port
 from clients.session import DaemonRefused
 from daemon import wire
 from lacuna.cli import main
@@ -35,7 +35,7 @@ def served(data, tmp_path_factory):
     take = read_motion(data / "cmu" / "35" / "35_08.amc")
     HoldModel(list(take.channels), np.zeros(len(take.channels)), np.ones(len(take.channels))).save(str(tmp / "hold.npz"))
     d = DaemonProcess({"hlm": tmp / "hlm.npz", "hold": tmp / "hold.npz"}, "hlm", workdir=str(tmp / "d"),
-                      daemon={"budget_ms": 1000.0}).start(120)
+                      daemon={"budget_ms": 1000.0}, osc={"listen": f"127.0.0.1:{free_port()}"}).start(120)
     yield d, take
     d.stop()
 
@@ -196,3 +196,74 @@ def test_the_asyncio_client_asks_for_positions_too(served):
 
     for m in asyncio.run(run()):
         np.testing.assert_allclose(m.positions, kin.positions(m.angles.astype(np.float64)[None])[0], atol=1e-5, rtol=0)
+
+
+def _osc_parts(dgram):
+    """An OSC datagram -> {address: params} (a bundle's messages, or the one message)."""
+    from pythonosc.osc_bundle import OscBundle
+    from pythonosc.osc_message import OscMessage
+
+    if OscBundle.dgram_is_bundle(dgram):
+        return {m.address: list(m.params) for m in OscBundle(dgram)}
+    m = OscMessage(dgram)
+    return {m.address: list(m.params)}
+
+
+def _osc_msg(address, args):
+    from pythonosc.osc_message_builder import OscMessageBuilder
+
+    b = OscMessageBuilder(address)
+    for v, t in args:
+        b.add_arg(v, t)
+    return b.build().dgram
+
+
+def test_osc_hello_positions_gets_joints_and_positions_in_every_fill(served):
+    """Over a real UDP socket: ``/lacuna/hello/positions`` is acked with the joints and parents,
+    and each fill bundle carries ``/lacuna/positions`` (x y z per joint), equal to the take's own
+    ASF FK (numpy batch code) on the completed frame the same bundle returns."""
+    import socket
+
+    d, take = served
+    kin = Kinematics.from_motion(take)
+    sent, miss = _frames(take, 15)
+    host, port = d.osc_opts["listen"].rsplit(":", 1)
+    u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    u.settimeout(30)
+    try:
+        u.sendto(_osc_msg("/lacuna/hello/positions", [("osc-pos", "s"), ("", "s")] + [(c, "s") for c in take.channels]),
+                 (host, int(port)))
+        ack = _osc_parts(u.recv(65536))
+        assert ack["/lacuna/hello-ack"][:2] == ["osc-pos", "hlm"], ack
+        assert ack["/lacuna/joints"] == ["osc-pos"] + kin.joints
+        assert ack["/lacuna/parents"] == ["osc-pos"] + kin.parents
+        got, done = [], []
+        for t in range(len(sent)):
+            u.sendto(_osc_msg("/lacuna/frame", [("osc-pos", "s"), (t, "i"), (t / 120.0, "d")]
+                              + [(float(v), "f") for v in sent[t]]), (host, int(port)))
+            fill = _osc_parts(u.recv(65536))
+            f = fill["/lacuna/fill"]
+            assert f[:5] == ["osc-pos", t, t / 120.0, "ok", "hlm"], f[:5]
+            assert np.frombuffer(fill["/lacuna/filled"][2], np.uint8)[miss].all()
+            p = fill["/lacuna/positions"]
+            assert p[:2] == ["osc-pos", t] and len(p) == 2 + 3 * len(kin.joints)
+            got.append(np.reshape(p[2:], (-1, 3)))
+            done.append(f[7:])
+        want = kin.positions(np.array(done, np.float64))
+        np.testing.assert_allclose(np.array(got), want, atol=1e-5, rtol=0)
+        assert np.ptp(np.array(got)[:, kin.joints.index("lhand")], axis=0).max() > 0.01  # the filled arm moved
+        # a plain OSC hello on the same stream: no joints in the ack, no positions in the fills
+        u.sendto(_osc_msg("/lacuna/hello", [("osc-pos", "s"), ("", "s")] + [(c, "s") for c in take.channels]),
+                 (host, int(port)))
+        assert set(_osc_parts(u.recv(65536))) == {"/lacuna/hello-ack"}
+        u.sendto(_osc_msg("/lacuna/frame", [("osc-pos", "s"), (99, "i"), (1.0, "d")] + [(float(v), "f") for v in sent[0]]),
+                 (host, int(port)))
+        fill = _osc_parts(u.recv(65536))
+        assert "/lacuna/fill" in fill and "/lacuna/positions" not in fill
+        # a model without a skeleton: the OSC hello asking for positions is refused no_skeleton
+        u.sendto(_osc_msg("/lacuna/hello/positions", [("osc-held", "s"), ("hold", "s")] + [(c, "s") for c in take.channels]),
+                 (host, int(port)))
+        err = _osc_parts(u.recv(65536))
+        assert err["/lacuna/error"][0] == "no_skeleton", err
+    finally:
+        u.close()

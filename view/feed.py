@@ -309,7 +309,8 @@ class Feed:
             if not np.isfinite(p).all():
                 continue  # not drawable; the page keeps the last good pose
             state = cmap.joint_state(np.asarray(m.filled, bool), np.asarray(m.std, np.float64))
-            out[st.id] = (np.round(p, 4).reshape(-1).tolist(), [round(float(x), 2) for x in state])
+            out[st.id] = (np.round(p, 3).reshape(-1).tolist(),  # millimetres: what a page can show
+                          [round(float(x), 2) for x in state])
         return out
 
     def _stats(self, now: float) -> dict[str, Any]:

@@ -12,14 +12,16 @@
   const LAT_WINDOW_S = 10;
   // the skeletons are drawn at every update; text, extras and the latency plot less often, so a
   // page of many streams costs the capture box little (software raster in a headless browser)
-  const INFO_EVERY_MS = 500, LAT_EVERY_MS = 200;
+  const INFO_EVERY_MS = 500, LAT_EVERY_MS = 200, EXTRAS_EVERY_MS = 100, LAT_POINT_S = 0.1;
 
-  const st = { connected: false, meta: null, metaVersion: -1, updates: 0, raf: 0, draws: 0, streams: {}, order: [] };
+  // drawMs: the page's own JavaScript time drawing (performance.now around each animation frame's work)
+  const st = { connected: false, meta: null, metaVersion: -1, updates: 0, raf: 0, draws: 0, drawMs: 0, streams: {}, order: [] };
 
-  function colourOf(v, max) {
-    if (v === -1) return OBSERVED_RGB.slice();
-    if (v === -2) return HELD_RGB.slice();
-    const u = Math.max(0, Math.min(1, v / (max || 20)));
+  // Colours come from a table of LEVELS std levels (built once per std_max): a frame's drawing
+  // makes no colour strings, and joints of one colour are stroked and filled as one path.
+  const LEVELS = 256, C_OBS = LEVELS, C_HELD = LEVELS + 1, C_BONE_OBS = LEVELS + 2;
+  const lut = { max: -1, rgb: [], css: [] };
+  function ramp(u) {
     for (let i = 1; i < STOPS.length; i++) {
       const [u1, c1] = STOPS[i];
       if (u <= u1 || i === STOPS.length - 1) {
@@ -29,6 +31,20 @@
       }
     }
   }
+  function table(max) {
+    if (lut.max === max) return lut;
+    lut.max = max; lut.rgb = []; lut.css = [];
+    for (let i = 0; i < LEVELS; i++) lut.rgb.push(ramp(i / (LEVELS - 1)));
+    lut.rgb.push(OBSERVED_RGB, HELD_RGB, [0x78, 0x86, 0x90]);
+    lut.css = lut.rgb.map(c => `rgb(${c[0]},${c[1]},${c[2]})`);
+    return lut;
+  }
+  function colourIndex(v, max) {
+    if (v === -1) return C_OBS;
+    if (v === -2) return C_HELD;
+    return Math.round(Math.max(0, Math.min(1, v / (max || 20))) * (LEVELS - 1));
+  }
+  function colourOf(v, max) { return table(max || 20).rgb[colourIndex(v, max || 20)].slice(); }
   const css = rgb => `rgb(${rgb[0]},${rgb[1]},${rgb[2]})`;
   const stdMax = () => (st.meta && st.meta.std_max) || 20;
 
@@ -79,7 +95,9 @@
     el("figcaption", "", side, "gait phase");
     const phaseCv = el("canvas", "phase", side); phaseCv.width = 130; phaseCv.height = 90;
     sizeCanvas(cv);
-    const s = { id, card, model, info, problem, cv, styleCv, phaseCv, last: null, pose: null, dirty: false,
+    // opaque (every pixel is painted each draw): the compositor need not blend what is under it
+    const ctx = cv.getContext("2d", { alpha: false });
+    const s = { id, card, model, info, problem, cv, ctx, styleCv, phaseCv, last: null, pose: null, dirty: false,
                 frame: null, px: {}, rgb: [], lat: [], stats: null, meta: null };
     st.streams[id] = s;
     st.order.push(id);
@@ -112,7 +130,11 @@
       const s = st.streams[d.id] || makeStream(d.id);
       s.last = d; s.dirty = true;
       if (d.pos) s.pose = { pos: d.pos, fill: d.fill, seq: d.seq };
-      s.lat.push([u.time, d.proc_ms, d.age_ms]);
+      const tail = s.lat[s.lat.length - 1];  // the plot keeps a point a LAT_POINT_S (the worst of it)
+      if (tail && u.time - tail[0] < LAT_POINT_S) {
+        if (d.proc_ms !== null && !(tail[1] >= d.proc_ms)) tail[1] = d.proc_ms;
+        if (d.age_ms !== null && !(tail[2] >= d.age_ms)) tail[2] = d.age_ms;
+      } else s.lat.push([u.time, d.proc_ms, d.age_ms]);
       while (s.lat.length && s.lat[0][0] < u.time - LAT_WINDOW_S) s.lat.shift();
     }
     if (u.stats) for (const id in u.stats) if (st.streams[id]) st.streams[id].stats = u.stats[id];
@@ -135,51 +157,76 @@
     const sk = st.meta && st.meta.skeleton;
     if (!s.pose || !sk) return;
     if (!s.frame) s.frame = frameOf(s);
-    const P = s.pose.pos, F = s.pose.fill, par = sk.parents, J = par.length, max = stdMax();
-    const withCh = (s.meta && s.meta.joints_with_channels) || null;
-    const rgb = F.map(v => colourOf(v, max));
-    const root = par.indexOf(-1);
-    s.rgb = rgb;
-    const cv = s.cv, ctx = cv.getContext("2d"), gap = Math.round(PANEL_GAP * (window.devicePixelRatio || 1));
-    const W = Math.floor((cv.width - 2 * gap) / 3), H = cv.height;
+    const P = s.pose.pos, F = s.pose.fill, par = sk.parents, J = par.length, max = stdMax(), T = table(max);
+    const withCh = (s.meta && s.meta.joints_with_channels) || null, dpr = window.devicePixelRatio || 1;
+    if (!s.ci || s.ci.length !== J) {  // per-stream buffers, made once: no allocation per frame
+      s.ci = new Int16Array(J); s.bi = new Int16Array(J); s.rad = new Float32Array(J);
+      s.stamp = new Int32Array(C_BONE_OBS + 1); s.used = new Int16Array(2 * J);
+      for (const v of VIEWS) s.px[v] = new Float32Array(2 * J);
+      s.root = par.indexOf(-1);
+    }
+    const ci = s.ci, bi = s.bi, rad = s.rad, used = s.used, stamp = s.stamp;
+    let nUsed = 0;
+    s.draws = (s.draws || 0) + 1;
+    for (let j = 0; j < J; j++) {  // colour of each joint, of the bone to it, the colours in use
+      const c = colourIndex(F[j], max);
+      ci[j] = c; bi[j] = c === C_OBS ? C_BONE_OBS : c;
+      rad[j] = ((withCh && !withCh[j]) ? 2.5 : (c === C_OBS ? 4 : 5)) * dpr;
+      if (stamp[c] !== s.draws) { stamp[c] = s.draws; used[nUsed++] = c; }
+      if (stamp[bi[j]] !== s.draws) { stamp[bi[j]] = s.draws; used[nUsed++] = bi[j]; }
+    }
+    s.rgb = null;  // joints() looks colours up when asked
+    const cv = s.cv, ctx = s.ctx, gap = Math.round(PANEL_GAP * dpr);
+    const W = Math.floor((cv.width - 2 * gap) / 3), H = cv.height, root = s.root;
     ctx.fillStyle = "#1b2126"; ctx.fillRect(0, 0, cv.width, H);
-    VIEWS.forEach((v, vi) => {
-      const ox = vi * (W + gap);
-      ctx.save(); ctx.beginPath(); ctx.rect(ox, 0, W, H); ctx.clip(); ctx.translate(ox, 0);
+    ctx.lineCap = "round";
+    for (let vi = 0; vi < 3; vi++) {
+      const v = VIEWS[vi], ox = vi * (W + gap), px = s.px[v];
       const k = H / s.frame.extent;
-      const hx = v === "side" ? 2 : 0, vy = v === "top" ? 2 : 1, sgn = v === "top" ? -1 : 1;
-      const ch = P[3 * root + hx], cvv = v === "top" ? P[3 * root + 2] : s.frame.midY;
-      const px = new Array(J);
-      for (let j = 0; j < J; j++) px[j] = [W / 2 + (P[3 * j + hx] - ch) * k, H / 2 - sgn * (P[3 * j + vy] - cvv) * k];
-      ctx.fillStyle = "#101316"; ctx.fillRect(0, 0, W, H);
-      if (v !== "top") {  // the floor under the first pose
-        const y = H / 2 - (s.frame.floor - cvv) * k;
-        ctx.strokeStyle = "#2b343b"; ctx.lineWidth = 1; ctx.beginPath(); ctx.moveTo(0, y); ctx.lineTo(W, y); ctx.stroke();
-      }
-      ctx.lineWidth = 2.5; ctx.lineCap = "round";
+      const hx = vi === 1 ? 2 : 0, vy = vi === 2 ? 2 : 1, sgn = vi === 2 ? -1 : 1;
+      const ch = P[3 * root + hx], cvv = vi === 2 ? P[3 * root + 2] : s.frame.midY;
       for (let j = 0; j < J; j++) {
-        const p = par[j];
-        if (p < 0) continue;
-        ctx.strokeStyle = css(F[j] === -1 ? [0x78, 0x86, 0x90] : rgb[j]);
-        ctx.beginPath(); ctx.moveTo(px[p][0], px[p][1]); ctx.lineTo(px[j][0], px[j][1]); ctx.stroke();
+        px[2 * j] = ox + W / 2 + (P[3 * j + hx] - ch) * k;
+        px[2 * j + 1] = H / 2 - sgn * (P[3 * j + vy] - cvv) * k;
       }
-      for (const pass of [0, 1]) {  // observed first, filled on top
+      ctx.save(); ctx.beginPath(); ctx.rect(ox, 0, W, H); ctx.clip();
+      ctx.fillStyle = "#101316"; ctx.fillRect(ox, 0, W, H);
+      if (vi !== 2) {  // the floor under the first pose
+        const y = H / 2 - (s.frame.floor - cvv) * k;
+        ctx.strokeStyle = "#2b343b"; ctx.lineWidth = 1; ctx.beginPath(); ctx.moveTo(ox, y); ctx.lineTo(ox + W, y); ctx.stroke();
+      }
+      ctx.lineWidth = 2.5;
+      for (let u = 0; u < nUsed; u++) {  // bones, one path a colour
+        const c = used[u];
+        let any = false;
+        ctx.beginPath();
         for (let j = 0; j < J; j++) {
-          if ((F[j] !== -1) !== (pass === 1)) continue;
-          const r = (withCh && !withCh[j]) ? 2.5 : (pass ? 5 : 4);
-          ctx.fillStyle = css(rgb[j]);
-          ctx.beginPath(); ctx.arc(px[j][0], px[j][1], r * (window.devicePixelRatio || 1), 0, 2 * Math.PI); ctx.fill();
+          const p = par[j];
+          if (p < 0 || bi[j] !== c) continue;
+          ctx.moveTo(px[2 * p], px[2 * p + 1]); ctx.lineTo(px[2 * j], px[2 * j + 1]); any = true;
+        }
+        if (any) { ctx.strokeStyle = T.css[c]; ctx.stroke(); }
+      }
+      for (let pass = 0; pass < 2; pass++) {  // joints: observed first, filled on top, one path a colour
+        for (let u = 0; u < nUsed; u++) {
+          const c = used[u];
+          if ((c === C_OBS) === (pass === 1) || c === C_BONE_OBS) continue;
+          ctx.beginPath();
+          for (let j = 0; j < J; j++) {
+            if (ci[j] !== c) continue;
+            ctx.moveTo(px[2 * j] + rad[j], px[2 * j + 1]); ctx.arc(px[2 * j], px[2 * j + 1], rad[j], 0, 2 * Math.PI);
+          }
+          ctx.fillStyle = T.css[c]; ctx.fill();
         }
       }
       ctx.restore();
-      s.px[v] = px.map(([x, y]) => [x + ox, y]);
-    });
+    }
   }
 
-  function drawExtras(s) {
-    const d = s.last, key = d ? JSON.stringify([d.style, d.phase]) : "";
-    if (key === s.extrasKey) return;
-    s.extrasKey = key;
+  function drawExtras(s, now) {
+    const d = s.last;
+    if (now - (s.extrasAt || -1e9) < EXTRAS_EVERY_MS) { s.extrasPending = true; return; }
+    s.extrasAt = now; s.extrasPending = false;
     const sc = s.styleCv.getContext("2d"), pc = s.phaseCv.getContext("2d");
     sc.fillStyle = "#101316"; sc.fillRect(0, 0, 130, 70);
     sc.font = "11px system-ui, sans-serif"; sc.fillStyle = "#93a1ad";
@@ -261,22 +308,27 @@
 
   function loop(now) {
     st.raf++;
+    const t0 = performance.now();
     let drew = false;
     for (const id of st.order) {
       const s = st.streams[id];
-      if (!s.dirty) { if (s.infoPending) drawInfo(s, now); continue; }
+      if (!s.dirty) {
+        if (s.infoPending) drawInfo(s, now);
+        if (s.extrasPending) drawExtras(s, now);
+        continue;
+      }
       s.dirty = false; drew = true;
-      drawSkeleton(s); drawExtras(s); drawInfo(s, now);
+      drawSkeleton(s); drawExtras(s, now); drawInfo(s, now);
     }
     if (st.latDirty && now - (st.latAt || 0) >= LAT_EVERY_MS) {
       st.latDirty = false; st.latAt = now; drawLatency(); drew = true;
     }
-    if (drew) st.draws++;
+    if (drew) { st.draws++; st.drawMs += performance.now() - t0; }
     requestAnimationFrame(loop);
   }
 
   function connect() {
-    const es = new EventSource("/events");
+    const es = new EventSource("events");
     const conn = document.getElementById("conn");
     es.onopen = () => { st.connected = true; conn.textContent = "connected"; conn.className = "conn on"; };
     es.onerror = () => { st.connected = false; conn.textContent = "reconnecting"; conn.className = "conn off"; };
@@ -291,8 +343,8 @@
     joints(id) {
       const s = st.streams[id], sk = st.meta && st.meta.skeleton;
       if (!s || !s.pose || !sk || !s.px.front) return null;
-      return sk.joints.map((name, j) => ({ name, fill: s.pose.fill[j], rgb: s.rgb[j], seq: s.pose.seq,
-        px: Object.fromEntries(VIEWS.map(v => [v, [Math.floor(s.px[v][j][0]), Math.floor(s.px[v][j][1])]])) }));
+      return sk.joints.map((name, j) => ({ name, fill: s.pose.fill[j], rgb: colourOf(s.pose.fill[j], stdMax()), seq: s.pose.seq,
+        px: Object.fromEntries(VIEWS.map(v => [v, [Math.floor(s.px[v][2 * j]), Math.floor(s.px[v][2 * j + 1])]])) }));
     },
     pixel(id, x, y) {  // x, y: canvas pixels, as joints() gives them
       const cv = st.streams[id].cv;
