@@ -39,10 +39,6 @@ def offline_fill(model: DefaultModel, data, w: Weights) -> np.ndarray:
                              + (w.wr[g] * data["weak"][:, None] + w.wg[g] * data["gate"][:, None]) * (data["R"] - H)[:, None]), 1)
 
 
-def subset(data, sel):
-    return {k: (v[sel] if k != "activities" else v) for k, v in data.items()}
-
-
 def score(model, data, w):
     fill = offline_fill(model, data, w)
     e2, h2 = (data["y"] - fill) ** 2, (data["y"] - data["H"]) ** 2
@@ -75,7 +71,7 @@ def main() -> int:
     # two folds by take, alternating within each activity
     fold = {}
     for a in sorted({x[2] for x in val}):
-        for i, (t, _, aa) in enumerate([v for v in val if v[2] == a]):
+        for i, (t, _, _a) in enumerate([v for v in val if v[2] == a]):
             fold[t] = i % 2
     # round 1 (bench/results/default_tune_round1.log, before lags became a tuple): lag 0.05-0.2 s, damping 0.1-0.3 s,
     # damp2 0.5/2 s, offset 0.3-1e9 s; longer lag and a short offset won.  Round 2 (default_tune_round2.log):

@@ -12,7 +12,8 @@ from typing import Any
 import zmq
 import zmq.asyncio
 
-from clients.client import _DealerLink, decode_reply
+from clients.client import _DealerLink
+from clients.control import decode_reply
 from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS, DaemonRefused,
                              DaemonUnavailable, StreamSession, dealer_socket, open_monitor)
 from daemon import wire
@@ -78,8 +79,6 @@ class AsyncClient(_DealerLink):
                     if msg is None:
                         raise TimeoutError("no hello-ack")
                     if isinstance(msg, (wire.HelloAck, wire.ErrorMsg)):
-                        if attempt:
-                            self.session.rehellos += 1
                         return self.session.on_ack(msg)
             except TimeoutError:
                 if attempt == self.retries:

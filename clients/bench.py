@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from clients import loadgen
-from clients.client import control
-from clients.daemon_proc import DaemonProcess, cpu_seconds, rss_bytes
+from clients.control import control
+from clients.harness import DaemonProcess, cpu_seconds, rss_bytes
 from lacuna.errors import LacunaError
 
 FLOOR_MODEL = "floor"

@@ -168,7 +168,7 @@ def _replay(args: argparse.Namespace) -> int:
     import numpy as np
 
     from clients import replay as rp
-    from clients.daemon_proc import DaemonProcess
+    from clients.harness import DaemonProcess
     from clients.takes import drop_mask, read_take, write_take
 
     if args.serve and args.connect:

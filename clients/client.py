@@ -21,9 +21,9 @@ from __future__ import annotations
 import time
 from typing import Any
 
-import msgpack
 import zmq
 
+from clients.control import control, decode_reply
 from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS, DaemonRefused,
                              DaemonUnavailable, StreamSession, dealer_socket, open_monitor)
 from daemon import wire
@@ -179,8 +179,6 @@ class Client(_DealerLink):
                     if msg is None:
                         raise TimeoutError("no hello-ack")
                     if isinstance(msg, (wire.HelloAck, wire.ErrorMsg)):
-                        if attempt:
-                            self.session.rehellos += 1
                         return self.session.on_ack(msg)
                     # answers to frames pipelined before the handshake: not ours to keep here
             except TimeoutError:
@@ -411,47 +409,3 @@ class CaptureClient(_DealerLink):
         if not r.ok:
             raise DaemonRefused(wire.ErrorMsg("status", r.error or "status failed"))
         return r.result
-
-
-def decode_reply(data: bytes) -> wire.Message:
-    """Decode an answer from the daemon.
-
-    ``wire.decode`` caps maps at 64 keys and arrays at MAX_CHANNELS (right for untrusted
-    input), but a ``status`` reply lists every stream in one map; a daemon's reply is trusted
-    and is read without those caps.
-    """
-    try:
-        return wire.decode(data, max_bytes=1 << 26)
-    except wire.WireError:
-        m = msgpack.unpackb(data, raw=False, strict_map_key=False)
-        if isinstance(m, dict) and m.get("type") == "control-reply":
-            return wire.ControlReply(str(m.get("cmd")), bool(m.get("ok")), m.get("result") or {}, m.get("error"))
-        raise
-
-
-def control(endpoint: str, cmd: str, stream: str | None = None, *, timeout_s: float = DEFAULT_TIMEOUT_S,
-            ctx: zmq.Context | None = None, curve: tuple[str, str] | None = None) -> wire.ControlReply:
-    """One control request on a short-lived DEALER; DaemonUnavailable on timeout.
-
-    A separate socket keeps control answers out of a stream's pipelined frame answers.
-    """
-    own = ctx is None
-    ctx = ctx or zmq.Context()
-    s = dealer_socket(ctx, endpoint, timeout_s, curve)
-    try:
-        try:
-            s.send(wire.encode(wire.Control(cmd, stream)))
-        except zmq.Again:
-            raise DaemonUnavailable(f"no daemon at {endpoint} (control {cmd})") from None
-        if not s.poll(int(timeout_s * 1000), zmq.POLLIN):
-            raise DaemonUnavailable(f"no answer from {endpoint} to control {cmd} within {timeout_s:g} s")
-        msg = decode_reply(s.recv())
-        if isinstance(msg, wire.ErrorMsg):
-            raise DaemonRefused(msg)
-        if not isinstance(msg, wire.ControlReply):
-            raise DaemonRefused(wire.ErrorMsg("unexpected", f"control {cmd} answered with {type(msg).__name__}"))
-        return msg
-    finally:
-        s.close(linger=0)
-        if own:
-            ctx.term()

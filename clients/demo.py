@@ -33,7 +33,7 @@ import numpy as np
 
 from clients import demo_score, synth
 from clients import replay as rp
-from clients.daemon_proc import DaemonProcess
+from clients.harness import DaemonProcess
 from clients.takes import drop_mask
 from lacuna import registry
 from lacuna.errors import LacunaError

@@ -93,7 +93,6 @@ class StreamSession:
         self.ack: wire.HelloAck | None = None
         self.disconnects = 0
         self.reconnects = 0
-        self.rehellos = 0
         self.resyncs = 0  # times the daemon's view of the stream was put right (a `late` or `not_owner` we did not cause)
         # kept across reconnects: a hello that carries it takes the stream back from the old connection
         self.claim = secrets.token_hex(16)

@@ -222,12 +222,6 @@ class CRBM:
         a = h @ self.W_.T + bv
         return expit(a) if self.visible == "binary" else a
 
-    def _sample_visibles(self, h: np.ndarray, bv: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        m = self._mean_visibles(h, bv)
-        if self.visible == "binary":
-            return (rng.random(m.shape) < m).astype(m.dtype)
-        return m + rng.standard_normal(m.shape)
-
     def free_energy(self, v: np.ndarray, history: np.ndarray) -> np.ndarray:
         """F(v | x) = sum_i (v_i - c*_i)^2 / 2 - sum_j log(1 + exp(b*_j + v W_j)), (m,).
         log(1 + e^a) = logaddexp(0, a), stable for large |a|."""

@@ -115,10 +115,6 @@ _SCHEMA: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
 }
 
 
-def _err(where: str, key: str, msg: str) -> ConfigError:
-    return ConfigError(f"{where}: [{key}] {msg}" if "." not in key else f"{where}: {key}: {msg}")
-
-
 def _check_value(where: str, key: str, v: Any, kind, check) -> Any:
     ok = isinstance(v, kind) and not (isinstance(v, bool) and bool not in (kind if isinstance(kind, tuple) else (kind,)))
     if not ok:

@@ -16,7 +16,6 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 
 from daemon import wire
 
-PREFIX = "/lacuna/"
 BUNDLE_PREFIX = b"#bundle\x00"
 MAX_DEPTH = 4  # bundles within bundles, at most
 

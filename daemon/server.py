@@ -22,7 +22,7 @@ from typing import Any
 import zmq
 
 from daemon import config as config_mod
-from daemon import budget as budgets, osc, security, wire
+from daemon import budget as budgets, osc, wire
 from daemon.metrics import Metrics
 from daemon.metrics_http import MetricsHTTP
 from daemon.models import Loaded, load_all
@@ -924,29 +924,3 @@ def serve(path: str) -> int:
     gc.freeze()
     d.run()
     return 0
-
-
-def control(endpoint: str, cmd: str, stream: str | None = None, timeout_s: float = 5.0,
-            curve: tuple[str, str] | None = None) -> wire.ControlReply:
-    """One control request over a DEALER socket (what `lacuna status` uses).  ``curve`` =
-    (client .key_secret file, daemon's public .key file) for a daemon with [security] keys."""
-    ctx = zmq.Context()
-    s = ctx.socket(zmq.DEALER)
-    s.setsockopt(zmq.LINGER, 0)
-    try:
-        if curve is not None:
-            security.configure_client(s, *curve)
-        s.connect(endpoint)
-        s.send(wire.encode(wire.Control(cmd, stream)))
-        if not s.poll(int(timeout_s * 1000)):
-            raise TimeoutError(f"no answer from {endpoint} within {timeout_s:g} s (is `lacuna serve` running?)")
-        m = wire.decode(s.recv(), 64 << 20)
-        if isinstance(m, wire.ErrorMsg):
-            raise ValueError(f"{endpoint} refused {cmd}: {m.reason}: {m.detail}")
-        if not isinstance(m, wire.ControlReply):
-            raise ValueError(f"{endpoint} answered {cmd} with a {type(m).__name__}")
-        return m
-    finally:
-        s.close()
-        ctx.term()
-

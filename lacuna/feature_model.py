@@ -121,11 +121,6 @@ class FeatureModel(Model):
     def stream(self) -> "FeatureStream":
         return FeatureStream(self)
 
-    def _raw_std(self, z_std: np.ndarray) -> np.ndarray:
-        """Feature std (normalised units) -> raw channel std (degrees / length units)."""
-        rep = self.representation
-        return rep.raw_std(z_std * rep._plan()["std"] if rep.normalize else z_std)
-
     def step_arrays(self, repr_state: ReprState, core_state: dict[str, np.ndarray],
                     frames: np.ndarray, observed: np.ndarray,
                     rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:

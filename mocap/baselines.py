@@ -106,7 +106,6 @@ class NearestNeighbourModel(_Saveable):
         self.scale_ = np.where(np.asarray(scale) > 1e-9, scale, 1.0)
         self.method = method  # type: ignore[misc]
         self._z = self.train_ / self.scale_
-        self._sq = None
 
     @classmethod
     def fit(cls, sequences: list[np.ndarray], channels: list[str], scaled: bool = False) -> "NearestNeighbourModel":

@@ -66,10 +66,6 @@ def pack(d: object) -> bytes:
     return msgpack.packb(d, use_bin_type=True)
 
 
-def f32(values) -> bytes:
-    return np.asarray(values, dtype=F32).tobytes()
-
-
 # ---- expected outcome, from the daemon's own decoders ------------------------------------------
 ANSWER_TYPES = (wire.FillMsg, wire.HelloAck, wire.Drop, wire.ControlReply, wire.ErrorMsg)
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from clients import Client
-from clients.daemon_proc import DaemonProcess, free_port
+from clients.configfile import free_port
+from clients.harness import DaemonProcess
 from clients.recording import RecordingWriter, read_recording
 from clients.record import record
 from clients.takes import drop_mask

@@ -15,7 +15,7 @@ import pytest
 import zmq
 
 from clients.client import Client
-from clients.daemon_proc import DaemonProcess
+from clients.harness import DaemonProcess
 from clients.session import DaemonRefused
 from daemon import wire
 from lacuna.cli import main

@@ -26,7 +26,7 @@ import time
 import numpy as np
 import pytest
 
-from daemon import loadgen
+from clients import loadgen
 from mocap.baselines import NearestNeighbourModel
 from mocap.datasets import SUBJECT35_WALKS, load_trial
 from reliability_daemon import Daemon, Sockets, status, write_config
@@ -66,7 +66,8 @@ def soak(tmp_path, n_streams=N_STREAMS, rate_hz=RATE_HZ, seconds=SOAK_S, budget_
         cpu0 = d.cpu_s()
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
-        res = loadgen.run_load(ep["router"], n_streams, rate_hz, seconds, frames, warmup_s=0.5, timeout_s=5.0)
+        res = loadgen.run_load(ep["router"], None, frames, n_streams=n_streams, rate=rate_hz, seconds=seconds,
+                               warmup_s=0.5, drain_s=5.0, progress=False)
         stop.set()
         sampler.join(5)
         cpu = d.cpu_s() - cpu0

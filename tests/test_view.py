@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from clients import Client
-from clients.daemon_proc import DaemonProcess, free_port
+from clients.configfile import free_port
+from clients.harness import DaemonProcess
 from clients.recording import RecordingWriter
 from daemon import wire
 from lacuna.cli import main

@@ -174,7 +174,7 @@ class Browser:
 
     def cpu_seconds(self) -> float:
         """User + system CPU seconds of Chromium and every process it started (Linux /proc)."""
-        from clients.daemon_proc import cpu_seconds
+        from clients.harness import cpu_seconds
 
         kids: dict[int, list[int]] = {}
         for d in os.listdir("/proc"):
