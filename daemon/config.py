@@ -26,16 +26,13 @@ import tomllib
 from dataclasses import dataclass, field
 from typing import Any
 
-from lacuna.errors import LacunaError
+from daemon import security
+from daemon.errors import ConfigError as ConfigError  # (re-exported: callers say config.ConfigError)
 
 BUILTINS = ("passthrough",)
 LOG_LEVELS = ("debug", "info", "warning", "error")
 OVERDUE = ("drop", "serve")
 PREWARM_MS = 0.5  # default lead of the rehearsal before a frame is due (docs/BENCHMARKS.md, "Prewarm")
-
-
-class ConfigError(LacunaError, ValueError):
-    """A config file that cannot be used; the message names the file and the key."""
 
 
 @dataclass
@@ -250,8 +247,6 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
         raise ConfigError(f"{where}: no input configured (set zmq.router, zmq.pull, zmq.sub or osc.listen)")
     if (cfg.zmq_pull or cfg.zmq_sub) and not cfg.zmq_pub:
         raise ConfigError(f"{where}: zmq.pull/zmq.sub need zmq.pub for the filled frames to go somewhere")
-    from daemon import security  # imported here: it imports ConfigError from this module
-
     security.apply_config(cfg, raw.get("security"), where, base)  # refuses non-loopback binds without CURVE
     return cfg
 

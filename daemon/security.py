@@ -41,7 +41,7 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from daemon.config import ConfigError
+from daemon.errors import ConfigError
 from daemon.safeopen import check_regular, kind_of
 
 ZAP_DOMAIN = "lacuna"

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from lacuna import modelfile
-from lacuna.feature_model import CoreOut, FeatureModel
+from mocap.feature_model import CoreOut, FeatureModel
 from lacuna.filler import Fill, FillerError, check_frame
 from hlm import fast, offline, online
 from hlm.streamcycle import LIVE_STATS

@@ -319,7 +319,7 @@ class ReprState:
     def of(cls, rep: Representation, prev_u: np.ndarray, prev_raw: np.ndarray, prev_yaw: np.ndarray,
            started: np.ndarray, root_st: np.ndarray | None = None) -> "ReprState":
         """A state over existing arrays (n, C), (n, C), (n,), (n,), (n, 3): writes go to them (views
-        of a model's state pool, see ``lacuna.feature_model``)."""
+        of a model's state pool, see ``mocap.feature_model``)."""
         st = cls.__new__(cls)
         st.rep, st.n, st._C = rep, started.shape[0], len(rep.channels)
         st.prev_u, st.prev_raw, st.prev_yaw, st.started = prev_u, prev_raw, prev_yaw, started

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from lacuna.feature_model import CoreOut, FeatureModel
+from mocap.feature_model import CoreOut, FeatureModel
 from mocap.datasets import load_trial
 from mocap.representation import Representation, wrap180
 
