@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import weakref
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -56,7 +56,7 @@ class DaskEStep:
     def __init__(self, client, n_chunks: int | None = None):
         self.client = client
         self.n_chunks = n_chunks or CHUNKS_PER_WORKER * max(1, len(client.nthreads()))
-        self._runs: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+        self._runs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.calls = 0
 
     def _layout(self, em) -> list[tuple[np.ndarray, int, object]]:

@@ -28,7 +28,6 @@ from daemon.server import Daemon
 from mocap.baselines import HoldModel, NearestNeighbourModel
 from mocap.protocols import get_protocol
 
-
 WARM_TICKS = 20  # a filter's first frames cost more (the HLM's posterior starts over every phase)
 
 

@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from blend.fit import _hat, collect, fit_gaussian, fit_weights, velocity_gain, velocity_rms  # noqa: E402
-from blend.model import GROUP_NAMES, DefaultModel, Settings, Weights  # noqa: E402
+from blend.model import DefaultModel, Settings, Weights  # noqa: E402
 from blend.train import SEEDS, write_shipped  # noqa: E402
 from mocap import splits  # noqa: E402
 

@@ -14,8 +14,16 @@ import zmq.asyncio
 
 from clients.client import _DealerLink
 from clients.control import decode_reply
-from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS, DaemonRefused,
-                             DaemonUnavailable, StreamSession, dealer_socket, open_monitor)
+from clients.session import (
+    DEFAULT_RETRIES,
+    DEFAULT_TIMEOUT_S,
+    REHELLO_REASONS,
+    DaemonRefused,
+    DaemonUnavailable,
+    StreamSession,
+    dealer_socket,
+    open_monitor,
+)
 from daemon import wire
 
 
@@ -46,7 +54,7 @@ class AsyncClient(_DealerLink):
         self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)  # type: ignore[arg-type]
         self._mon = open_monitor(self._sync_ctx, self.sock, "a" + self.session.stream.encode().hex()[:32])
 
-    async def __aenter__(self) -> "AsyncClient":
+    async def __aenter__(self) -> AsyncClient:
         return self
 
     async def __aexit__(self, *exc: Any) -> None:
@@ -56,7 +64,7 @@ class AsyncClient(_DealerLink):
         assert self.sock is not None
         try:
             await asyncio.wait_for(self.sock.send(data), self.timeout_s)
-        except (zmq.Again, asyncio.TimeoutError):
+        except (TimeoutError, zmq.Again):
             raise TimeoutError("no daemon connected") from None
 
     async def recv(self, timeout_s: float | None = None) -> wire.Message | None:
@@ -137,7 +145,7 @@ class AsyncClient(_DealerLink):
         try:
             try:
                 await asyncio.wait_for(s.send(wire.encode(wire.Control(cmd, stream))), self.timeout_s)
-            except (zmq.Again, asyncio.TimeoutError):
+            except (TimeoutError, zmq.Again):
                 raise DaemonUnavailable(f"no daemon at {self.endpoint} (control {cmd})") from None
             if not await s.poll(int(self.timeout_s * 1000), zmq.POLLIN):
                 raise DaemonUnavailable(f"no answer from {self.endpoint} to control {cmd} within {self.timeout_s:g} s")

@@ -24,8 +24,16 @@ from typing import Any
 import zmq
 
 from clients.control import control, decode_reply
-from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS, DaemonRefused,
-                             DaemonUnavailable, StreamSession, dealer_socket, open_monitor)
+from clients.session import (
+    DEFAULT_RETRIES,
+    DEFAULT_TIMEOUT_S,
+    REHELLO_REASONS,
+    DaemonRefused,
+    DaemonUnavailable,
+    StreamSession,
+    dealer_socket,
+    open_monitor,
+)
 from daemon import wire
 
 RELEASE_WAIT_S = 0.5  # Client.close waits at most this for the daemon to confirm its streams are released
@@ -139,7 +147,7 @@ class Client(_DealerLink):
         ss = self.session
         return [ss.stream] if ss.ack is not None or ss.next_seq > ss.first_seq else []
 
-    def __enter__(self) -> "Client":
+    def __enter__(self) -> Client:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -330,7 +338,7 @@ class CaptureClient(_DealerLink):
         for ss in list(self.sessions.values())[1:]:
             ss.link_lost()
 
-    def __enter__(self) -> "CaptureClient":
+    def __enter__(self) -> CaptureClient:
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -43,7 +43,7 @@ class RecordingWriter:
         self.n_frames = 0
         self._write({"format": FORMAT, "version": VERSION, "stream": stream, "channels": self.channels,
                      "fps": fps, "source": source,
-                     "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")})
+                     "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")})
 
     def _write(self, m: dict[str, Any]) -> None:
         self._fh.write(self._packer.pack(m))
@@ -75,7 +75,7 @@ class RecordingWriter:
         if not self._fh.closed:
             self._fh.close()
 
-    def __enter__(self) -> "RecordingWriter":
+    def __enter__(self) -> RecordingWriter:
         return self
 
     def __exit__(self, *exc: Any) -> None:

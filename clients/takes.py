@@ -24,8 +24,8 @@ import numpy as np
 
 from clients import recording
 from lacuna.errors import LacunaError
-from mocap.motion import Motion
 from mocap import skelmap
+from mocap.motion import Motion
 from mocap.protocols import GAP_GROUPS, Gaps
 from mocap.tpose import skip_tpose
 

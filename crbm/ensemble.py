@@ -12,7 +12,8 @@ the members' one-step predictions cancels the part of those errors that is seed 
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -32,8 +32,8 @@ import numpy as np
 from scipy.special import expit
 
 from crbm.model import CRBM
-from mocap.feature_model import CoreOut, FeatureModel
 from lacuna.modelfile import save_arrays
+from mocap.feature_model import CoreOut, FeatureModel
 from mocap.representation import Representation
 
 MODES = ("gibbs", "mean-field")

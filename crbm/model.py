@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.special import expit
@@ -286,7 +287,7 @@ class CRBM:
             p += inc
         return float((dv ** 2).sum())
 
-    def partial_fit(self, sequences: Sequence[np.ndarray]) -> "CRBM":
+    def partial_fit(self, sequences: Sequence[np.ndarray]) -> CRBM:
         """One epoch of CD-1 over ``sequences`` (list of (n_i, V)); initialises on the first call."""
         X, idx = self._stack(sequences)
         if not hasattr(self, "W_"):
@@ -310,7 +311,7 @@ class CRBM:
                   f"per frame ({time.perf_counter() - t0:.3f} s)", file=sys.stderr)
         return self
 
-    def fit(self, sequences: Sequence[np.ndarray], n_epochs: int | None = None) -> "CRBM":
+    def fit(self, sequences: Sequence[np.ndarray], n_epochs: int | None = None) -> CRBM:
         """Train from scratch for ``n_epochs`` (default ``self.n_epochs``) epochs."""
         self._check()
         for k in ("W_", "A_", "B_", "c_", "b_", "n_visible_"):
@@ -347,7 +348,7 @@ class CRBM:
         return {prefix + k.rstrip("_"): getattr(self, k) for k in ("W_", "A_", "B_", "c_", "b_")}
 
     @classmethod
-    def from_arrays(cls, hyper: dict[str, Any], arrays: dict[str, np.ndarray], prefix: str = "") -> "CRBM":
+    def from_arrays(cls, hyper: dict[str, Any], arrays: dict[str, np.ndarray], prefix: str = "") -> CRBM:
         """Rebuild a trained CRBM; raises ValueError naming any array of the wrong shape."""
         m = cls(**{k: v for k, v in hyper.items() if k in _PARAM_RANGES or k in _CHOICES or k == "random_state"})
         m._check()

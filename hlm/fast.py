@@ -19,7 +19,8 @@ import math
 
 import numpy as np
 
-from lacuna.jit import enabled, jit as _jit  # noqa: F401  (enabled: re-exported for callers)
+from lacuna.jit import enabled  # noqa: F401  (enabled: re-exported for callers)
+from lacuna.jit import jit as _jit
 from mocap import fastrepr
 from mocap.fastrepr import encode1, finish1
 

@@ -10,7 +10,8 @@ reference the compiled code is tested against.
 from __future__ import annotations
 
 import os
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 try:  # without numba the numpy path serves every stream
     import numba

@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import functools
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -49,7 +50,7 @@ GAP_GROUPS = {**JOINT_GROUPS, "root": ("root",)}
 GAP_BINS = ((0.1, 0.25), (0.25, 0.5), (0.5, 1.0), (1.0, 2.0))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def load_take(name: str) -> Motion:
     """A named take (``splits.load_take``), parsed once per process; its frames are read-only."""
     m = splits.load_take(name)

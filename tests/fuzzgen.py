@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import random
 import struct
-from typing import Callable
+from collections.abc import Callable
 
 import msgpack
 import numpy as np

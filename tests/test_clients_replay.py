@@ -10,8 +10,8 @@ import pytest
 from clients import Client
 from clients.configfile import free_port
 from clients.harness import DaemonProcess
-from clients.recording import RecordingWriter, read_recording
 from clients.record import record
+from clients.recording import RecordingWriter, read_recording
 from clients.takes import drop_mask
 from daemon import wire
 from lacuna.cli import main

@@ -22,16 +22,16 @@ import sys
 import textwrap
 import time
 
+import fuzzgen
 import numpy as np
 import pytest
 import zmq
+from reliability_daemon import Daemon, LockStep, Sockets, Supervisor, control, recv_msg, status, write_config
 
-import fuzzgen
 from daemon import wire
 from lacuna import modelfile
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial
-from reliability_daemon import Daemon, LockStep, Sockets, Supervisor, control, recv_msg, status, write_config
 
 
 @pytest.fixture(scope="module")

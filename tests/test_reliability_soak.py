@@ -25,11 +25,11 @@ import time
 
 import numpy as np
 import pytest
+from reliability_daemon import Daemon, Sockets, status, write_config
 
 from clients import loadgen
 from mocap.baselines import NearestNeighbourModel
 from mocap.datasets import SUBJECT35_WALKS, load_trial
-from reliability_daemon import Daemon, Sockets, status, write_config
 
 N_STREAMS = 64
 RATE_HZ = 120.0
