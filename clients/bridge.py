@@ -76,7 +76,7 @@ class Bridge:
         self.udp.bind(listen)
         self.address = self.udp.getsockname()
         self.out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.pub: zmq.Socket | None = None
+        self.pub: zmq.Socket[Any] | None = None
         if pub:
             self.pub = self.ctx.socket(zmq.PUB)
             self.pub.setsockopt(zmq.LINGER, 0)

@@ -43,11 +43,13 @@ class _DealerLink:
     """Socket lifecycle shared by the blocking and the asyncio client: subclasses set ``sock``,
     ``_mon``, ``ctx``, ``_own_ctx``, ``session`` and implement ``_open``."""
 
+    session: StreamSession
+
     sock: Any
     _mon: Any
     _monitor_name = ""
 
-    def _link(self, endpoint: str, timeout_s: float, retries: int, ctx: zmq.Context | None) -> None:
+    def _link(self, endpoint: str, timeout_s: float, retries: int, ctx: zmq.Context[Any] | None) -> None:
         """The blocking clients' connection state; the socket opens in ``_open``."""
         if timeout_s <= 0:
             raise ValueError(f"timeout_s must be positive (got {timeout_s})")
@@ -132,7 +134,7 @@ class Client(_DealerLink):
 
     def __init__(self, endpoint: str, stream: str, channels: list[str] | None = None, model: str | None = None,
                  *, timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
-                 ctx: zmq.Context | None = None, first_seq: int = 0, curve: tuple[str, str] | None = None,
+                 ctx: zmq.Context[Any] | None = None, first_seq: int = 0, curve: tuple[str, str] | None = None,
                  claim: str | None = None, positions: bool = False):
         self.session = StreamSession(stream, channels, model, first_seq, positions)
         if claim is not None:
@@ -249,6 +251,7 @@ class Client(_DealerLink):
                 # incarnation's frames): restart the stream once and send the frame again
                 resynced = self._resync_or_reconnect()
                 continue
+            assert isinstance(msg, (wire.FillMsg, wire.Drop))  # (_await_seq returns nothing else)
             return msg
         raise DaemonUnavailable(f"no answer from {self.endpoint} for frame {seq} of {self.session.stream!r} "
                                 f"after {self.retries + 1} tries of {self.timeout_s:g} s")
@@ -319,7 +322,7 @@ class CaptureClient(_DealerLink):
 
     def __init__(self, endpoint: str, streams: dict[str, list[str] | None], model: str | None = None, *,
                  timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
-                 ctx: zmq.Context | None = None):
+                 ctx: zmq.Context[Any] | None = None):
         if not streams:
             raise ValueError("a capture client needs at least one stream")
         if len(streams) > wire.MAX_BUNDLE:
@@ -376,7 +379,7 @@ class CaptureClient(_DealerLink):
             raise ValueError(f"streams not opened by this client: {sorted(unknown)[:5]}")
         t = time.time() if t is None else t
         seqs: dict[str, int] = {}
-        maps = []
+        maps: list[wire.Frame | wire.WireError] = []
         for sid, v in frames.items():
             angles, observed = v if isinstance(v, tuple) else (v, None)
             seqs[sid], f = self.sessions[sid].frame_msg(angles, observed, t)

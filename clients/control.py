@@ -38,7 +38,8 @@ def request(sock: zmq.Socket[bytes], cmd: str, stream: str | None = None, *,
     try:
         sock.send(wire.encode(wire.Control(cmd, stream)))
     except zmq.Again:
-        raise DaemonUnavailable(f"no daemon at {where} (control {cmd})") from None
+        raise DaemonUnavailable(f"no answer from {where} to control {cmd}: no daemon connected "
+                                f"(is `lacuna serve` running?)") from None
     poller = zmq.Poller()
     poller.register(sock, zmq.POLLIN)
     deadline = time.monotonic() + timeout_s

@@ -108,7 +108,8 @@ def make_frames(n_frames: int, n_channels: int, missing: np.ndarray | None, rng:
         f = (30.0 * np.sin(2 * np.pi * 0.9 * t + ph)).astype(np.float32)
     if missing is not None:
         f[:, missing] = np.nan
-    return f
+    out: np.ndarray = f
+    return out
 
 
 def run_load(endpoint: str, channels: list[str] | None, frames: np.ndarray, observed: np.ndarray | None = None, *,
@@ -235,10 +236,10 @@ def run_load(endpoint: str, channels: list[str] | None, frames: np.ndarray, obse
     return res
 
 
-def _handshake(socks: list[zmq.Socket], ids: list[str], channels: list[str], model: str | None) -> None:
+def _handshake(socks: list[zmq.Socket[Any]], ids: list[str], channels: list[str], model: str | None) -> None:
     for s, sid in zip(socks, ids):
         s.send(wire.encode(wire.Hello(sid, channels, model)))
-    waiting = {}  # socket -> how many acks it still owes
+    waiting: dict[zmq.Socket[Any], int] = {}  # socket -> how many acks it still owes
     for s in socks:
         waiting[s] = waiting.get(s, 0) + 1
     for s, n in waiting.items():
