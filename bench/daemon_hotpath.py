@@ -6,6 +6,9 @@ machine disturb it far less than round-trip latency; medians over repeats.
 
     .venv/bin/python bench/daemon_hotpath.py --repeats 7 --json bench/daemon_hotpath.json
 
+Run with ``PYTHONPATH=DIR`` to measure another checkout's daemon with this same driver (A/B
+across commits: ``PYTHONPATH=/tmp/perf-64e7005 python bench/daemon_hotpath.py ...``).
+
 ``--bundle`` adds rows where the 64 streams' frames of a tick come as one ``frames`` message.
 ``--gap-ms G`` sleeps G ms between ticks, as the live daemon waits between capture frames: the
 caches and the CPU are then as cold as they are live (back to back, the figure is the warm
@@ -19,6 +22,7 @@ import sys
 import tempfile
 import time
 
+import msgpack
 import numpy as np
 
 from daemon import config, wire
@@ -28,6 +32,7 @@ from daemon.server import Daemon
 from mocap.baselines import HoldModel, NearestNeighbourModel
 from mocap.protocols import get_protocol
 
+replies_of = getattr(wire, "replies_of", None)
 WARM_TICKS = 20  # a filter's first frames cost more (the HLM's posterior starts over every phase)
 
 
@@ -39,7 +44,23 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
     round's own duration (the sleeps excluded).  With sleeps, trust wall: the kernel charges CPU
     time by the scheduler tick, and a thread that wakes on a timer is running when ticks land."""
     out: list[bytes] = []
-    d._send = lambda o, m, publish=False: out.append(wire.encode(m))  # type: ignore[method-assign]
+    held: list[dict] = []
+
+    def send(o, m, publish=False):  # what Transports.send does: a bundle's answers are packed at the flush
+        if len(o) == 3:
+            held.append(wire.to_map(m))
+        else:
+            out.append(wire.encode(m))
+
+    def serve():
+        d._serve()
+        if held:  # (a tree from before wire.replies_of encoded each answer and joined them)
+            out.append(replies_of(held) if replies_of else wire.join_replies([msgpack.packb(m, use_bin_type=True)
+                                                                              for m in held]))
+            held.clear()
+        out.clear()
+
+    d._send = send  # type: ignore[method-assign]
     sids = [f"{model}-{n_streams}-{time.monotonic_ns()}-{i}" for i in range(n_streams)]
     for sid in sids:
         d._handle(wire.encode(wire.Hello(sid, channels, model)), ("router", [b"x"]), time.perf_counter())
@@ -48,7 +69,7 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
     for k in range(WARM_TICKS):
         for b in msgs[k]:
             d._handle(b, ("router", [b"x"]), time.perf_counter())
-        d._serve()
+        serve()
     msgs = msgs[WARM_TICKS:]
     walls = np.empty(ticks)
     c0 = time.process_time()
@@ -56,7 +77,7 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
         w0 = time.perf_counter()
         for b in msgs[k]:
             d._handle(b, ("router", [b"x"]), time.perf_counter())
-        d._serve()
+        serve()
         walls[k] = time.perf_counter() - w0
         if gap_s:
             time.sleep(gap_s)

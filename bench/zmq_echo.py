@@ -1,7 +1,8 @@
 """What any Python ROUTER server can do on this machine: the load generator against a bare echo.
 
 The echo server is a separate process with one ROUTER socket: it reads every waiting request,
-answers each with a reply shaped like the daemon's fill (msgpack map, same byte fields), and
+answers each with a reply shaped like the daemon's fill (msgpack map, same byte fields; a
+``frames`` bundle with one ``replies`` message, as the daemon does), and
 sends the answers back to back.  No numpy, no sessions, no scheduler: it is the floor under
 the daemon's own pass-through floor (``lacuna bench --floor``), measured with the same load
 generator (``clients.loadgen``), the same take and the same streams x rate.
@@ -38,6 +39,13 @@ r.bind(sys.argv[1])
 print("ready", flush=True)
 pack = msgpack.Packer(use_bin_type=True).pack
 n = 0
+
+
+def fill(m):
+    return {"v": 1, "type": "fill", "stream": m["stream"], "seq": m["seq"], "t": m["t"], "angles": m["angles"],
+            "filled": m["observed"], "std": m["angles"], "status": "passthrough", "model": "echo", "proc_us": 0}
+
+
 while True:
     if not r.poll(5000):
         break
@@ -53,10 +61,11 @@ while True:
         if m["type"] == "hello":
             body = pack({"v": 1, "type": "hello-ack", "stream": m["stream"], "model": "echo",
                          "channels": m["channels"], "passthrough": [], "missing": []})
+        elif m["type"] == "frames":  # a bundle: one replies message, each answer a complete fill
+            body = pack({"v": 1, "type": "replies", "replies": [fill(f) for f in m["frames"]]})
+            n += len(m["frames"])
         else:
-            body = pack({"v": 1, "type": "fill", "stream": m["stream"], "seq": m["seq"], "t": m["t"],
-                         "angles": m["angles"], "filled": m["observed"], "std": m["angles"],
-                         "status": "passthrough", "model": "echo", "proc_us": 0})
+            body = pack(fill(m))
             n += 1
         out.append([parts[0], body])
     for o in out:
@@ -117,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {"command": "python bench/zmq_echo.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "take": src, "streams": args.streams, "rate": args.rate, "seconds": args.seconds,
            "repeats": args.repeats, "at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-           "loadavg": open("/proc/loadavg").read().split()[:3] if os.path.exists("/proc/loadavg") else None,
+           "loadavg": Path("/proc/loadavg").read_text().split()[:3] if os.path.exists("/proc/loadavg") else None,
            "summary": summary, "runs": rows}
     print(json.dumps(summary, indent=1))
     if args.json_out:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -99,7 +99,8 @@ def levels_of(model: Model) -> list[int | None]:
 
 
 class Scheduler:
-    def __init__(self, budget_ms: float, max_gap: int, max_batch: int):
+    def __init__(self, budget_ms: float, max_gap: int, max_batch: int, clock: Callable[[], float] = time.perf_counter):
+        self.clock = clock  # the daemon's clock: plans against deadlines, step times
         self.budget_s = budget_ms / 1000.0
         self.max_gap = max_gap
         self.max_batch = max_batch
@@ -223,11 +224,11 @@ class Scheduler:
         for model, sessions in groups.values():
             for i in range(0, len(sessions), self.max_batch):
                 chunk = sessions[i : i + self.max_batch]
-                plan = self.plan(model, chunk, time.perf_counter())
+                plan = self.plan(model, chunk, self.clock())
                 if plan.hold:
-                    t0 = time.perf_counter()
+                    t0 = self.clock()
                     results.extend(self._hold_many(plan.hold))
-                    self.hold_cost.observe(len(plan.hold), time.perf_counter() - t0)
+                    self.hold_cost.observe(len(plan.hold), self.clock() - t0)
                 if plan.step:
                     results.extend(self._step(model, plan))
         return results
@@ -271,7 +272,7 @@ class Scheduler:
         C = group[0].mapping.n_model
         levels = levels_of(model)
         knob = plan.iterations is not None and plan.iterations != levels[0]
-        t0 = time.perf_counter()
+        t0 = self.clock()
         try:
             if knob:
                 model.set_iterations(plan.iterations)  # type: ignore[attr-defined]
@@ -296,8 +297,8 @@ class Scheduler:
                 s.restart()
                 out.append((s, Fill(f, np.zeros(C), np.zeros(C, bool)), "passthrough"))
             return out
-        self.last_step[id(model)] = time.perf_counter()
-        dt = time.perf_counter() - t0
+        self.last_step[id(model)] = self.clock()
+        dt = self.clock() - t0
         self.cost(model, plan.iterations).observe(len(group), dt / (1 + max(gaps, default=0)))
         status = "passthrough" if isinstance(model, PassThroughModel) else ("degraded" if plan.degraded else "ok")
         out = []
@@ -328,10 +329,10 @@ class Scheduler:
                     obs[:, ::2] = True
                     frames = np.where(obs, 0.0, np.nan)
                     for rep in range(4):
-                        t0 = time.perf_counter()
+                        t0 = self.clock()
                         fills = model.step_batch(states, frames, obs)
                         if rep >= 2:  # first calls fill caches and lags: keep the steady state
-                            self.cost(model, lv).observe(n, time.perf_counter() - t0)
+                            self.cost(model, lv).observe(n, self.clock() - t0)
                     if len(fills) != n or any(np.shape(f.frame) != (C,) for f in fills):
                         raise ValueError(f"step_batch returned {len(fills)} fills of shape "
                                          f"{np.shape(fills[0].frame) if fills else None} for {n} streams of {C} channels")

@@ -112,7 +112,7 @@ class Session:
     model_seq: int | None = None  # last sequence number the filler state consumed
     last_out: np.ndarray | None = None  # (n_model,) last completed frame, for hold-last-value
     pending: Pending | None = None
-    last_active: float = field(default_factory=time.monotonic)
+    last_active: float = field(default_factory=time.perf_counter)  # (the table's clock)
     held_streak: int = 0
     late_streak: int = 0  # frames in a row answered `overdue`: breaks ties in who goes first
     counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
@@ -147,7 +147,7 @@ class Session:
         d: dict[str, Any] = dict(self.counts)
         d.update(model=self.model_name, last_seq=self.last_seq, channels=self.mapping.n_in,
                  passthrough=len(self.mapping.passthrough), missing=len(self.mapping.missing),
-                 idle_s=round(time.monotonic() - self.last_active, 3), max_wait_ms=round(self.max_wait_s * 1e3, 1))
+                 idle_s=round(time.perf_counter() - self.last_active, 3), max_wait_ms=round(self.max_wait_s * 1e3, 1))
         d["dropped"] = sum(v for k, v in self.counts.items() if k.startswith("dropped_"))
         return d
 
@@ -166,7 +166,8 @@ class SessionTable:
     """All live sessions.  ``resolve(name)`` gives (model name, Model) for a requested model."""
 
     def __init__(self, resolve: Callable[[str | None, str], tuple[str, Model]], max_streams: int,
-                 count: Callable[[str, str | None], None]):
+                 count: Callable[[str, str | None], None], clock: Callable[[], float] = time.perf_counter):
+        self.clock = clock  # the daemon's clock: activity, ownership timeouts, idle expiry
         self.sessions: dict[str, Session] = {}
         # stream ids, least recently active first (a frame or hello moves one to the end): status
         # lists the most recent without looking at the idle ones, expiry stops at the first live one
@@ -187,7 +188,7 @@ class SessionTable:
         """May ``who`` act on ``s``?  Taking it over (claim token, silent owner) says yes."""
         if who is None or s.owner is None or s.owner == who:
             return True
-        if (claim is not None and claim == s.claim) or time.monotonic() - s.last_active > self.idle_s:
+        if (claim is not None and claim == s.claim) or self.clock() - s.last_active > self.idle_s:
             self.takeovers += 1
             return True
         s.counts["foreign"] += 1
@@ -219,7 +220,7 @@ class SessionTable:
         if chans and mp.s_idx.size == 0:
             raise SessionError("bad_channels", f"none of the {len(studio)} channels is a channel of model {name!r} "
                                                f"(got {studio[:3]}..., model has {chans[:3]}...)")
-        s = Session(sid, name, model, mp, model.stream())
+        s = Session(sid, name, model, mp, model.stream(), last_active=self.clock())
         old = self.sessions.get(sid)
         if old is not None:
             s.counts, s.order = old.counts, old.order
@@ -367,7 +368,7 @@ class SessionTable:
         if f.angles.shape[0] != s.mapping.n_in:
             raise SessionError("width", f"stream {f.stream!r} has {s.mapping.n_in} channels, the frame has "
                                         f"{f.angles.shape[0]} (send a hello to change the channel list)")
-        s.last_active = time.monotonic()
+        s.last_active = self.clock()
         self.recent.move_to_end(f.stream)
         # did the frame wait on its way (a stalled daemon, a full socket)?  arrival - capture time
         # is constant for a frame delivered as quickly as ever; more means it waited

@@ -20,21 +20,22 @@ from __future__ import annotations
 import errno
 import socket
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
-import msgpack
+import msgpack  # type: ignore[import-untyped]
 import zmq
 
 from daemon import osc, security, wire
 from daemon.config import Config
 from daemon.metrics import Metrics
-from daemon.session import Origin
 
+Origin = tuple[Any, ...]  # daemon.session.Origin: (transport name, address[, "bundle"])
+Socket = zmq.Socket[Any]
 DRAIN_MAX = 2048  # messages read per socket per tick: keeps one busy socket from starving the rest
 DRAIN_MAX_BYTES = 1 << 20  # and bytes: a turn of big requests (hellos of 4096 names) is cut short
 UDP_MAX = 65535  # bytes
 _NOBLOCK = int(zmq.NOBLOCK)
-_RCVMORE = int(zmq.RCVMORE)
 _MORE_NOBLOCK = int(zmq.SNDMORE | zmq.NOBLOCK)
 FLUSH_MAX = 64  # held answers sent at once, at most (fewer when the hwm is small)
 ZMQ_MAXMSG_MARGIN = 64 << 10  # bytes a frame may exceed max_message_bytes and still be read (and answered too_large)
@@ -46,28 +47,33 @@ class Transports:
                  on_batch: Callable[[list[tuple[bytes, Origin, float]]], None] | None = None):
         self.cfg = cfg
         self.on_message = on_message
-        self.on_batch = on_batch or (lambda items: [on_message(*it) for it in items])
+        self.on_batch = on_batch or self._each
         self.on_reject = on_reject
         self.metrics = metrics
         self.log = log
-        self.ctx: zmq.Context | None = None
-        self.router: zmq.Socket | None = None
-        self.pull: zmq.Socket | None = None
-        self.sub: zmq.Socket | None = None
-        self.pub: zmq.Socket | None = None
+        self.ctx: zmq.Context[Any] | None = None
+        self.router: Socket | None = None
+        self.pull: Socket | None = None
+        self.sub: Socket | None = None
+        self.pub: Socket | None = None
         self.udp: socket.socket | None = None
         self.guard: security.Guard | None = None
         self.poller = zmq.Poller()
-        self._held: list[tuple[zmq.Socket, list[bytes], str]] | None = None
-        self._bundles: dict[tuple[bytes, ...], list[bytes]] = {}  # ROUTER envelope -> held answers to bundled frames
+        self._held: list[tuple[Socket, list[bytes], str]] | None = None
+        # ROUTER envelope -> held answers to bundled frames, as maps: packed in one pass at the flush
+        self._bundles: dict[tuple[bytes, ...], list[dict[str, Any]]] = {}
         self._pack = msgpack.Packer(use_bin_type=True).pack  # one for the daemon's thread (packb builds one per call)
         self._flush_every = max(1, min(FLUSH_MAX, cfg.zmq_hwm // 4))
         self._curve = False  # set in open() when the sockets are CURVE servers
 
-    def _sock(self, kind: int) -> zmq.Socket:
+    def _each(self, items: list[tuple[bytes, Origin, float]]) -> None:
+        for it in items:
+            self.on_message(*it)
+
+    def _sock(self, kind: int) -> Socket:
         assert self.ctx is not None
         c = self.cfg
-        s = self.ctx.socket(kind)
+        s: Socket = self.ctx.socket(kind)
         s.setsockopt(zmq.LINGER, 0)
         s.setsockopt(zmq.SNDHWM, c.zmq_hwm)
         s.setsockopt(zmq.RCVHWM, c.zmq_hwm)
@@ -124,14 +130,15 @@ class Transports:
         out: dict[str, Any] = {}
         for name, s in (("router", self.router), ("pull", self.pull), ("pub", self.pub)):
             if s is not None:
-                out[name] = s.getsockopt(zmq.LAST_ENDPOINT).decode()
+                out[name] = bytes(s.getsockopt(zmq.LAST_ENDPOINT)).decode()
         if self.sub is not None:
             out["sub"] = self.cfg.zmq_sub
         if self.udp is not None:
-            out["osc"] = "%s:%d" % self.udp.getsockname()[:2]
+            host, port = self.udp.getsockname()[:2]
+            out["osc"] = f"{host}:{port}"
         return out
 
-    def poll(self, timeout_ms: int) -> dict:
+    def poll(self, timeout_ms: int) -> dict[Any, int]:
         try:
             return dict(self.poller.poll(timeout_ms))
         except zmq.ZMQError as e:
@@ -139,7 +146,7 @@ class Transports:
                 raise
             return {}
 
-    def receive(self, ready: dict) -> None:
+    def receive(self, ready: dict[Any, int]) -> None:
         batch: list[tuple[bytes, Origin, float]] = []
         for sock_, name in ((self.router, "router"), (self.pull, "pull"), (self.sub, "sub")):
             if sock_ is None or sock_ not in ready:
@@ -167,7 +174,8 @@ class Transports:
                     # frames never become an envelope the daemon holds for a peer (the size cap
                     # covers the body; the envelope is bounded to 255 + 0 bytes)
                     if n == 2 or (n == 3 and not parts[1]):
-                        origin: Origin = ("router", parts[:-1] if not keyed else _Keyed(parts[:-1], parts.key))
+                        origin: Origin = ("router", parts[:-1] if not keyed
+                                          else _Keyed(parts[:-1], parts.key))  # type: ignore[attr-defined]
                     else:
                         n = n if type(parts[-1]) is not int else n - 1 + parts[-1]
                         self.on_reject(("router", parts[:1]), "bad_envelope",
@@ -236,14 +244,16 @@ class Transports:
             n = len(held)
         if self._bundles:
             bundles, self._bundles = self._bundles, {}
-            for envelope, bodies in bundles.items():
-                for i in range(0, len(bodies), wire.MAX_BUNDLE):
-                    chunk = bodies[i:i + wire.MAX_BUNDLE]
-                    self._zsend(self.router, [*envelope, wire.join_replies(chunk)], "router")  # type: ignore[arg-type]
+            pack = self._pack
+            for envelope, maps in bundles.items():
+                for i in range(0, len(maps), wire.MAX_BUNDLE):
+                    chunk = maps[i:i + wire.MAX_BUNDLE]
+                    # one msgpack pass over the chunk's answers: the bytes join_replies would give
+                    self._zsend(self.router, [*envelope, wire.replies_of(chunk, pack)], "router")  # type: ignore[arg-type]
                     n += len(chunk)  # (answers, for what an answer costs to send)
         return n
 
-    def _zsend(self, sock_: zmq.Socket, parts: list[bytes], kind: str) -> None:
+    def _zsend(self, sock_: Socket, parts: list[bytes], kind: str) -> None:
         try:
             # send_multipart, without its per-part checks and enum flag arithmetic (hot path)
             send = sock_.send
@@ -256,7 +266,7 @@ class Transports:
             self.metrics.inc("send_errors")  # e.g. EHOSTUNREACH: the peer disconnected
             self.log("debug", "send_error", transport=kind, error=str(e))
 
-    def _zmq(self, sock_: zmq.Socket, parts: list[bytes], kind: str) -> None:
+    def _zmq(self, sock_: Socket, parts: list[bytes], kind: str) -> None:
         held = self._held
         if held is None:
             self._zsend(sock_, parts, kind)
@@ -270,7 +280,7 @@ class Transports:
 
     def _encode(self, msg: wire.Message) -> bytes:
         """``wire.encode``, with this thread's Packer."""
-        return self._pack(wire.to_map(msg))
+        return self._pack(wire.fill_map(msg) if type(msg) is wire.FillMsg else wire.to_map(msg))  # type: ignore[no-any-return]
 
     def send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
         """Answer on the origin's transport; ``publish`` also puts it on PUB (topic = stream).
@@ -285,13 +295,15 @@ class Transports:
                 self.log("debug", "send_error", transport=kind, error=str(e))
         body: bytes | None = None
         if kind == "router" and self.router is not None:
-            body = self._encode(msg)
             if len(origin) == 2:
+                body = self._encode(msg)
                 self._zmq(self.router, [*origin[1], body], kind)
-            elif self._held is not None:  # an answer to a bundled frame: it goes back in one `replies`
-                self._bundles.setdefault(tuple(origin[1]), []).append(body)
-            else:
-                self._zsend(self.router, [*origin[1], wire.join_replies([body])], kind)
+            else:  # an answer to a bundled frame: it goes back in one `replies`, packed at the flush
+                m = wire.fill_map(msg) if type(msg) is wire.FillMsg else wire.to_map(msg)
+                if self._held is not None:
+                    self._bundles.setdefault(tuple(origin[1]), []).append(m)
+                else:
+                    self._zsend(self.router, [*origin[1], wire.replies_of([m], self._pack)], kind)
         elif kind == "pull" and self.pub is not None and not publish:
             topic = getattr(msg, "stream", None) or ""
             self._zmq(self.pub, [topic.encode(), self._encode(msg)], "pub")
@@ -318,19 +330,19 @@ class Transports:
 _KEEP = {"router": 3, "pull": 1, "sub": 2}  # frames of a message that can be valid: [id, "", body], [body], [topic, body]
 
 
-class _Keyed(list):
+class _Keyed(list[Any]):
     """A ROUTER envelope (sent back as its frames) that also carries the CURVE public key (Z85)
     its message was authenticated with: read from that very message, so a routing id reused by
     another connection can never inherit a key."""
 
     __slots__ = ("key",)
 
-    def __init__(self, frames: list, key: str | None):
+    def __init__(self, frames: list[Any], key: str | None):
         super().__init__(frames)
         self.key = key
 
 
-def _recv_bounded(sock_: zmq.Socket, keep: int, keyed: bool = False) -> list:
+def _recv_bounded(sock_: Socket, keep: int, keyed: bool = False) -> list[Any]:
     """One multipart message, at most ``keep`` frames of it copied into Python: the frames after
     those (the message is refused) are taken zero-copy and dropped at once, so a peer sending
     many leading frames costs neither a copy nor memory held (each frame is capped by
@@ -338,32 +350,35 @@ def _recv_bounded(sock_: zmq.Socket, keep: int, keyed: bool = False) -> list:
     its first ``keep`` frames and then the count of frames dropped (an int).  ``keyed`` (CURVE
     on a ROUTER): the result is a :class:`_Keyed` whose ``key`` is the message's ZAP User-Id,
     the peer's public key, so streams are owned by keys, not connections."""
-    recv, more = sock_.recv, sock_.getsockopt
+    # each frame is taken as a zmq.Frame (copy=False) and read with .bytes: its ``more`` flag
+    # comes with it, where recv() of bytes needs a getsockopt(RCVMORE) call per frame (about
+    # half the cost of reading a message)
+    recv = sock_.recv
+    f = recv(_NOBLOCK, copy=False)
     if not keyed:
-        parts = [recv(_NOBLOCK)]
+        parts: list[Any] = [f.bytes]
     else:
-        f = recv(_NOBLOCK, copy=False)
         try:
-            key = f.get("User-Id")
+            got = f.get("User-Id")
+            key = got if isinstance(got, str) else None
         except zmq.ZMQError:
             key = None
         parts = _Keyed([f.bytes], key)
-    while more(_RCVMORE):
+    while f.more:
+        f = recv(_NOBLOCK, copy=False)
         if len(parts) < keep:
-            parts.append(recv(_NOBLOCK))
+            parts.append(f.bytes)
             continue
-        dropped = 0
-        while True:
-            recv(_NOBLOCK, copy=False)
+        dropped = 1  # the frames beyond ``keep``: taken and let go, never copied
+        while f.more:
+            f = recv(_NOBLOCK, copy=False)
             dropped += 1
-            if not more(_RCVMORE):
-                break
         parts.append(dropped)
         break
     return parts
 
 
-def _bind(s: zmq.Socket, endpoint: str, key: str) -> None:
+def _bind(s: Socket, endpoint: str, key: str) -> None:
     try:
         s.bind(endpoint)
     except zmq.ZMQError as e:

@@ -464,18 +464,18 @@ class _Recording:
     def make(batch_min: int, budget_ms: float = 100.0, overdue: str = "serve"):
         # (these tests give frames made-up receipt times: "serve" keeps the overdue check, which
         # reads the clock, out of them; the overdue tests below pass "drop")
-        from daemon import server
+        from daemon import dispatch, server
 
         class D(server.Daemon):
             def _send(self, origin, msg, publish=False):
                 self.sent.append((origin, msg))
 
             def _batch(self, items):
-                old, server.BATCH_MIN = server.BATCH_MIN, batch_min
+                old, dispatch.BATCH_MIN = dispatch.BATCH_MIN, batch_min
                 try:
                     super()._batch(items)
                 finally:
-                    server.BATCH_MIN = old
+                    dispatch.BATCH_MIN = old
 
         cfg = config.from_dict({"daemon": {"budget_ms": budget_ms, "max_streams": 8, "log_level": "error", "overdue": overdue},
                                 "models": {"pt": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
@@ -504,12 +504,8 @@ def _answers(d) -> list[tuple]:
 
 
 def _turn(d, items) -> int:
-    """One loop turn as Daemon.run does it; returns how many frames were set aside."""
-    d._batch(items)
-    n = sum(item is not None for *_, c in d._superseded for item in c)
-    d._serve()
-    d._answer_superseded()
-    return n
+    """One loop turn (the loop's own Daemon.turn); returns how many frames were set aside."""
+    return d.turn(d.clock(), items=items)
 
 
 def _burst(rng, C: int, turn: int) -> list[tuple[bytes, tuple, float]]:

@@ -178,7 +178,7 @@ def test_random_bytes_never_raise_anything_but_wire_error(rng):
 def test_masked_frame_fast_path_equals_the_checked_path_and_rejects_the_same():
     """The hot path reads a frame with an explicit observed mask without the field-by-field
     checks; it must decode exactly what the checked path decodes and leave every bad mask to it."""
-    from daemon.wire import _decode_frame_checked
+    from daemon.decode import _decode_frame_checked
 
     angles = np.array([1.0, np.nan, 3.0, 4.0], np.float32)
     good = {"v": 1, "type": "frame", "stream": "s", "seq": 3, "t": 0.5, "angles": angles.tobytes(),
@@ -259,7 +259,7 @@ def test_replies_carry_every_kind_of_answer_and_refuse_requests():
 def test_bundle_fast_path_equals_reading_each_frame_alone(rng):
     """A well-formed bundle is checked as (n, C) arrays at once; it must give exactly the frames
     the element-by-element path gives, and leave every irregular bundle to that path."""
-    from daemon.wire import _bundle_fast
+    from daemon.block import read_block
 
     C = 6
     def elem(i, masked):
@@ -276,8 +276,9 @@ def test_bundle_fast_path_equals_reading_each_frame_alone(rng):
 
     for masked in (True, False):
         els = [elem(i, masked) for i in range(9)]
-        fast = _bundle_fast(els)
-        assert fast is not None
+        block = read_block(els)
+        assert block is not None
+        fast = block.frames()
         alone = [w.decode(_pack({"v": 1, "type": "frame", **e})) for e in els]
         for x, y in zip(fast, alone):
             assert (x.stream, x.seq, x.t) == (y.stream, y.seq, y.t)
@@ -288,7 +289,7 @@ def test_bundle_fast_path_equals_reading_each_frame_alone(rng):
                     {"observed": b"\2" * C} if masked else {"observed": b"\1" * C},   # bad mask / mixed
                     {"t": float("inf")}, {"stream": "a\nb"}, {"seq": -1}, {"type": "hello"}, {"v": 2},
                     {"angles": np.full(C, np.inf, np.float32).tobytes()}):
-            assert _bundle_fast(els[:4] + [{**els[4], **bad}] + els[5:]) is None, bad
+            assert read_block(els[:4] + [{**els[4], **bad}] + els[5:]) is None, bad
 
 
 def test_mutated_bundles_never_raise_anything_but_wire_error():

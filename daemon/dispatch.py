@@ -1,0 +1,344 @@
+"""Decode -> session: a turn's messages taken from the transport's bytes to their sessions.
+
+``Dispatch`` (a part of :class:`daemon.loop.Daemon`) turns each received message (bytes and the
+origin it came from) into what it means: a frame handed to its session (which keeps the newest
+per stream, see daemon/session.py), a hello, a bundle, a control request (daemon/control.py),
+or a refusal.  Its answers go out through ``Daemon._send``, which the transport holds until the
+turn's fills have gone (see daemon/loop.py).  Under a backlog, frames a newer frame of their
+stream superseded within the burst are set aside undecoded and answered after the fills
+(``_batch``, ``_answer_superseded``).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from daemon import budget as budgets, osc, wire
+from daemon.session import Origin, SessionError, principal
+
+OSC_ERRORS_PER_S = 20  # error answers a second to one OSC source host; the rest are counted, not sent
+OSC_ERROR_FLOOR = 64  # bytes an OSC error answer may take even when what it answers was smaller (a reason code)
+SLICE = 16  # messages of a barrier burst between two looks at the clock (see _batch)
+BATCH_MIN = 3  # messages in a turn from which frames superseded within it are answered after the step
+REJECT_LOG_PER_S = 20  # rejection log lines per second; the rest are counted, summarised
+
+
+class Dispatch:
+    """The ingest half of the daemon (mixed into :class:`daemon.loop.Daemon`)."""
+
+    def _handle(self, data: bytes, origin: Origin, arrived: float, counted: bool = False) -> None:
+        if not counted:
+            self.metrics.inc("messages_in")
+        if origin[0] != "osc":
+            try:
+                m = wire.unpack(data, self.cfg.max_message_bytes)
+            except wire.WireError as e:
+                self._reject(origin, e.reason, e.detail, e.stream, e.seq)
+                return
+            self._handle_map(m, origin, arrived)
+        elif data.startswith(osc.BUNDLE_PREFIX):  # several messages of one instant
+            self._osc_in, self._osc_errs = len(data), []
+            try:
+                self._take(self._osc_bundle, data, origin, arrived)
+            finally:
+                errs, self._osc_errs = self._osc_errs, None
+                if errs:
+                    self._osc_summary(origin, errs)
+        else:
+            self._osc_in = len(data)
+            self._take(osc.decode, data, origin, arrived)
+
+    def _handle_map(self, m: dict | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
+        """:meth:`_handle` for a message already unpacked by :meth:`_batch` (or its unpack error;
+        bytes: an OSC datagram, not unpacked), counted there."""
+        if type(m) is bytes:
+            self._handle(m, origin, arrived, counted=True)
+        elif isinstance(m, wire.WireError):
+            self._reject(origin, m.reason, m.detail, m.stream, m.seq)
+        elif m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
+                not self.budget.allow(principal(origin), units):
+            # (before decoding: checking a hello's names is the cost the budget is for)
+            self._rate_limited(origin, m)
+        else:
+            self._take(_decode_map, m, origin, arrived)
+
+    def _rate_limited(self, origin: Origin, m: dict | None = None) -> None:
+        sid = m.get("stream") if m is not None else None
+        self._reject(origin, "rate_limited", f"over this peer's budget for hello/control requests "
+                                             f"({budgets.RATE:g} cost units a second, bursts of {budgets.BURST:g}; "
+                                             f"a hello costs 1 + channels/64, a control request {budgets.CONTROL_COST:g})",
+                     sid if isinstance(sid, str) else None, None)
+
+    def _osc_bundle(self, data: bytes, maxb: int) -> list[Any]:
+        items = osc.decode_bundle(data, maxb)
+        self.metrics.inc("osc_bundles_in")
+        return items
+
+    def _take(self, decode: Any, data: Any, origin: Origin, arrived: float) -> None:
+        """``decode(data, max_message_bytes)`` (a message, or an OSC bundle's list of them) and
+        dispatch; what cannot be decoded is answered with its error, and a malformed element of
+        a bundle costs only itself."""
+        try:
+            got = decode(data, self.cfg.max_message_bytes)
+        except wire.WireError as e:
+            self._reject(origin, e.reason, e.detail, e.stream, e.seq)
+            return
+        except Exception as e:  # a decoder bug must cost one message, never the loop
+            self._internal("decode", e, origin, None, None)
+            return
+        for m in got if type(got) is list else (got,):
+            if isinstance(m, wire.WireError):
+                self._reject(origin, m.reason, m.detail, m.stream, m.seq)
+            else:
+                self._dispatch(m, origin, arrived)
+
+    def _internal(self, where: str, e: Exception, origin: Origin | None, sid: str | None, seq: int | None) -> None:
+        self.metrics.inc("internal_errors")
+        self.log("error", "internal_error", where=where, stream=sid, error=f"{type(e).__name__}: {e}"[:300])
+        self._reject(origin, "internal", f"{type(e).__name__} while handling the message", sid, seq)
+
+    def _batch(self, items: list[tuple[bytes, Origin, float]]) -> None:
+        """A turn's ZeroMQ messages, in arrival order.  Under a backlog most of them are frames
+        that a newer frame of the same stream in the same burst supersedes; only the newest is
+        served.  Those superseded frames are set aside, each burst only unpacked, and handled
+        after the turn's fills went out (:meth:`_answer_superseded`), so the frames served do
+        not wait for them.  Everything else is handled now, in order.
+
+        The answers are exactly those of handling every message in order: a set-aside frame is
+        decoded and checked later through the same session code, against the stream's state
+        as it was before the burst, and nothing is set aside when the burst has a message that
+        changes sessions (hello, control, bundle), for a stream that is new or has a frame
+        waiting, or when the frame meant to supersede them is not taken (malformed, say): then
+        they are handled at once, in order."""
+        if len(items) < BATCH_MIN:
+            for data, origin, arrived in items:
+                self._handle(data, origin, arrived)
+            return
+        self.metrics.inc("messages_in", len(items))
+        maxb = self.cfg.max_message_bytes
+        maps: list[dict | wire.WireError | bytes] = []
+        keys: list[tuple[str, int] | None] = []
+        barrier = False
+        for data, origin, _ in items:
+            k = None
+            if origin[0] == "osc":  # OSC is decoded on its own path, in order
+                m: dict | wire.WireError | bytes = data
+                barrier = True
+            else:
+                try:
+                    m = wire.unpack(data, maxb)
+                except wire.WireError as e:
+                    m = e
+            if type(m) is dict:
+                k = wire.frame_key(m)
+                if k is None and m.get("type") != "frame":
+                    barrier = True  # hello, control, bundle, ...: handled in order with everything else
+            maps.append(m)
+            keys.append(k)
+        chains: dict[str, list[int]] = {}  # stream -> indices set aside, behind its newest frame
+        if not barrier:
+            sessions = self.sessions.sessions
+            # only streams with an owner that is not about to lose them (a frame from anyone
+            # else is then refused whatever came before it: a released stream's adoption and a
+            # silent owner's takeover depend on the order, so those bursts go in order)
+            fresh = self.clock() - self.sessions.idle_s / 2
+            single: dict[str, Any] = {}  # unowned stream -> its one sender in the burst (False: several)
+            for k, it in zip(keys, items):
+                if k is not None and (s := sessions.get(k[0])) is not None and s.owner is None:
+                    w = principal(it[1])
+                    if single.setdefault(k[0], w) != w:
+                        single[k[0]] = False
+            newest: dict[str, int] = {}
+            for i, k in enumerate(keys):
+                if k is None:
+                    continue
+                sid, seq = k
+                j = newest.get(sid)
+                if j is None:
+                    s = sessions.get(sid)
+                    if s is not None and s.pending is None and s.last_active > fresh and \
+                            (s.owner is not None or single.get(sid) is not False):
+                        newest[sid] = i
+                elif seq > keys[j][1]:  # type: ignore[index]
+                    chains.setdefault(sid, []).append(j)
+                    newest[sid] = i
+                else:  # not newer than the newest so far: answered late/duplicate with the chain
+                    chains.setdefault(sid, []).append(i)
+            heads = {newest[sid]: sid for sid in chains}
+            aside = {i for c in chains.values() for i in c}
+        else:
+            heads, aside = {}, set()
+        # a burst of costly requests (hellos, controls: that is what makes it a barrier) must not
+        # hold up the frames read with it: every SLICE messages, once a quarter of the budget is
+        # spent, the frames taken so far are served (as if the rest had come in the next turn)
+        slice_at, t_slice = (SLICE if barrier else len(maps) + 1), self.clock()
+        frames_seen = self.metrics.counters.get("frames_in", 0)
+        for i, (m, (_, origin, arrived)) in enumerate(zip(maps, items)):
+            if i in aside:
+                continue
+            if i and not i % slice_at and self.clock() - t_slice > self.sched.budget_s / 4:
+                if self.metrics.counters.get("frames_in", 0) != frames_seen:
+                    self._serve()
+                    frames_seen = self.metrics.counters.get("frames_in", 0)
+                t_slice = self.clock()
+            self._handle_map(m, origin, arrived)
+            sid = heads.get(i)
+            if sid is None:
+                continue
+            order = sorted(chains[sid] + [i])  # the stream's frames of the burst, in arrival order
+            s = self.sessions.sessions[sid]
+            p = s.pending
+            if p is not None and p.frame.seq == keys[i][1]:  # type: ignore[index]
+                # with None where the served frame came
+                self._superseded.append((s, s.last_seq, p, [None if d == i else (maps[d], items[d][1], items[d][2])
+                                                            for d in order]))
+            else:  # the newest frame was refused and changed nothing: the rest count as usual
+                for d in order:
+                    if d != i:
+                        self._handle_map(maps[d], items[d][1], items[d][2])
+
+    def _frame_answers(self, out: list) -> None:
+        """A session's immediate answers to a frame: a ``conflated`` drop (of the frame it
+        replaced) waits for the turn's fills (:meth:`_answer_superseded`), the rest go now."""
+        for o, m in out:
+            if type(m) is wire.Drop and m.reason == "conflated":
+                self._conflated.append((o, m))
+            else:
+                self._send(o, m)
+
+    def _answer_superseded(self) -> None:
+        """After the turn's fills: the ``conflated`` drops of the turn, and the frames
+        :meth:`_batch` set aside, each decoded and taken by its session as it would have been
+        in arrival order, before the frame that was served (the stream's last answered seq put
+        back, no frame waiting), so it gets the answer it would have had then (``drop``
+        conflated, late or duplicate, or an ``error``)."""
+        self._send_conflated()
+        todo, self._superseded = self._superseded, []
+        for s, last_seq, served, chain in todo:
+            # (the burst held no hello or reset, so the session is the same object; a SIGHUP swap
+            # runs between turns and keeps it)
+            assert self.sessions.sessions.get(s.sid) is s and s.pending is None
+            now_seq, s.last_seq = s.last_seq, last_seq
+            try:
+                for item in chain:
+                    if item is None:  # where the served frame came: it supersedes the one waiting
+                        self._frame_answers(self.sessions.conflate(s))
+                        s.pending = served  # (frames after it are late or duplicates against it)
+                    else:
+                        self._handle_map(*item)
+            finally:
+                s.last_seq = now_seq
+                s.pending = None
+        self._send_conflated()
+
+    def _send_conflated(self) -> None:
+        todo, self._conflated = self._conflated, []
+        for o, m in todo:
+            self._send(o, m)
+
+    def _dispatch(self, msg: Any, origin: Origin, arrived: float) -> None:
+        try:
+            if isinstance(msg, wire.Frame):
+                self.metrics.inc("frames_in")
+                self._frame_answers(self.sessions.frame(msg, origin, arrived, principal(origin)))  # type: ignore[union-attr]
+            elif isinstance(msg, wire.Bundle):
+                self._bundle(msg, origin, arrived)
+            elif isinstance(msg, (wire.Hello, wire.Control)) and \
+                    not self.budget.allow(principal(origin), budgets.HELLO_COST if isinstance(msg, wire.Hello)
+                                          else budgets.CONTROL_COST):
+                self._rate_limited(origin)
+            elif isinstance(msg, wire.Hello):
+                ack, orphans = self.sessions.hello(msg, principal(origin))  # type: ignore[union-attr]
+                for o, m in orphans:
+                    self._send(o, m)
+                self.log("info", "stream_hello", stream=msg.stream, model=ack.model, channels=len(ack.channels),
+                         passthrough=len(ack.passthrough), missing=len(ack.missing))
+                self._send(origin, ack)
+            elif isinstance(msg, wire.Control):
+                self._control(msg, origin)
+            else:
+                self._reject(origin, "unknown_type", f"{type(msg).__name__} is an answer, not a request", None, None)
+        except SessionError as e:
+            self._reject(origin, e.reason, e.detail, getattr(msg, "stream", None), getattr(msg, "seq", None))
+        except Exception as e:  # a bug must cost one message, never the loop
+            self._internal("handle", e, origin, getattr(msg, "stream", None), getattr(msg, "seq", None))
+
+    def _bundle(self, msg: wire.Bundle, origin: Origin, arrived: float) -> None:
+        """Each frame of a bundle as if it had come alone, at the bundle's arrival; over ROUTER
+        their answers are marked to go back together (a third origin element, see Transports)."""
+        self.metrics.inc("bundles_in")
+        who = principal(origin)  # type: ignore[union-attr]
+        if origin[0] == "router":
+            origin = (*origin, "bundle")
+        for f in msg.items:
+            if isinstance(f, wire.WireError):
+                self._reject(origin, f.reason, f.detail, f.stream, f.seq)
+                continue
+            self.metrics.inc("frames_in")
+            try:
+                self._frame_answers(self.sessions.frame(f, origin, arrived, who))
+            except SessionError as e:  # one frame's refusal is its own answer; the rest go on
+                self._reject(origin, e.reason, e.detail, f.stream, f.seq)
+            except Exception as e:
+                self.metrics.inc("internal_errors")
+                self.log("error", "internal_error", where="bundle", stream=f.stream, error=f"{type(e).__name__}: {e}"[:300])
+                self._reject(origin, "internal", f"{type(e).__name__} while handling the frame", f.stream, f.seq)
+
+    def _reject(self, origin: Origin | None, reason: str, detail: str, sid: str | None, seq: int | None) -> None:
+        self.metrics.reject(reason)
+        s = self.sessions.sessions.get(sid) if sid else None
+        if s is not None and reason != "not_owner":  # (someone else's message: counted `foreign` on the stream)
+            s.counts["rejected"] += 1
+        # a flood of bad input must not turn into a flood of log lines: at most REJECT_LOG_PER_S
+        # a second are written, the rest are summed into one line per housekeeping tick
+        now = self.clock()
+        if now - self._rej_window >= 1.0:
+            self._rej_window, self._rej_logged = now, 0
+        if self._rej_logged < REJECT_LOG_PER_S:
+            self._rej_logged += 1
+            self.log("warning", "rejected", reason=reason, detail=detail[:300], stream=sid, seq=seq,
+                     transport=origin[0] if origin else None)
+        else:
+            self._rej_suppressed += 1
+        if origin is None:
+            return
+        if origin[0] == "osc":
+            if self._osc_errs is not None:  # an element of a bundle: one answer for them all, after it
+                self._osc_errs.append((reason, detail))
+            else:
+                self._osc_error(origin, wire.ErrorMsg(reason, detail, sid, seq))
+            return
+        self._send(origin, wire.ErrorMsg(reason, detail, sid, seq))
+
+    # ---- OSC error answers: bounded (no amplification, no reflection flood) ---------------
+    def _osc_summary(self, origin: Origin, errs: list[tuple[str, str]]) -> None:
+        by: dict[str, int] = {}
+        for r, _ in errs:
+            by[r] = by.get(r, 0) + 1
+        counts = ", ".join(f"{r} x{n}" for r, n in sorted(by.items(), key=lambda kv: -kv[1]))
+        self._osc_error(origin, wire.ErrorMsg(errs[0][0], f"{len(errs)} message(s) of the bundle refused ({counts}); "
+                                                         f"first: {errs[0][1]}"))
+
+    def _osc_error(self, origin: Origin, msg: wire.ErrorMsg) -> None:
+        """An OSC error answer, at most OSC_ERRORS_PER_S a second per source host and no larger
+        than the datagram it answers or OSC_ERROR_FLOOR bytes, whichever is more (the detail
+        is cut to fit; an answer that cannot fit is not sent): spoofing a source cannot turn
+        the daemon into an amplifier."""
+        if not self.osc_err_budget.allow(origin[1][0]):
+            self.metrics.inc("osc_errors_unanswered")
+            return
+        room = max(self._osc_in, OSC_ERROR_FLOOR)
+        data = osc.encode(msg)
+        if len(data) > room:
+            base = len(osc.encode(wire.ErrorMsg(msg.reason, "")))
+            keep = room - base - 4  # (the detail's terminator and padding)
+            if keep < 0:
+                self.metrics.inc("osc_errors_unanswered")
+                return
+            msg = wire.ErrorMsg(msg.reason, msg.detail.encode()[:keep].decode(errors="ignore"), msg.stream, msg.seq)
+        self._send(origin, msg)
+
+
+
+def _decode_map(m: dict, max_bytes: int) -> wire.Message:
+    return wire.decode_map(m)  # (already unpacked, within max_bytes)
+
