@@ -112,7 +112,7 @@ _SCHEMA: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
 }
 
 
-def _check_value(where: str, key: str, v: Any, kind, check) -> Any:
+def _check_value(where: str, key: str, v: Any, kind: Any, check: Any) -> Any:
     ok = isinstance(v, kind) and not (isinstance(v, bool) and bool not in (kind if isinstance(kind, tuple) else (kind,)))
     if not ok:
         names = {int: "an integer", float: "a number", str: "a string", list: "a list"}

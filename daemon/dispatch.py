@@ -12,7 +12,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from daemon import budget as budgets, osc, wire
+from daemon import budget as budgets
+from daemon import osc, wire
 from daemon.session import Origin, SessionError, principal
 
 OSC_ERRORS_PER_S = 20  # error answers a second to one OSC source host; the rest are counted, not sent

@@ -7,7 +7,7 @@ to relay a stream unchanged.  Hold-last-value under overload is done by the sess
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -28,7 +28,7 @@ class PassThroughModel(Model):
     def any_channels(self) -> bool:
         return not self.channels
 
-    def stream(self) -> "PassThroughState":
+    def stream(self) -> PassThroughState:
         return PassThroughState(self)
 
     def info(self) -> dict:

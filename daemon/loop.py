@@ -18,12 +18,14 @@ import os
 import signal
 import sys
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import zmq
 
+from daemon import budget as budgets
 from daemon import config as config_mod
-from daemon import budget as budgets, wire
+from daemon import wire
 from daemon.control import Control
 from daemon.dispatch import OSC_ERRORS_PER_S, Dispatch
 from daemon.log import Log

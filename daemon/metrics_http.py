@@ -23,7 +23,8 @@ import socket
 import threading
 import time
 from collections import OrderedDict
-from typing import Callable
+from collections.abc import Callable
+from typing import Any
 
 from daemon.security import address_allowed
 
@@ -44,7 +45,7 @@ class MetricsHTTP:
     """``MetricsHTTP(host, port, text)`` binds and starts the thread; ``close()`` stops it."""
 
     def __init__(self, host: str, port: int, text: Callable[[], str], max_connections: int = MAX_CONNECTIONS,
-                 deadline_s: float = DEADLINE_S, allow: list | None = None):
+                 deadline_s: float = DEADLINE_S, allow: list[Any] | None = None):
         self.text = text
         self.allow = allow  # source networks answered (metrics.allow; None: any, which config allows on loopback only)
         self.max_connections, self.deadline_s = max_connections, deadline_s
@@ -68,7 +69,7 @@ class MetricsHTTP:
         self.thread = threading.Thread(target=self._run, name="metrics-http", daemon=True)
         self.thread.start()
 
-    def info(self) -> dict:
+    def info(self) -> dict[str, Any]:
         return {"open": len(self.conns), "max_connections": self.max_connections, **self.counts,
                 "last_error": self.last_error}
 

@@ -10,10 +10,10 @@ import os
 from dataclasses import dataclass, field
 from typing import Any
 
+from daemon import positions
 from daemon.config import Config, ModelSpec
 from daemon.fillers import PassThroughModel
 from daemon.safeopen import NotRegularFile, proc_path, regular_fd
-from daemon import positions
 from daemon.scheduler import CostModel, Scheduler
 from lacuna.filler import Model
 from lacuna.modelfile import ModelFileError, load_model
@@ -82,7 +82,7 @@ def load_one(spec: ModelSpec, budget_ms: float) -> Loaded:
         except Exception as e:
             raise ModelFileError(f"{spec.file or spec.name}: model failed its warm-up step ({type(e).__name__}: {e})") from None
     positions.warm(model, spec.name)  # FK of its skeleton compiled now, not in a stream's hello
-    now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     return Loaded(spec.name, model, spec, stamp, now, tmp.costs)
 
 

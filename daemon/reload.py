@@ -22,9 +22,11 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
-from daemon import config as config_mod, wire
+from daemon import config as config_mod
+from daemon import wire
 from daemon.log import Log
 from daemon.models import Loaded, load_all
 from daemon.realtime import ordinary

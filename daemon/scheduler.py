@@ -18,14 +18,15 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from daemon import wire
 from daemon.fillers import PassThroughModel
-from daemon.session import Out, Session
+from daemon.session import Session
 from lacuna.filler import Fill, Model
 
 SAFETY = 1.25  # multiply cost estimates: better to degrade a little early than overrun

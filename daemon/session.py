@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import islice
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -76,7 +77,7 @@ class Mapping:
     n_model: int
 
     @classmethod
-    def build(cls, studio: list[str], model_channels: list[str]) -> "Mapping":
+    def build(cls, studio: list[str], model_channels: list[str]) -> Mapping:
         pos = {c: i for i, c in enumerate(model_channels)}
         s_idx = np.array([i for i, c in enumerate(studio) if c in pos], dtype=np.intp)
         m_idx = np.array([pos[c] for c in studio if c in pos], dtype=np.intp)

@@ -16,7 +16,7 @@ from typing import Any
 try:  # without numba the numpy path serves every stream
     import numba
 except (ImportError, OSError):  # not installed, or (PermissionError) this process may not run JIT code
-    numba = None
+    numba = None  # type: ignore[assignment]
 
 
 def enabled() -> bool:

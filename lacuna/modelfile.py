@@ -45,7 +45,7 @@ def save_arrays(path: str | os.PathLike, meta: dict[str, Any], arrays: dict[str,
     path = os.fspath(path)
     tmp = f"{path}.tmp{os.getpid()}"
     buf = io.BytesIO()
-    np.savez_compressed(buf, __meta__=np.array(json.dumps(meta, sort_keys=True)), **{k: np.asarray(v) for k, v in arrays.items()})
+    np.savez_compressed(buf, __meta__=np.array(json.dumps(meta, sort_keys=True)), **{k: np.asarray(v) for k, v in arrays.items()})  # type: ignore[arg-type]
     with open(tmp, "wb") as fh:
         fh.write(buf.getvalue())
         fh.flush()
