@@ -89,7 +89,7 @@ class DaemonProcess:
             self.log_path = Path(log_path)
         self.proc: subprocess.Popen[bytes] | None = None
         self.endpoints: dict[str, Any] = {}
-        self.log: list[dict[str, Any]] = []  # every record read so far, across restarts
+        self._log: list[dict[str, Any]] = []  # every record read so far, across restarts
         self._seen: set[int] = set()  # indices into log that wait_for has returned
         self._offset = self.log_path.stat().st_size if self.log_path.exists() else 0
         self._partial = b""
@@ -121,8 +121,8 @@ class DaemonProcess:
         if self.alive():
             return self
         self._pull()
-        self._seen.update(range(len(self.log)))  # a restart waits for its own records only
-        self._run_from = len(self.log)
+        self._seen.update(range(len(self._log)))  # a restart waits for its own records only
+        self._run_from = len(self._log)
         with open(self.log_path, "ab") as fh:
             self.proc = subprocess.Popen([self.python, "-m", "lacuna.cli", "serve", "--config", str(self.config_path)],
                                          stdin=subprocess.DEVNULL, stdout=fh, stderr=fh, env=self.env,
@@ -200,20 +200,25 @@ class DaemonProcess:
         self._offset += len(data)
         data = self._partial + data
         *lines, self._partial = data.split(b"\n")
-        n = len(self.log)
+        n = len(self._log)
         for line in lines:
             try:
                 rec = json.loads(line)
             except ValueError:
                 continue
             if isinstance(rec, dict):
-                self.log.append(rec)
-        return len(self.log) - n
+                self._log.append(rec)
+        return len(self._log) - n
 
     def records(self) -> list[dict[str, Any]]:
         """Every JSON record logged so far (across restarts)."""
         self._pull()
-        return self.log
+        return self._log
+
+    @property
+    def log(self) -> list[dict[str, Any]]:
+        """The same, read afresh at each access."""
+        return self.records()
 
     def wait_for(self, event: str, timeout_s: float = 10.0, **match: Any) -> dict[str, Any]:
         """The first record of this run with ``event`` (and these fields) not returned before.
@@ -223,12 +228,12 @@ class DaemonProcess:
         i = self._run_from
         while True:
             self._pull()
-            for j in range(i, len(self.log)):
-                rec = self.log[j]
+            for j in range(i, len(self._log)):
+                rec = self._log[j]
                 if j not in self._seen and rec.get("event") == event and all(rec.get(k) == v for k, v in match.items()):
                     self._seen.add(j)
                     return rec
-            i = len(self.log)
+            i = len(self._log)
             if self.proc is not None and self.proc.poll() is not None and not self._pull():
                 raise RuntimeError(f"daemon exited ({self.proc.returncode}) before logging {event!r}:\n"
                                    f"{self.tail()}")
