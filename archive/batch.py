@@ -15,8 +15,9 @@ import os
 import sys
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from archive.fill import FillSpec, fill_take, is_done
 from archive.formats import sha256_file

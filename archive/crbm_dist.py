@@ -8,7 +8,7 @@ scattered once to every worker, so a member trained on a worker is the member tr
 from __future__ import annotations
 
 import contextlib
-from typing import Iterator
+from collections.abc import Iterator
 
 from crbm.train import fit_member, member_map
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import weakref
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -60,7 +60,7 @@ class DaskEStep:
     def __init__(self, client, n_chunks: int | None = None):
         self.client = client
         self.n_chunks = n_chunks or CHUNKS_PER_WORKER * max(1, len(client.nthreads()))
-        self._runs: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+        self._runs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.calls = 0
         # per call: (wall seconds of the call, its longest task's compute seconds); the difference is
         # what the cluster adds (sending the tables, scheduling, results back, stacking them)

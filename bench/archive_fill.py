@@ -87,7 +87,7 @@ def _gaps(stream: list[dict], t_submit: float) -> dict:
             if ss["action"] == "compute":
                 by_w.setdefault(ev["worker"], []).append((ss["start"], ss["stop"]))
     gaps, comp, first, last = [], [], [], []
-    for w, iv in by_w.items():
+    for _w, iv in by_w.items():
         iv.sort()
         first.append(iv[0][0] - t_submit)
         last.append(iv[-1][1])
@@ -108,12 +108,12 @@ def _cpu() -> float:
 
 
 def run_one(kind: str, jobs_paths: list[str], spec, model: str, work: Path) -> dict:
+    from dask_cluster import dask_cluster
     from distributed import get_task_stream
 
     from archive.batch import run_batch
     from archive.cluster import open_client
     from archive.takes import discover
-    from dask_cluster import dask_cluster
 
     out = Path(tempfile.mkdtemp(prefix=f"{kind}-", dir=work))
     jobs = discover(jobs_paths, str(out))

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 # lfingers.rx moves in 3 of the 45 takes only (variance 0.018 deg^2 over all): with it, a style
 # whose takes all hold it constant gets eq. (14)'s precision divided by ~0 and the bound
 # overflows (an HLM issue, reported); rfingers.rx goes with it.  The clavicles are dropped by the

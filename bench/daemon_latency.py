@@ -4,7 +4,7 @@ Starts `lacuna serve` as a child process with three models: the pass-through flo
 (hold-last-value) and nn (nearest neighbour, 9478 training frames x 62 channels of the pan2009
 training set), plus any model files given with --model NAME=FILE (HLM/CRBM when they exist).
 Each scenario drives N streams at R Hz with one DEALER socket per stream
-(daemon.loadgen.run_load) replaying a real held-out walk with the left arm and the head
+(clients.loadgen.run_load) replaying a real held-out walk with the left arm and the head
 missing, and records every frame's round trip.  Repeats give medians of the percentiles.
 
     .venv/bin/python bench/daemon_latency.py --seconds 10 --repeats 3 --json bench/daemon_latency.json
@@ -19,12 +19,13 @@ import os
 import platform
 import sys
 import tempfile
-import time
 
 import numpy as np
 
-from daemon import loadgen
-from daemon.server import control
+from clients import loadgen
+from clients.control import control
+from clients.harness import DaemonProcess
+from lacuna.errors import LacunaError
 from mocap.baselines import HoldModel, NearestNeighbourModel
 from mocap.protocols import get_protocol
 
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         pass
     results = []
     models = args.models.split(",") + [s.split("=", 1)[0] for s in args.model]
-    with loadgen.DaemonProcess(f"{tmp}/bench.toml", env={"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}) as d:
+    with DaemonProcess(f"{tmp}/bench.toml", env={"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}) as d:
         ep = d.endpoints["router"]
         pid = d.proc.pid
         scenarios = [(int(n), args.rate, m) for n in args.streams.split(",") for m in models]
@@ -100,9 +101,10 @@ def main(argv: list[str] | None = None) -> int:
             for rep in range(args.repeats):
                 k += 1
                 rss0, cpu0 = rss_kib(pid), cpu_s(pid)
-                c0 = control(ep, "status").result["counters"]
-                res = loadgen.run_load(ep, n, rate, args.seconds, frames, channels=channels, model=model,
-                                       prefix=f"{model}-{n}-{rep}-", max_in_flight=args.max_in_flight)
+                c0 = control(ep, "status", timeout_s=5.0).result["counters"]
+                res = loadgen.run_load(ep, channels, frames, n_streams=n, rate=rate, seconds=args.seconds, model=model,
+                                       prefix=f"{model}-{n}-{rep}", max_in_flight=args.max_in_flight,
+                                       warmup_s=0.5, drain_s=2.0, progress=False)
                 row = {"streams": n, "rate_hz": rate, "model": model, "repeat": rep, **res.summary(),
                        "offered_fps": round(res.sent / max(res.seconds, 1e-9), 1),
                        "served_fps": round(res.served / max(res.seconds, 1e-9), 1),
@@ -113,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
                        "daemon_cpu_us_per_frame": round(1e6 * (cpu_s(pid) - cpu0) / max(1, res.served + res.dropped + int(
                            0.5 * rate * n)), 1),
                        "daemon_rss_kib_before": rss0, "daemon_rss_kib_after": rss_kib(pid)}
-                c1 = control(ep, "status").result["counters"]
+                c1 = control(ep, "status", timeout_s=5.0).result["counters"]
                 for key in ("degraded_held", "degraded_iterations", "send_dropped", "dropped_conflated"):
                     row[f"daemon_{key}"] = c1.get(key, 0) - c0.get(key, 0)
                 results.append(row)
@@ -124,8 +126,8 @@ def main(argv: list[str] | None = None) -> int:
                 # the streams of this run go idle; a reset keeps the session table small
                 for i in range(n):
                     try:
-                        control(ep, "reset", f"{model}-{n}-{rep}-{i}", timeout_s=2)
-                    except (TimeoutError, ValueError):
+                        control(ep, "reset", f"{model}-{n}-{rep}-{i:03d}", timeout_s=2)
+                    except LacunaError:
                         pass
     summary = []
     for n, rate, model in scenarios:

@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from blend.fit import _hat, collect, fit_gaussian, fit_weights, velocity_gain, velocity_rms  # noqa: E402
-from blend.model import GROUP_NAMES, DefaultModel, Settings, Weights  # noqa: E402
+from blend.model import DefaultModel, Settings, Weights  # noqa: E402
 from blend.train import SEEDS, write_shipped  # noqa: E402
 from mocap import splits  # noqa: E402
 
@@ -37,10 +37,6 @@ def offline_fill(model: DefaultModel, data, w: Weights) -> np.ndarray:
     H = data["H"]
     return H + np.sum(Phi * (w.wv[g] * (data["V"] - H)[:, None] + w.wl[g] * (data["W"] - H)[:, None]
                              + (w.wr[g] * data["weak"][:, None] + w.wg[g] * data["gate"][:, None]) * (data["R"] - H)[:, None]), 1)
-
-
-def subset(data, sel):
-    return {k: (v[sel] if k != "activities" else v) for k, v in data.items()}
 
 
 def score(model, data, w):
@@ -75,7 +71,7 @@ def main() -> int:
     # two folds by take, alternating within each activity
     fold = {}
     for a in sorted({x[2] for x in val}):
-        for i, (t, _, aa) in enumerate([v for v in val if v[2] == a]):
+        for i, (t, _, _a) in enumerate([v for v in val if v[2] == a]):
             fold[t] = i % 2
     # round 1 (bench/results/default_tune_round1.log, before lags became a tuple): lag 0.05-0.2 s, damping 0.1-0.3 s,
     # damp2 0.5/2 s, offset 0.3-1e9 s; longer lag and a short offset won.  Round 2 (default_tune_round2.log):

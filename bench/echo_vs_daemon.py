@@ -42,11 +42,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bench.zmq_echo import ECHO
-from clients import loadgen
-from clients.client import control
-from clients.daemon_proc import cpu_seconds, free_port, write_config
-from clients.session import DaemonUnavailable
+from bench.zmq_echo import ECHO  # noqa: E402
+from clients import loadgen  # noqa: E402
+from clients.client import control  # noqa: E402
+from clients.configfile import free_port, write_config  # noqa: E402
+from clients.harness import cpu_seconds  # noqa: E402
+from clients.session import DaemonUnavailable  # noqa: E402
 
 TRAIN = ("35_01", "35_06", "35_07")
 TEST = "35_08"

@@ -21,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from hlm_validation import CM_PER_UNIT, make_cases  # noqa: E402
+
 from lacuna.modelfile import load_model  # noqa: E402
 from mocap import splits  # noqa: E402
 

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from mocap import splits
-from mocap.protocols import GAP_BINS, Gaps, LEG_BONES, bone
+from mocap.protocols import GAP_BINS, LEG_BONES, Gaps, bone
 from mocap.representation import ROOT_POS, is_angle, wrap180
 
 CM_PER_UNIT = 2.54 / 0.45

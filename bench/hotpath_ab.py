@@ -26,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bench.echo_vs_daemon import tree_hlm
+from bench.echo_vs_daemon import tree_hlm  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,7 +26,6 @@ from daemon.server import Daemon, Log
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import fuzzgen  # noqa: E402
 
-
 LIMIT = server.REJECT_LOG_PER_S
 
 

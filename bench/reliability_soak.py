@@ -2,7 +2,7 @@
 
 Runs the soak of tests/test_reliability_soak.py (64 streams at 120 Hz of a real CMU walk with a
 knee and an elbow missing, a nearest-neighbour filler over 2,400 training frames, budget 4 ms,
-open-loop load from daemon.loadgen) ``--repeats`` times and reports the median over runs of
+open-loop load from clients.loadgen) ``--repeats`` times and reports the median over runs of
 each figure: offered and served rates, drops, degraded share, the daemon's processing time of
 served frames (p50/p99/max, share within budget), client round trip, daemon RSS at start, after
 the first quarter and at the end, and the daemon's CPU time.

@@ -29,7 +29,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from clients.daemon_proc import DaemonProcess, cpu_seconds, free_port  # noqa: E402
+from clients.configfile import free_port  # noqa: E402
+from clients.harness import DaemonProcess, cpu_seconds  # noqa: E402
 from mocap.baselines import HoldModel  # noqa: E402
 from mocap.datasets import load_trial, trial_path  # noqa: E402
 from view.headless import Browser  # noqa: E402

@@ -77,7 +77,7 @@ print(f"frames {n} cpu {time.process_time()}", flush=True)
 def one(streams: int, rate: float, seconds: float, connections: int | None, channels: list[str],
         frames: np.ndarray, observed: np.ndarray) -> dict:
     from clients import loadgen
-    from clients.daemon_proc import free_port
+    from clients.configfile import free_port
 
     ep = f"tcp://127.0.0.1:{free_port()}"
     srv = subprocess.Popen([sys.executable, "-c", ECHO, ep], stdout=subprocess.PIPE, text=True)

@@ -36,7 +36,7 @@ def _knot(W, g, t, knots):
 def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
                 last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
                 sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH):
-    beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
+    _beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
                                                                  par[6], par[7], par[8])
     gate_rho, gate_decay, gate_weak = par[9], par[10], par[11]
     C = f.shape[0]

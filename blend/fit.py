@@ -11,7 +11,7 @@ the 95% quantile of |error| / spread, divided by 1.96.
 from __future__ import annotations
 
 import zlib
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

@@ -120,7 +120,7 @@ class Weights:
     sc: np.ndarray
 
     @classmethod
-    def initial(cls, n_groups: int = len(GROUP_NAMES), n_knots: int = len(KNOTS)) -> "Weights":
+    def initial(cls, n_groups: int = len(GROUP_NAMES), n_knots: int = len(KNOTS)) -> Weights:
         z = np.zeros((n_groups, n_knots))
         return cls(z, z.copy(), z.copy(), z.copy(), np.full((n_groups, n_knots), 1.0))
 
@@ -190,7 +190,7 @@ class DefaultModel(Model):
         self.sh_O = np.zeros((G, mx_o), np.int64)
         self.sh_nO = np.zeros(G, np.int64)
         self.sh_B = np.zeros((G, mx_m, mx_o))
-        for i, (g, m, O, B) in enumerate(mats):
+        for i, (_g, m, O, B) in enumerate(mats):
             self.sh_m[i, :len(m)] = m
             self.sh_nm[i] = len(m)
             self.sh_O[i, :len(O)] = O
@@ -253,7 +253,7 @@ class DefaultModel(Model):
             raise FillerError(f"observed values must be finite (got NaN/inf in stream {i} at channel {j})")
         return [s._step_fast(F[i], O[i]) for i, s in enumerate(states)]
 
-    def with_weights(self, weights: Weights) -> "DefaultModel":
+    def with_weights(self, weights: Weights) -> DefaultModel:
         return DefaultModel(self.channels, self.mean_, self.std_, self.reg_idx, self.mu_, self.cov_, self.settings,
                             weights, self.meta, self.vrms_, self.vgain_)
 
@@ -270,7 +270,7 @@ class DefaultModel(Model):
         modelfile.save_arrays(path, meta, arrays)
 
     @classmethod
-    def load(cls, path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> "DefaultModel":
+    def load(cls, path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> DefaultModel:
         C = len(meta["channels"])
         s = meta.get("settings")
         if not isinstance(s, dict):

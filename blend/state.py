@@ -3,11 +3,15 @@ blend.fast.  See blend.model for what is computed."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lacuna.filler import Fill, FillerState, check_frame
-from blend.model import DefaultModel, wrap
+from mocap.rootrot import wrap180 as wrap  # (blend.model's wrap, the same arithmetic)
+
+if TYPE_CHECKING:  # blend.model makes the states (stream()): a real import would be a circle
+    from blend.model import DefaultModel
 
 
 @dataclass

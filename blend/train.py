@@ -6,8 +6,9 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
         s = Settings(**{**s.__dict__, "fps": float(fps)})
     mean, std, reg, mu, cov = fit_gaussian(sequences, channels, s)
     meta = {"training": {"data": list(names), "frames": int(sum(x.shape[0] for x in sequences)),
-                         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")},
+                         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")},
             "components": "hold, damped velocity and the conditional Gaussian are all inline in this file"}
     model = DefaultModel(list(channels), mean, std, reg, mu, cov, s, w0 or Weights.initial(len(GROUP_NAMES), len(s.knots)), meta,
                          velocity_rms(sequences, channels), velocity_gain(sequences, channels, s))

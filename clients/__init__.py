@@ -4,6 +4,7 @@
 v1 (``daemon/wire.py``, docs/PROTOCOL.md) to ``lacuna serve`` over ZeroMQ request/reply;
 ``clients.client.CaptureClient`` sends several performers' frames of one instant as one bundle.
 """
-from clients.client import CaptureClient, Client, DaemonUnavailable
+from clients.client import CaptureClient, Client
+from clients.session import DaemonUnavailable
 
 __all__ = ["CaptureClient", "Client", "DaemonUnavailable"]

@@ -12,9 +12,18 @@ from typing import Any
 import zmq
 import zmq.asyncio
 
-from clients.client import _DealerLink, decode_reply
-from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS, DaemonRefused,
-                             DaemonUnavailable, StreamSession, dealer_socket, open_monitor)
+from clients.client import _DealerLink
+from clients.control import decode_reply
+from clients.session import (
+    DEFAULT_RETRIES,
+    DEFAULT_TIMEOUT_S,
+    REHELLO_REASONS,
+    DaemonRefused,
+    DaemonUnavailable,
+    StreamSession,
+    dealer_socket,
+    open_monitor,
+)
 from daemon import wire
 
 
@@ -36,16 +45,18 @@ class AsyncClient(_DealerLink):
         self._own_ctx = ctx is None
         self.ctx = ctx or zmq.asyncio.Context()
         # the monitor is read without awaiting, through a sync view of the same context
-        self._sync_ctx = zmq.Context.shadow(self.ctx.underlying)
+        self._sync_ctx: zmq.Context[Any] = zmq.Context.shadow(self.ctx.underlying)
         self.sock: zmq.asyncio.Socket | None = None
-        self._mon: zmq.Socket | None = None
+        self._mon: zmq.Socket[Any] | None = None
         self._open()
 
     def _open(self) -> None:
-        self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)  # type: ignore[arg-type]
-        self._mon = open_monitor(self._sync_ctx, self.sock, "a" + self.session.stream.encode().hex()[:32])
+        # (dealer_socket makes the context's kind of socket: an asyncio one here)
+        self.sock = dealer_socket(self.ctx, self.endpoint, self.timeout_s)  # type: ignore[assignment]
+        self._mon = open_monitor(self._sync_ctx, self.sock,  # type: ignore[arg-type]
+                                 "a" + self.session.stream.encode().hex()[:32])
 
-    async def __aenter__(self) -> "AsyncClient":
+    async def __aenter__(self) -> AsyncClient:
         return self
 
     async def __aexit__(self, *exc: Any) -> None:
@@ -55,14 +66,14 @@ class AsyncClient(_DealerLink):
         assert self.sock is not None
         try:
             await asyncio.wait_for(self.sock.send(data), self.timeout_s)
-        except (zmq.Again, asyncio.TimeoutError):
+        except (TimeoutError, zmq.Again):
             raise TimeoutError("no daemon connected") from None
 
     async def recv(self, timeout_s: float | None = None) -> wire.Message | None:
         """The next message from the daemon, or None after ``timeout_s``."""
         assert self.sock is not None
         t = self.timeout_s if timeout_s is None else timeout_s
-        if not await self.sock.poll(int(t * 1000), zmq.POLLIN):
+        if not await self.sock.poll(int(t * 1000), zmq.POLLIN):  # type: ignore[call-arg]
             return None
         return decode_reply(await self.sock.recv())
 
@@ -78,8 +89,6 @@ class AsyncClient(_DealerLink):
                     if msg is None:
                         raise TimeoutError("no hello-ack")
                     if isinstance(msg, (wire.HelloAck, wire.ErrorMsg)):
-                        if attempt:
-                            self.session.rehellos += 1
                         return self.session.on_ack(msg)
             except TimeoutError:
                 if attempt == self.retries:
@@ -117,6 +126,7 @@ class AsyncClient(_DealerLink):
                     self.session.handshaken = False
                     continue
                 raise DaemonRefused(msg)
+            assert isinstance(msg, (wire.FillMsg, wire.Drop))  # (_await_seq returns nothing else)
             return msg
         raise DaemonUnavailable(f"no answer from {self.endpoint} for frame {seq} of {self.session.stream!r}")
 
@@ -134,13 +144,13 @@ class AsyncClient(_DealerLink):
     async def control(self, cmd: str, stream: str | None = None) -> wire.ControlReply:
         """A control request (status, reset, reload, list-models) on a short-lived socket of its
         own, so its answer never mixes with the stream's pipelined frame answers."""
-        s = dealer_socket(self.ctx, self.endpoint, self.timeout_s)  # type: ignore[arg-type]
+        s: zmq.asyncio.Socket = dealer_socket(self.ctx, self.endpoint, self.timeout_s)  # type: ignore[assignment]
         try:
             try:
                 await asyncio.wait_for(s.send(wire.encode(wire.Control(cmd, stream))), self.timeout_s)
-            except (zmq.Again, asyncio.TimeoutError):
+            except (TimeoutError, zmq.Again):
                 raise DaemonUnavailable(f"no daemon at {self.endpoint} (control {cmd})") from None
-            if not await s.poll(int(self.timeout_s * 1000), zmq.POLLIN):
+            if not await s.poll(int(self.timeout_s * 1000), zmq.POLLIN):  # type: ignore[call-arg]
                 raise DaemonUnavailable(f"no answer from {self.endpoint} to control {cmd} within {self.timeout_s:g} s")
             msg = decode_reply(await s.recv())
         finally:

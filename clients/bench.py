@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from clients import loadgen
-from clients.client import control
-from clients.daemon_proc import DaemonProcess, cpu_seconds, rss_bytes
+from clients.control import control
+from clients.harness import DaemonProcess, cpu_seconds, rss_bytes
 from lacuna.errors import LacunaError
 
 FLOOR_MODEL = "floor"
@@ -134,6 +134,8 @@ def run(args: Any) -> int:
             if progress:
                 print(f"starting the daemon on {daemon.endpoint} with {args.model} ...", file=sys.stderr, flush=True)
             daemon.start()
+            pid: int | None
+            model_name: str | None
             endpoint, pid, model_name, floor_name = daemon.endpoint, daemon.pid, "bench", FLOOR_MODEL
         else:
             endpoint = args.connect if "://" in args.connect else f"tcp://{args.connect}"
@@ -146,7 +148,7 @@ def run(args: Any) -> int:
             if args.floor and floor_name not in models:
                 raise LacunaError(f"--floor needs a pass-through model {floor_name!r} in the daemon at {endpoint} "
                                   f"(has: {', '.join(models)}); add [models.{floor_name}] builtin = \"passthrough\"")
-            channels = _model_channels(models[model_name], endpoint, model_name)
+            channels = _model_channels(models[model_name], endpoint, str(model_name))
             # CPU is read from /proc only when the daemon is on this machine
             pid = st.get("pid") if endpoint.startswith(("tcp://127.", "tcp://localhost", "ipc://")) else None
         frames, observed, src = bench_take(channels, args.seed)
@@ -204,7 +206,10 @@ def format_table(runs: dict[str, dict[str, Any]]) -> str:
             f" {'served':>8} {'degraded':>8} {'dropped':>8} {'overdue':>8} {'late%':>6} {'cpu%':>6}")
     lines = [head, "-" * len(head)]
     for k, r in runs.items():
-        f = lambda v: "   -   " if v is None else f"{v:7.3f}"  # noqa: E731
+
+        def f(v: float | None) -> str:
+            return "   -   " if v is None else f"{v:7.3f}"
+
         cpu = "  -" if r["cpu_percent"] is None else f"{r['cpu_percent']:6.1f}"
         late = r.get("daemon_over_budget_pct")
         late_s = f"{'-':>6}" if late is None else f"{late:6.1f}"

@@ -23,8 +23,9 @@ import select
 import socket
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import zmq
@@ -75,7 +76,7 @@ class Bridge:
         self.udp.bind(listen)
         self.address = self.udp.getsockname()
         self.out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.pub: zmq.Socket | None = None
+        self.pub: zmq.Socket[Any] | None = None
         if pub:
             self.pub = self.ctx.socket(zmq.PUB)
             self.pub.setsockopt(zmq.LINGER, 0)
@@ -228,7 +229,7 @@ class Bridge:
         self.out.close()
         self.ctx.term()
 
-    def __enter__(self) -> "Bridge":
+    def __enter__(self) -> Bridge:
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -5,6 +5,7 @@ import argparse
 import signal
 import sys
 from pathlib import Path
+from typing import Any
 
 from lacuna.errors import LacunaError
 
@@ -22,7 +23,7 @@ def _endpoint(s: str) -> str:
     return s if "://" in s else f"tcp://{s}"
 
 
-def add_commands(cli) -> None:
+def add_commands(cli: Any) -> None:
     p = cli.command("bridge", help="relay OSC frames from a capture system through the daemon and re-emit them filled")
     p.add_argument("--connect", type=_endpoint, default=DEFAULT_ENDPOINT, metavar="ADDR",
                    help=f"the daemon's ROUTER (default {DEFAULT_ENDPOINT})")
@@ -126,8 +127,8 @@ def add_commands(cli) -> None:
     p.set_defaults(func=_demo)
 
 
-def _stop_on_signals(flag_owner) -> None:
-    def handler(signum, frame):  # only sets a flag the loop reads
+def _stop_on_signals(flag_owner: Any) -> None:
+    def handler(signum: int, frame: Any) -> None:  # only sets a flag the loop reads
         flag_owner.stop_flag = True
 
     signal.signal(signal.SIGTERM, handler)
@@ -168,7 +169,7 @@ def _replay(args: argparse.Namespace) -> int:
     import numpy as np
 
     from clients import replay as rp
-    from clients.daemon_proc import DaemonProcess
+    from clients.harness import DaemonProcess
     from clients.takes import drop_mask, read_take, write_take
 
     if args.serve and args.connect:

@@ -21,11 +21,19 @@ from __future__ import annotations
 import time
 from typing import Any
 
-import msgpack
 import zmq
 
-from clients.session import (DEFAULT_RETRIES, DEFAULT_TIMEOUT_S, REHELLO_REASONS, DaemonRefused,
-                             DaemonUnavailable, StreamSession, dealer_socket, open_monitor)
+from clients.control import control, decode_reply
+from clients.session import (
+    DEFAULT_RETRIES,
+    DEFAULT_TIMEOUT_S,
+    REHELLO_REASONS,
+    DaemonRefused,
+    DaemonUnavailable,
+    StreamSession,
+    dealer_socket,
+    open_monitor,
+)
 from daemon import wire
 
 RELEASE_WAIT_S = 0.5  # Client.close waits at most this for the daemon to confirm its streams are released
@@ -35,11 +43,13 @@ class _DealerLink:
     """Socket lifecycle shared by the blocking and the asyncio client: subclasses set ``sock``,
     ``_mon``, ``ctx``, ``_own_ctx``, ``session`` and implement ``_open``."""
 
+    session: StreamSession
+
     sock: Any
     _mon: Any
     _monitor_name = ""
 
-    def _link(self, endpoint: str, timeout_s: float, retries: int, ctx: zmq.Context | None) -> None:
+    def _link(self, endpoint: str, timeout_s: float, retries: int, ctx: zmq.Context[Any] | None) -> None:
         """The blocking clients' connection state; the socket opens in ``_open``."""
         if timeout_s <= 0:
             raise ValueError(f"timeout_s must be positive (got {timeout_s})")
@@ -124,7 +134,7 @@ class Client(_DealerLink):
 
     def __init__(self, endpoint: str, stream: str, channels: list[str] | None = None, model: str | None = None,
                  *, timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
-                 ctx: zmq.Context | None = None, first_seq: int = 0, curve: tuple[str, str] | None = None,
+                 ctx: zmq.Context[Any] | None = None, first_seq: int = 0, curve: tuple[str, str] | None = None,
                  claim: str | None = None, positions: bool = False):
         self.session = StreamSession(stream, channels, model, first_seq, positions)
         if claim is not None:
@@ -139,7 +149,7 @@ class Client(_DealerLink):
         ss = self.session
         return [ss.stream] if ss.ack is not None or ss.next_seq > ss.first_seq else []
 
-    def __enter__(self) -> "Client":
+    def __enter__(self) -> Client:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -179,8 +189,6 @@ class Client(_DealerLink):
                     if msg is None:
                         raise TimeoutError("no hello-ack")
                     if isinstance(msg, (wire.HelloAck, wire.ErrorMsg)):
-                        if attempt:
-                            self.session.rehellos += 1
                         return self.session.on_ack(msg)
                     # answers to frames pipelined before the handshake: not ours to keep here
             except TimeoutError:
@@ -243,6 +251,7 @@ class Client(_DealerLink):
                 # incarnation's frames): restart the stream once and send the frame again
                 resynced = self._resync_or_reconnect()
                 continue
+            assert isinstance(msg, (wire.FillMsg, wire.Drop))  # (_await_seq returns nothing else)
             return msg
         raise DaemonUnavailable(f"no answer from {self.endpoint} for frame {seq} of {self.session.stream!r} "
                                 f"after {self.retries + 1} tries of {self.timeout_s:g} s")
@@ -313,7 +322,7 @@ class CaptureClient(_DealerLink):
 
     def __init__(self, endpoint: str, streams: dict[str, list[str] | None], model: str | None = None, *,
                  timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
-                 ctx: zmq.Context | None = None):
+                 ctx: zmq.Context[Any] | None = None):
         if not streams:
             raise ValueError("a capture client needs at least one stream")
         if len(streams) > wire.MAX_BUNDLE:
@@ -332,7 +341,7 @@ class CaptureClient(_DealerLink):
         for ss in list(self.sessions.values())[1:]:
             ss.link_lost()
 
-    def __enter__(self) -> "CaptureClient":
+    def __enter__(self) -> CaptureClient:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -370,7 +379,7 @@ class CaptureClient(_DealerLink):
             raise ValueError(f"streams not opened by this client: {sorted(unknown)[:5]}")
         t = time.time() if t is None else t
         seqs: dict[str, int] = {}
-        maps = []
+        maps: list[wire.Frame | wire.WireError] = []
         for sid, v in frames.items():
             angles, observed = v if isinstance(v, tuple) else (v, None)
             seqs[sid], f = self.sessions[sid].frame_msg(angles, observed, t)
@@ -411,47 +420,3 @@ class CaptureClient(_DealerLink):
         if not r.ok:
             raise DaemonRefused(wire.ErrorMsg("status", r.error or "status failed"))
         return r.result
-
-
-def decode_reply(data: bytes) -> wire.Message:
-    """Decode an answer from the daemon.
-
-    ``wire.decode`` caps maps at 64 keys and arrays at MAX_CHANNELS (right for untrusted
-    input), but a ``status`` reply lists every stream in one map; a daemon's reply is trusted
-    and is read without those caps.
-    """
-    try:
-        return wire.decode(data, max_bytes=1 << 26)
-    except wire.WireError:
-        m = msgpack.unpackb(data, raw=False, strict_map_key=False)
-        if isinstance(m, dict) and m.get("type") == "control-reply":
-            return wire.ControlReply(str(m.get("cmd")), bool(m.get("ok")), m.get("result") or {}, m.get("error"))
-        raise
-
-
-def control(endpoint: str, cmd: str, stream: str | None = None, *, timeout_s: float = DEFAULT_TIMEOUT_S,
-            ctx: zmq.Context | None = None, curve: tuple[str, str] | None = None) -> wire.ControlReply:
-    """One control request on a short-lived DEALER; DaemonUnavailable on timeout.
-
-    A separate socket keeps control answers out of a stream's pipelined frame answers.
-    """
-    own = ctx is None
-    ctx = ctx or zmq.Context()
-    s = dealer_socket(ctx, endpoint, timeout_s, curve)
-    try:
-        try:
-            s.send(wire.encode(wire.Control(cmd, stream)))
-        except zmq.Again:
-            raise DaemonUnavailable(f"no daemon at {endpoint} (control {cmd})") from None
-        if not s.poll(int(timeout_s * 1000), zmq.POLLIN):
-            raise DaemonUnavailable(f"no answer from {endpoint} to control {cmd} within {timeout_s:g} s")
-        msg = decode_reply(s.recv())
-        if isinstance(msg, wire.ErrorMsg):
-            raise DaemonRefused(msg)
-        if not isinstance(msg, wire.ControlReply):
-            raise DaemonRefused(wire.ErrorMsg("unexpected", f"control {cmd} answered with {type(msg).__name__}"))
-        return msg
-    finally:
-        s.close(linger=0)
-        if own:
-            ctx.term()

@@ -33,7 +33,7 @@ import numpy as np
 
 from clients import demo_score, synth
 from clients import replay as rp
-from clients.daemon_proc import DaemonProcess
+from clients.harness import DaemonProcess
 from clients.takes import drop_mask
 from lacuna import registry
 from lacuna.errors import LacunaError
@@ -117,14 +117,14 @@ def _from_data(take: str) -> tuple[list[Motion], list[str], Motion, str, str] | 
            "cmu_li: the data does not name its performer, so it may be one the training takes share")
     return (train, names, test, take,
             f"CMU motion capture from {datasets.data_dir()}: trained on {len(names)} TRAIN takes of subjects "
-            f"{', '.join(sorted({performer(t) for t in names}))} ({', '.join(names)}); replaying TEST take {take} ({who})")
+            f"{', '.join(sorted({str(performer(t)) for t in names}))} ({', '.join(names)}); replaying TEST take {take} ({who})")
 
 
 def _fetch_then_data(take: str) -> tuple[list[Motion], list[str], Motion, str, str] | None:
     from lacuna.cli import build
 
     cli = build()
-    if "data" not in cli.parser._subparsers._group_actions[0].choices:  # type: ignore[union-attr]
+    if "data" not in cli.parser._subparsers._group_actions[0].choices:  # type: ignore[union-attr,operator]
         say("no data directory, and this build has no `lacuna data fetch`")
         return None
     say(f"no data directory: trying `lacuna data fetch cmu --subjects {' '.join(FETCH_SUBJECTS)}` ...")

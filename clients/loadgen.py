@@ -30,7 +30,7 @@ import msgpack
 import numpy as np
 import zmq
 
-from clients.client import decode_reply
+from clients.control import decode_reply
 from clients.session import DEFAULT_TIMEOUT_S, dealer_socket
 from daemon import wire
 
@@ -65,11 +65,27 @@ class LoadResult:
     proc_us: np.ndarray = field(default_factory=lambda: np.zeros(0))
     lateness_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     wall_s: float = 0.0
+    cpu_s: float = 0.0  # this process's CPU time over the run
+    in_flight: np.ndarray | None = None  # unanswered frames per stream (with max_in_flight)
 
     @property
     def lost(self) -> int:
         """Frames sent that got no answer at all before the drain ended."""
         return self.sent - self.served - self.dropped - self.errors
+
+    @property
+    def rtt_s(self) -> np.ndarray:
+        """The round trips in seconds."""
+        return self.rtt_ms / 1000.0
+
+    def summary(self) -> dict[str, Any]:
+        """Percentiles (ms, rounded) and counts as one flat map, for a table row or JSON."""
+        p = {k: (None if v is None else round(v, 4)) for k, v in percentiles(self.rtt_ms).items()}
+        proc = {"daemon_proc_p50_ms": round(float(np.median(self.proc_us)) / 1e3, 4) if self.proc_us.size else None,
+                "daemon_proc_p99_ms": (round(float(np.percentile(self.proc_us, 99)) / 1e3, 4)
+                                       if self.proc_us.size else None)}
+        return {**p, "served": self.served, "degraded": self.degraded, "dropped": self.dropped, "errors": self.errors,
+                "lost": self.lost, "unsent": self.unsent, "sent": self.sent, "seconds": round(self.wall_s, 3), **proc}
 
 
 def percentiles(rtt_ms: np.ndarray) -> dict[str, float | None]:
@@ -80,10 +96,27 @@ def percentiles(rtt_ms: np.ndarray) -> dict[str, float | None]:
             "max_ms": float(rtt_ms.max())}
 
 
-def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: np.ndarray, *, n_streams: int,
-             rate: float, seconds: float, model: str | None = None, prefix: str = "bench",
+def make_frames(n_frames: int, n_channels: int, missing: np.ndarray | None, rng: np.random.Generator,
+                source: np.ndarray | None = None) -> np.ndarray:
+    """(n_frames, n_channels) float32 frames; ``source`` rows are cycled if given (real motion),
+    otherwise smooth sinusoids.  ``missing``: (n_channels,) bool set to NaN in every frame."""
+    if source is not None:
+        f = source[np.arange(n_frames) % source.shape[0]].astype(np.float32)
+    else:
+        t = np.arange(n_frames)[:, None] / 120.0
+        ph = rng.uniform(0, 2 * np.pi, n_channels)[None]
+        f = (30.0 * np.sin(2 * np.pi * 0.9 * t + ph)).astype(np.float32)
+    if missing is not None:
+        f[:, missing] = np.nan
+    out: np.ndarray = f
+    return out
+
+
+def run_load(endpoint: str, channels: list[str] | None, frames: np.ndarray, observed: np.ndarray | None = None, *,
+             n_streams: int, rate: float, seconds: float, model: str | None = None, prefix: str = "bench",
              progress: bool = True, busy: bool = False, connections: int | None = None,
-             bundle: bool = False) -> LoadResult:
+             bundle: bool = False, warmup_s: float = 0.0, max_in_flight: int | None = None,
+             drain_s: float = DRAIN_S) -> LoadResult:
     """Offer ``n_streams`` x ``rate`` frames/s for ``seconds``; every stream replays ``frames``
     (T, C) with mask ``observed`` (T, C) from its own starting offset, cycling.
 
@@ -93,19 +126,31 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
 
     ``bundle``: each connection sends its streams' frames of a tick as one ``frames`` message
     (and reads their answers from ``replies``), as a capture system that tracks several
-    performers has them: one capture instant, one message."""
+    performers has them: one capture instant, one message.
+
+    ``channels`` None sends no handshake (the streams get the daemon's default model, any
+    width); ``observed`` None means every finite value of ``frames`` was captured.  The first
+    ``warmup_s`` seconds are sent but neither counted nor timed.  ``max_in_flight``: a stream
+    with that many unanswered frames skips its next one (counted ``unsent``), as a plugin that
+    must not queue without bound would."""
     connections = n_streams if connections is None else connections
     if n_streams < 1 or rate <= 0 or seconds <= 0 or not 1 <= connections <= n_streams:
         raise ValueError(f"need streams >= 1, rate > 0, seconds > 0, 1 <= connections <= streams "
                          f"(got {n_streams}, {rate}, {seconds}, {connections})")
+    if max_in_flight is not None and bundle:
+        raise ValueError("max_in_flight is per stream; a bundle sends every stream of its connection at once")
     T, C = frames.shape
-    if C != len(channels) or observed.shape != frames.shape:
-        raise ValueError(f"frames {frames.shape} / observed {observed.shape} do not match {len(channels)} channels")
+    if observed is None:
+        observed = np.isfinite(frames)
+    if (channels is not None and C != len(channels)) or observed.shape != frames.shape:
+        raise ValueError(f"frames {frames.shape} / observed {observed.shape} do not match {channels and len(channels)} "
+                         f"channels")
     given = np.where(observed, frames, np.nan).astype(wire.F32)
     angle_bytes = [given[j].tobytes() for j in range(T)]
     mask_bytes = [observed[j].astype(np.uint8).tobytes() for j in range(T)]
     pack = msgpack.Packer(use_bin_type=True).pack
-    n_ticks = max(1, int(round(seconds * rate)))
+    warm = int(round(warmup_s * rate))
+    n_ticks = warm + max(1, int(round(seconds * rate)))
     ids = [f"{prefix}-{i:03d}" for i in range(n_streams)]
     res = LoadResult(ids, rate, seconds)
     ctx = zmq.Context()
@@ -123,8 +168,11 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
     rtt = np.full((n_streams, n_ticks), np.nan)
     proc = np.full((n_streams, n_ticks), np.nan)
     lateness = np.zeros(n_ticks)
+    res.in_flight = np.zeros(n_streams, np.int64) if max_in_flight is not None else None
+    cpu0 = time.process_time()
     try:
-        _handshake(socks, ids, channels, model)
+        if channels is not None:
+            _handshake(socks, ids, channels, model)
         offsets = (np.arange(n_streams) * (T // max(1, n_streams))) % T
         # header bytes are constant per stream; the frame body is built per send (seq, t, angles)
         t0 = time.perf_counter() + 0.05
@@ -147,25 +195,33 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
             _wait_until(due, poller, index, send_t, rtt, proc, res, busy)
             now = time.perf_counter()
             lateness[k] = (now - due) * 1000.0
+            measured = k >= warm
             for j, s in enumerate(senders):
                 body = bodies[j]
                 rows = members[j]
+                if res.in_flight is not None and res.in_flight[j] >= max_in_flight:
+                    res.unsent += len(rows) * measured
+                    continue
                 t = time.perf_counter()
                 try:
                     s.send(body, zmq.NOBLOCK, copy=False)
                 except zmq.Again:
-                    res.unsent += len(rows)
+                    res.unsent += len(rows) * measured
                     continue
-                send_t[rows, k] = t
-                res.sent += len(rows)
+                if res.in_flight is not None:
+                    res.in_flight[j] += 1
+                if measured:  # a warm-up frame's answer is read but not counted (its send_t stays NaN)
+                    send_t[rows, k] = t
+                    res.sent += len(rows)
             if progress and now >= next_report:
                 next_report += PROGRESS_EVERY_S
                 print(f"\r  bench: {k + 1}/{n_ticks} ticks, {res.served} served, {res.dropped} dropped",
                       end="", file=sys.stderr, flush=True)
-        end = time.perf_counter() + DRAIN_S
+        end = time.perf_counter() + drain_s
         while res.served + res.dropped + res.errors < res.sent and time.perf_counter() < end:
             _wait_until(min(end, time.perf_counter() + 0.05), poller, index, send_t, rtt, proc, res, busy)
         res.wall_s = time.perf_counter() - t0
+        res.cpu_s = time.process_time() - cpu0
         if progress:
             print(f"\r  bench: {n_ticks}/{n_ticks} ticks, {res.served} served, {res.dropped} dropped   ",
                   file=sys.stderr, flush=True)
@@ -180,10 +236,10 @@ def run_load(endpoint: str, channels: list[str], frames: np.ndarray, observed: n
     return res
 
 
-def _handshake(socks: list[zmq.Socket], ids: list[str], channels: list[str], model: str | None) -> None:
+def _handshake(socks: list[zmq.Socket[Any]], ids: list[str], channels: list[str], model: str | None) -> None:
     for s, sid in zip(socks, ids):
         s.send(wire.encode(wire.Hello(sid, channels, model)))
-    waiting = {}  # socket -> how many acks it still owes
+    waiting: dict[zmq.Socket[Any], int] = {}  # socket -> how many acks it still owes
     for s in socks:
         waiting[s] = waiting.get(s, 0) + 1
     for s, n in waiting.items():
@@ -236,14 +292,21 @@ def _account(data: bytes, index: dict[str, int], t: float, send_t: np.ndarray, r
     _count(m, typ, index, t, send_t, rtt, proc, res)
 
 
-def _count(m: dict, typ: str, index: dict[str, int], t: float, send_t: np.ndarray, rtt: np.ndarray,
+def _count(m: dict[str, Any], typ: str, index: dict[str, int], t: float, send_t: np.ndarray, rtt: np.ndarray,
            proc: np.ndarray, res: LoadResult) -> None:
+    """Count one answer to a measured frame (an answer to a warm-up frame, whose send time is
+    NaN, is read and not counted; an error naming no frame is counted)."""
+    k = m.get("seq", -1)
+    i = index.get(m.get("stream"), -1)  # type: ignore[arg-type]
+    known = i >= 0 and isinstance(k, int) and 0 <= k < send_t.shape[1]
+    if known and res.in_flight is not None and typ in ("fill", "drop", "error"):
+        res.in_flight[i] -= 1
+    measured = known and send_t[i, k] == send_t[i, k]  # sent while measuring (not NaN)
     if typ == "fill":
-        k = m.get("seq", -1)
-        i = index.get(m.get("stream"), -1)
-        if i >= 0 and 0 <= k < send_t.shape[1] and send_t[i, k] == send_t[i, k]:  # sent (not NaN)
-            rtt[i, k] = (t - send_t[i, k]) * 1000.0
-            proc[i, k] = m.get("proc_us", np.nan)
+        if not measured:
+            return
+        rtt[i, k] = (t - send_t[i, k]) * 1000.0
+        proc[i, k] = m.get("proc_us", np.nan)
         res.served += 1
         st = m.get("status")
         if st == "degraded":
@@ -251,10 +314,14 @@ def _count(m: dict, typ: str, index: dict[str, int], t: float, send_t: np.ndarra
         elif st == "passthrough":
             res.passthrough += 1
     elif typ == "drop":
+        if not measured:
+            return
         res.dropped += 1
         r = str(m.get("reason"))
         res.drop_reasons[r] = res.drop_reasons.get(r, 0) + 1
     else:
+        if known and not measured:
+            return
         res.errors += 1
         r = str(m.get("reason", typ))
         res.error_reasons[r] = res.error_reasons.get(r, 0) + 1

@@ -34,7 +34,7 @@ F32 = np.dtype("<f4")
 class RecordingWriter:
     """Append frames to a recording file; flushes after every frame."""
 
-    def __init__(self, path: str | os.PathLike, channels: list[str], fps: float | None = None, stream: str = "",
+    def __init__(self, path: str | os.PathLike[str], channels: list[str], fps: float | None = None, stream: str = "",
                  source: str = ""):
         self.path = os.fspath(path)
         self.channels = list(channels)
@@ -43,7 +43,7 @@ class RecordingWriter:
         self.n_frames = 0
         self._write({"format": FORMAT, "version": VERSION, "stream": stream, "channels": self.channels,
                      "fps": fps, "source": source,
-                     "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")})
+                     "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")})
 
     def _write(self, m: dict[str, Any]) -> None:
         self._fh.write(self._packer.pack(m))
@@ -75,7 +75,7 @@ class RecordingWriter:
         if not self._fh.closed:
             self._fh.close()
 
-    def __enter__(self) -> "RecordingWriter":
+    def __enter__(self) -> RecordingWriter:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -126,7 +126,7 @@ def _estimate_fps(t: np.ndarray) -> float:
     return float(1.0 / np.median(d)) if d.size else 120.0
 
 
-def read_recording(path: str | os.PathLike) -> Recording:
+def read_recording(path: str | os.PathLike[str]) -> Recording:
     """Read a ``.lrec`` file; ParseError naming the file and the record for anything malformed.
 
     A truncated last record (the recorder was killed mid-write) is ignored.
@@ -198,7 +198,7 @@ def _arr(b: Any, dtype: Any, n: int) -> np.ndarray:
     return np.frombuffer(b, dtype=dtype).astype(np.float64 if dtype is F32 else dtype)
 
 
-def write_motion_recording(path: str | os.PathLike, motion: Motion, observed: np.ndarray | None = None,
+def write_motion_recording(path: str | os.PathLike[str], motion: Motion, observed: np.ndarray | None = None,
                            fills: list[Any] | None = None) -> None:
     """Write a whole take as a recording (replay's output for a recording input)."""
     with RecordingWriter(path, motion.channels, motion.fps, source=motion.source) as w:

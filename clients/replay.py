@@ -21,7 +21,8 @@ from clients.client import Client
 from clients.loadgen import percentiles
 from daemon import wire
 from mocap.motion import Motion
-from mocap.representation import is_angle, wrap180
+from mocap.representation import is_angle
+from mocap.rootrot import wrap180
 
 PROGRESS_EVERY_S = 0.5
 
@@ -288,7 +289,7 @@ def plot_latency(path: str, runs: dict[str, np.ndarray], title: str = "") -> str
     fig, ax = plt.subplots(figsize=(7, 3.5))
     allv = np.concatenate([v for v in runs.values() if v.size] or [np.array([0.1])])
     lo, hi = max(1e-3, float(allv.min())), max(float(allv.max()), 1e-2)
-    bins = np.geomspace(lo * 0.9, hi * 1.1, 60)
+    bins = np.geomspace(lo * 0.9, hi * 1.1, 60).tolist()
     for name, v in runs.items():
         if v.size:
             p99 = np.percentile(v, 99)

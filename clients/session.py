@@ -45,8 +45,8 @@ class DaemonRefused(LacunaError):
         super().__init__(f"daemon refused the message: {err.reason}: {err.detail}")
 
 
-def dealer_socket(ctx: zmq.Context, endpoint: str, timeout_s: float,
-                  curve: tuple[str, str] | None = None) -> zmq.Socket:
+def dealer_socket(ctx: zmq.Context[Any], endpoint: str, timeout_s: float,
+                  curve: tuple[str, str] | None = None) -> zmq.Socket[Any]:
     """A DEALER connected to ``endpoint`` with the options every client uses; ``curve`` =
     (this client's .key_secret file, the daemon's public .key file) for a daemon with keys."""
     s = ctx.socket(zmq.DEALER)
@@ -62,7 +62,7 @@ def dealer_socket(ctx: zmq.Context, endpoint: str, timeout_s: float,
     s.setsockopt(zmq.RECONNECT_IVL, RECONNECT_IVL_MS)
     s.setsockopt(zmq.RECONNECT_IVL_MAX, RECONNECT_IVL_MAX_MS)
     s.connect(endpoint)
-    return s
+    return s  # type: ignore[no-any-return]
 
 
 class StreamSession:
@@ -93,7 +93,6 @@ class StreamSession:
         self.ack: wire.HelloAck | None = None
         self.disconnects = 0
         self.reconnects = 0
-        self.rehellos = 0
         self.resyncs = 0  # times the daemon's view of the stream was put right (a `late` or `not_owner` we did not cause)
         # kept across reconnects: a hello that carries it takes the stream back from the old connection
         self.claim = secrets.token_hex(16)
@@ -153,7 +152,7 @@ class StreamSession:
         if self.channels is not None:
             self.handshaken = False
 
-    def drain_monitor(self, mon: zmq.Socket | None) -> None:
+    def drain_monitor(self, mon: zmq.Socket[Any] | None) -> None:
         """Read pending monitor events without blocking (a sync PAIR socket)."""
         if mon is None:
             return
@@ -169,11 +168,11 @@ class StreamSession:
                 self.link_lost()
 
 
-def open_monitor(sync_ctx: zmq.Context, sock: zmq.Socket, name: str) -> zmq.Socket:
+def open_monitor(sync_ctx: zmq.Context[Any], sock: zmq.Socket[Any], name: str) -> zmq.Socket[Any]:
     """Attach a monitor to ``sock`` and return the sync PAIR socket that reads its events."""
     addr = f"inproc://lacuna-monitor-{name}-{id(sock):x}"
     sock.monitor(addr, MONITOR_EVENTS)
     mon = sync_ctx.socket(zmq.PAIR)
     mon.setsockopt(zmq.LINGER, 0)
     mon.connect(addr)
-    return mon
+    return mon  # type: ignore[no-any-return]

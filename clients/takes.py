@@ -19,18 +19,19 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from clients import recording
 from lacuna.errors import LacunaError
-from mocap.motion import Motion
 from mocap import skelmap
+from mocap.motion import Motion
 from mocap.protocols import GAP_GROUPS, Gaps
 from mocap.tpose import skip_tpose
 
 
-def _io():
+def _io() -> Any:
     try:
         from mocap import io as mio
     except ImportError:  # mocap.io (BVH/CSV) is not in this build yet
@@ -38,7 +39,7 @@ def _io():
     return mio
 
 
-def read_take(path: str | os.PathLike, asf: str | None = None) -> tuple[Motion, np.ndarray | None]:
+def read_take(path: str | os.PathLike[str], asf: str | None = None) -> tuple[Motion, np.ndarray | None]:
     """(motion, observed mask or None).  A recording's own mask says which values were captured."""
     p = os.fspath(path)
     ext = Path(p).suffix.lower()
@@ -61,8 +62,8 @@ def read_take(path: str | os.PathLike, asf: str | None = None) -> tuple[Motion, 
     raise LacunaError(f"{p}: this build reads .amc and {recording.SUFFIX} takes (mocap.io for BVH/CSV is not installed)")
 
 
-def write_take(path: str | os.PathLike, motion: Motion, asf: str | None = None, observed: np.ndarray | None = None,
-               fills: list | None = None) -> None:
+def write_take(path: str | os.PathLike[str], motion: Motion, asf: str | None = None, observed: np.ndarray | None = None,
+               fills: list[Any] | None = None) -> None:
     """Write in the format the extension names (the input's format for replay)."""
     p = os.fspath(path)
     ext = Path(p).suffix.lower()

@@ -12,7 +12,8 @@ the members' one-step predictions cancels the part of those errors that is seed 
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -83,7 +84,15 @@ class CRBMEnsemble(CRBMModel):
         var = np.stack(variances).mean(0) + M.var(0)
         return fill, np.where(obs, 0.0, np.sqrt(var))
 
-    def save(self, path: str) -> None:
-        from crbm.persist import save_model
+    # ---- the model file: member i's arrays as m{i}_W, m{i}_A, ... (crbm/persist.py reads them)
+    def _file_meta(self) -> dict[str, Any]:
+        meta = super()._file_meta()
+        meta["hyperparameters"] = {"members": [{**m.hyperparameters(), "n_epochs_done": m.n_epochs_done_}
+                                               for m in self.members]}
+        return meta
 
-        save_model(self, path)
+    def _file_arrays(self) -> dict[str, np.ndarray]:
+        arrays: dict[str, np.ndarray] = {}
+        for i, m in enumerate(self.members):
+            arrays.update(m.get_arrays(f"m{i}_"))
+        return arrays

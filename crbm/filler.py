@@ -32,8 +32,9 @@ import numpy as np
 from scipy.special import expit
 
 from crbm.model import CRBM
-from lacuna.feature_model import CoreOut, FeatureModel
 from lacuna.filler import Fill, FillerState
+from lacuna.modelfile import save_arrays
+from mocap.feature_model import CoreOut, FeatureModel
 from mocap.representation import Representation
 
 MODES = ("gibbs", "mean-field")
@@ -364,7 +365,28 @@ class CRBMModel(FeatureModel):
         hh[:, :H] = h1
 
     # ---- persistence ------------------------------------------------------------------------------
+    # (crbm.persist reads the file back: it imports this module, never the other way round)
     def save(self, path: str) -> None:
-        from crbm.persist import save_model
+        """Write the model file (lacuna.modelfile npz + JSON meta; layout in crbm/persist.py)."""
+        save_arrays(path, self._file_meta(), self._file_arrays())
 
-        save_model(self, path)
+    def _file_meta(self) -> dict[str, Any]:
+        meta: dict[str, Any] = {
+            "method": self.method,
+            "channels": list(self.channels),
+            "representation": self.representation.to_dict(),
+            "hyperparameters": {"level1": {**self.crbm.hyperparameters(), "n_epochs_done": self.crbm.n_epochs_done_}},
+            "fill": {"n_gibbs": self.n_gibbs, "n_chains": self.n_chains, "mode": self.mode,
+                     "init_noise": self.init_noise, "bias_rate": self.bias_rate, "final_step": self.final_step},
+            "training": self.meta.get("training", {}),
+        }
+        if self.level2 is not None:
+            meta["hyperparameters"]["level2"] = {**self.level2.hyperparameters(),
+                                                 "n_epochs_done": self.level2.n_epochs_done_}
+        return meta
+
+    def _file_arrays(self) -> dict[str, np.ndarray]:
+        arrays = self.crbm.get_arrays()
+        if self.level2 is not None:
+            arrays.update(self.level2.get_arrays("l2_"))
+        return arrays

@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.special import expit
@@ -222,12 +223,6 @@ class CRBM:
         a = h @ self.W_.T + bv
         return expit(a) if self.visible == "binary" else a
 
-    def _sample_visibles(self, h: np.ndarray, bv: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        m = self._mean_visibles(h, bv)
-        if self.visible == "binary":
-            return (rng.random(m.shape) < m).astype(m.dtype)
-        return m + rng.standard_normal(m.shape)
-
     def free_energy(self, v: np.ndarray, history: np.ndarray) -> np.ndarray:
         """F(v | x) = sum_i (v_i - c*_i)^2 / 2 - sum_j log(1 + exp(b*_j + v W_j)), (m,).
         log(1 + e^a) = logaddexp(0, a), stable for large |a|."""
@@ -292,7 +287,7 @@ class CRBM:
             p += inc
         return float((dv ** 2).sum())
 
-    def partial_fit(self, sequences: Sequence[np.ndarray]) -> "CRBM":
+    def partial_fit(self, sequences: Sequence[np.ndarray]) -> CRBM:
         """One epoch of CD-1 over ``sequences`` (list of (n_i, V)); initialises on the first call."""
         X, idx = self._stack(sequences)
         if not hasattr(self, "W_"):
@@ -316,7 +311,7 @@ class CRBM:
                   f"per frame ({time.perf_counter() - t0:.3f} s)", file=sys.stderr)
         return self
 
-    def fit(self, sequences: Sequence[np.ndarray], n_epochs: int | None = None) -> "CRBM":
+    def fit(self, sequences: Sequence[np.ndarray], n_epochs: int | None = None) -> CRBM:
         """Train from scratch for ``n_epochs`` (default ``self.n_epochs``) epochs."""
         self._check()
         for k in ("W_", "A_", "B_", "c_", "b_", "n_visible_"):
@@ -353,7 +348,7 @@ class CRBM:
         return {prefix + k.rstrip("_"): getattr(self, k) for k in ("W_", "A_", "B_", "c_", "b_")}
 
     @classmethod
-    def from_arrays(cls, hyper: dict[str, Any], arrays: dict[str, np.ndarray], prefix: str = "") -> "CRBM":
+    def from_arrays(cls, hyper: dict[str, Any], arrays: dict[str, np.ndarray], prefix: str = "") -> CRBM:
         """Rebuild a trained CRBM; raises ValueError naming any array of the wrong shape."""
         m = cls(**{k: v for k, v in hyper.items() if k in _PARAM_RANGES or k in _CHOICES or k == "random_state"})
         m._check()

@@ -3,6 +3,8 @@
 Arrays: ``W, A, B, c, b`` (first level) and ``l2_W, l2_A, l2_B, l2_c, l2_b`` (second level,
 optional); an ensemble (``crbm-ens``) stores member i as ``m{i}_W, m{i}_A, ...``.  Meta: channels, representation, hyperparameters of each level, fill settings,
 training data names / seconds / date / epochs / last reconstruction error.
+
+The models write their own files (``CRBMModel.save``); this module reads them back.
 """
 from __future__ import annotations
 
@@ -14,35 +16,10 @@ import numpy as np
 from crbm.ensemble import CRBMEnsemble
 from crbm.filler import CRBMModel
 from crbm.model import CRBM
-from lacuna.modelfile import ModelFileError, load_arrays, save_arrays
+from lacuna.modelfile import ModelFileError, load_arrays
 from mocap.representation import Representation
 
 METHODS = ("crbm", "crbm-mf", "crbm-2level", "crbm-imp", "crbm-ens")
-
-
-def save_model(model: CRBMModel, path: str | os.PathLike) -> None:
-    meta: dict[str, Any] = {
-        "method": model.method,
-        "channels": list(model.channels),
-        "representation": model.representation.to_dict(),
-        "hyperparameters": {"level1": {**model.crbm.hyperparameters(), "n_epochs_done": model.crbm.n_epochs_done_}},
-        "fill": {"n_gibbs": model.n_gibbs, "n_chains": model.n_chains, "mode": model.mode,
-                 "init_noise": model.init_noise, "bias_rate": model.bias_rate, "final_step": model.final_step},
-        "training": model.meta.get("training", {}),
-    }
-    if isinstance(model, CRBMEnsemble):
-        meta["hyperparameters"] = {"members": [{**m.hyperparameters(), "n_epochs_done": m.n_epochs_done_}
-                                               for m in model.members]}
-        arrays = {}
-        for i, m in enumerate(model.members):
-            arrays.update(m.get_arrays(f"m{i}_"))
-        save_arrays(path, meta, arrays)
-        return
-    arrays = model.crbm.get_arrays()
-    if model.level2 is not None:
-        meta["hyperparameters"]["level2"] = {**model.level2.hyperparameters(), "n_epochs_done": model.level2.n_epochs_done_}
-        arrays.update(model.level2.get_arrays("l2_"))
-    save_arrays(path, meta, arrays)
 
 
 def load_model_arrays(path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> CRBMModel:

@@ -8,7 +8,7 @@ import datetime as _dt
 import math
 import sys
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -124,7 +124,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
     seconds = time.perf_counter() - t0
     meta = {"training": {"data": list(names), "frames": int(sum(z.shape[0] for z in Z)), "fps": fps,
                          "seconds": round(seconds, 2), "epochs": ep,
-                         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
                          "reconstruction_error": l1.recon_errors_[-1] if l1.recon_errors_ else None}}
     if members > 1:
         meta["training"]["members"] = int(members)

@@ -41,7 +41,8 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _status(args: argparse.Namespace) -> int:
-    from daemon import config, server
+    from clients.control import control
+    from daemon import config
 
     ep = args.connect
     if args.config:
@@ -55,7 +56,7 @@ def _status(args: argparse.Namespace) -> int:
     if bool(args.key) != bool(args.server_key):
         raise ValueError("--key and --server-key go together (CURVE needs both)")
     curve = (args.key, args.server_key) if args.key else None
-    rep = server.control(ep or DEFAULT_ENDPOINT, "status", timeout_s=args.timeout, curve=curve)
+    rep = control(ep or DEFAULT_ENDPOINT, "status", timeout_s=args.timeout, curve=curve)
     if args.json:
         print(json.dumps(rep.result, indent=2, default=str))
     else:

@@ -26,16 +26,13 @@ import tomllib
 from dataclasses import dataclass, field
 from typing import Any
 
-from lacuna.errors import LacunaError
+from daemon import security
+from daemon.errors import ConfigError as ConfigError  # (re-exported: callers say config.ConfigError)
 
 BUILTINS = ("passthrough",)
 LOG_LEVELS = ("debug", "info", "warning", "error")
 OVERDUE = ("drop", "serve")
 PREWARM_MS = 0.5  # default lead of the rehearsal before a frame is due (docs/BENCHMARKS.md, "Prewarm")
-
-
-class ConfigError(LacunaError, ValueError):
-    """A config file that cannot be used; the message names the file and the key."""
 
 
 @dataclass
@@ -116,11 +113,7 @@ _SCHEMA: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
 }
 
 
-def _err(where: str, key: str, msg: str) -> ConfigError:
-    return ConfigError(f"{where}: [{key}] {msg}" if "." not in key else f"{where}: {key}: {msg}")
-
-
-def _check_value(where: str, key: str, v: Any, kind, check) -> Any:
+def _check_value(where: str, key: str, v: Any, kind: Any, check: Any) -> Any:
     ok = isinstance(v, kind) and not (isinstance(v, bool) and bool not in (kind if isinstance(kind, tuple) else (kind,)))
     if not ok:
         names = {int: "an integer", float: "a number", str: "a string", list: "a list"}
@@ -258,8 +251,6 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
         raise ConfigError(f"{where}: no input configured (set zmq.router, zmq.pull, zmq.sub or osc.listen)")
     if (cfg.zmq_pull or cfg.zmq_sub) and not cfg.zmq_pub:
         raise ConfigError(f"{where}: zmq.pull/zmq.sub need zmq.pub for the filled frames to go somewhere")
-    from daemon import security  # imported here: it imports ConfigError from this module
-
     security.apply_config(cfg, raw.get("security"), where, base)  # refuses non-loopback binds without CURVE
     return cfg
 

@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-import msgpack  # type: ignore[import-untyped]
+import msgpack
 import numpy as np
 
 from daemon.block import no_inf, read_block

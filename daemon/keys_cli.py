@@ -14,13 +14,14 @@ import datetime
 import os
 import re
 import stat
+from typing import Any
 
 import zmq
 
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
-def add_commands(cli) -> None:
+def add_commands(cli: Any) -> None:
     p = cli.command("keys", help="make a CURVE key pair (NAME.key public, NAME.key_secret secret, mode 0600)")
     p.add_argument("dir", metavar="DIR", help="directory for the key files (created mode 0700 if missing)")
     p.add_argument("--name", default="server", help="key pair name, e.g. server or a client's name (default server)")

@@ -30,8 +30,9 @@ import socket
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from importlib import resources
-from typing import Any, Callable
+from typing import Any
 
 from daemon.security import address_allowed
 
@@ -58,7 +59,7 @@ class MetricsHTTP:
     """``MetricsHTTP(host, port, text)`` binds and starts the thread; ``close()`` stops it."""
 
     def __init__(self, host: str, port: int, text: Callable[[], str], max_connections: int = MAX_CONNECTIONS,
-                 deadline_s: float = DEADLINE_S, allow: list | None = None, view: Any = None):
+                 deadline_s: float = DEADLINE_S, allow: list[Any] | None = None, view: Any = None):
         self.text = text
         self.view = view  # view.in_daemon.DaemonView or None
         self.allow = allow  # source networks answered (metrics.allow; None: any, which config allows on loopback only)
@@ -85,9 +86,9 @@ class MetricsHTTP:
         self.thread = threading.Thread(target=self._run, name="metrics-http", daemon=True)
         self.thread.start()
 
-    def info(self) -> dict:
-        d = {"open": len(self.conns), "max_connections": self.max_connections, **self.counts,
-             "last_error": self.last_error}
+    def info(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"open": len(self.conns), "max_connections": self.max_connections, **self.counts,
+                             "last_error": self.last_error}
         if self.view is not None:
             d["view"] = self.view.info()
         return d

@@ -7,6 +7,7 @@ returns the same message objects as the msgpack decoder (Hello, Frame, Control) 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -16,7 +17,6 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 
 from daemon import wire
 
-PREFIX = "/lacuna/"
 BUNDLE_PREFIX = b"#bundle\x00"
 MAX_DEPTH = 4  # bundles within bundles, at most
 
@@ -24,25 +24,25 @@ MAX_DEPTH = 4  # bundles within bundles, at most
 def _msg(address: str, args: list[tuple[object, str]]) -> OscMessageBuilder:
     b = OscMessageBuilder(address)
     for v, t in args:
-        b.add_arg(v, t)
+        b.add_arg(v, t)  # type: ignore[arg-type]
     return b
 
 
-def _str(args: list, i: int, what: str) -> str:
+def _str(args: list[Any], i: int, what: str) -> str:
     if i >= len(args) or not isinstance(args[i], str):
         got = type(args[i]).__name__ if i < len(args) else "nothing"
         raise wire.WireError("bad_type", f"OSC {what}: argument {i + 1} must be a string (got {got})")
-    return args[i]
+    return str(args[i])
 
 
-def _int(args: list, i: int, what: str) -> int:
+def _int(args: list[Any], i: int, what: str) -> int:
     if i >= len(args) or not isinstance(args[i], int) or isinstance(args[i], bool):
         got = type(args[i]).__name__ if i < len(args) else "nothing"
         raise wire.WireError("bad_type", f"OSC {what}: argument {i + 1} (seq) must be an int (got {got})")
-    return args[i]
+    return int(args[i])
 
 
-def _float(args: list, i: int, what: str) -> float:
+def _float(args: list[Any], i: int, what: str) -> float:
     if i >= len(args) or isinstance(args[i], bool) or not isinstance(args[i], (int, float)):
         got = type(args[i]).__name__ if i < len(args) else "nothing"
         raise wire.WireError("bad_type", f"OSC {what}: argument {i + 1} (t) must be a number (got {got})")
@@ -175,7 +175,7 @@ def decode_bundle(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES, depth: i
     return out
 
 
-def _via_wire(d: dict) -> wire.Message:
+def _via_wire(d: dict[str, Any]) -> wire.Message:
     """Validate through the msgpack decoder's rules so both transports check the same things."""
     return wire.decode(msgpack.packb({"v": 1, **d}, use_bin_type=True), 1 << 30)
 

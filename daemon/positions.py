@@ -19,7 +19,7 @@ from lacuna.filler import Model
 
 NO_SKELETON = "no_skeleton"  # the hello error reason
 
-_KIN: "weakref.WeakKeyDictionary[Model, Any]" = weakref.WeakKeyDictionary()
+_KIN: weakref.WeakKeyDictionary[Model, Any] = weakref.WeakKeyDictionary()
 
 
 def kinematics(model: Model, name: str) -> Any:

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import os
 import stat
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 _KINDS = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
           (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a directory"))
@@ -56,7 +56,8 @@ def read_regular(path: str, limit: int = 1 << 30) -> bytes:
     """The bytes of a regular file, refusing anything else (see :func:`regular_fd`)."""
     with regular_fd(path) as fd:
         os.set_blocking(fd, True)
-        chunks, n = [], 0
+        chunks: list[bytes] = []
+        n = 0
         while True:
             b = os.read(fd, 1 << 20)
             if not b:

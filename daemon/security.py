@@ -41,7 +41,7 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from daemon.config import ConfigError
+from daemon.errors import ConfigError
 from daemon.safeopen import check_regular, kind_of
 
 ZAP_DOMAIN = "lacuna"
@@ -114,7 +114,7 @@ def _network(where: str, a: str, key: str = "security.osc_allow") -> ipaddress.I
                             f"(like 192.168.10.7 or 192.168.10.0/24)") from None
 
 
-def address_allowed(addr: str, nets: list | None) -> bool:
+def address_allowed(addr: str, nets: list[Any] | None) -> bool:
     """Is source address ``addr`` in ``nets`` (None: no list, everyone)?"""
     if nets is None:
         return True
@@ -251,7 +251,7 @@ def load_authorized(directory: str) -> dict[bytes, bool]:
     return keys
 
 
-def configure_client(sock: zmq.Socket, client_secret_file: str, server_public_file: str) -> None:
+def configure_client(sock: zmq.Socket[Any], client_secret_file: str, server_public_file: str) -> None:
     """Make ``sock`` a CURVE client: its own key pair, and the server's public key to expect."""
     public, secret = load_server_key(client_secret_file)
     sock.curve_publickey = public
@@ -269,12 +269,13 @@ def _operators(directory: str | None) -> set[str]:
 class _CountingAuthenticator(ThreadAuthenticator):
     """ThreadAuthenticator that counts its decisions (the daemon reports them in status)."""
 
-    def __init__(self, context: zmq.Context):
+    def __init__(self, context: zmq.Context[Any]):
         super().__init__(context)
         self.allowed = 0
         self.denied = 0
 
-    def _send_zap_reply(self, request_id, status_code, status_text, user_id="anonymous"):  # type: ignore[override]
+    def _send_zap_reply(self, request_id: Any, status_code: Any, status_text: Any,
+                        user_id: Any = "anonymous") -> None:
         if status_code == b"200":
             self.allowed += 1
         else:
@@ -289,7 +290,7 @@ class Guard:
     ``osc_allowed(addr)`` for every datagram; ``reload(spec)`` on SIGHUP; ``info()`` for status.
     """
 
-    def __init__(self, ctx: zmq.Context, spec: SecuritySpec | None):
+    def __init__(self, ctx: zmq.Context[Any], spec: SecuritySpec | None):
         self.ctx = ctx
         self.spec = spec or SecuritySpec()
         self.osc_denied = 0
@@ -308,14 +309,14 @@ class Guard:
     def is_operator(self, key: str) -> bool:
         return key in self.operators
 
-    def server(self, sock: zmq.Socket) -> None:
+    def server(self, sock: zmq.Socket[Any]) -> None:
         if self._keys is None:
             return
         sock.curve_publickey, sock.curve_secretkey = self._keys
         sock.zap_domain = ZAP_DOMAIN.encode()
         sock.curve_server = True
 
-    def client(self, sock: zmq.Socket) -> None:
+    def client(self, sock: zmq.Socket[Any]) -> None:
         if not self.spec.sub_server_key:
             return
         if self._keys is None:
@@ -323,7 +324,7 @@ class Guard:
         sock.curve_publickey, sock.curve_secretkey = self._keys
         sock.curve_serverkey = load_public_key(self.spec.sub_server_key)
 
-    def osc_allowed(self, addr: tuple) -> bool:
+    def osc_allowed(self, addr: tuple[Any, ...]) -> bool:
         nets = self.spec.osc_networks
         if nets is None:
             return True

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import msgpack  # type: ignore[import-untyped]
+import msgpack
 import zmq
 
 from daemon import osc, security, wire

@@ -41,7 +41,7 @@ class EmissionTables:
     fused_t: np.ndarray | None = None  # (C*M, 3F): the same, a row per state, for a few states at a time
 
     @classmethod
-    def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray) -> "EmissionTables":
+    def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray) -> EmissionTables:
         """mu, var: (C, M, F); lam: (C, F)."""
         C, M, F = mu.shape
         lam3 = lam[:, None, :]

@@ -19,7 +19,8 @@ import math
 
 import numpy as np
 
-from lacuna.jit import enabled, jit as _jit  # noqa: F401  (enabled: re-exported for callers)
+from lacuna.jit import enabled  # noqa: F401  (enabled: re-exported for callers)
+from lacuna.jit import jit as _jit
 from mocap import fastrepr
 from mocap.fastrepr import encode1, finish1
 
@@ -201,7 +202,7 @@ def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, row
          live: float = 1e-10, live_stats: float = 1e-4) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """One frame of each of n streams, stream by stream in one compiled call: z, zobs (n, F).
     ``state`` is ``hlm.online.init_state``'s for the n streams; with ``rows`` (n,) its D, W, G,
-    GW are a state pool's and stream i owns their row rows[i] (``lacuna.feature_model``).
+    GW are a state pool's and stream i owns their row rows[i] (``mocap.feature_model``).
     Updates the state in place; returns (z completed (n, F), std (n, F), extras per stream)."""
     C, M = tab.shape
     n, F = z.shape
@@ -282,7 +283,7 @@ def slot_tables(tab, rep) -> tuple:
 
 def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarray,
               live: float = 1e-10, live_stats: float = 1e-4) -> tuple[np.ndarray, np.ndarray, dict]:
-    """One frame of the stream in pool row r (a ``lacuna.feature_model.StatePool`` of an HLM):
+    """One frame of the stream in pool row r (a ``mocap.feature_model.StatePool`` of an HLM):
     frame (C,) float64, observed (C,) bool.  Updates the row in place; returns (completed (C,),
     std (C,), extras).  ``tables``: ``slot_tables``'s."""
     rt, ht, zero = tables

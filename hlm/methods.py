@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import time
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -90,7 +91,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
         "hyperparameters": hyper,
         "training": {
             "data": list(names), "frames": int(sum(s.shape[0] for s in sequences)), "seconds": round(secs, 2),
-            "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             "bounds": [float(b) for b in res.bounds], "restart_bounds": [float(b) for b in res.restart_bounds],
             "best_seed": res.seed, "psi": res.psi.tolist(),
         },

@@ -11,12 +11,12 @@ from typing import Any
 
 import numpy as np
 
-from lacuna import modelfile
-from lacuna.feature_model import CoreOut, FeatureModel
-from lacuna.filler import Fill, FillerError, check_frame
 from hlm import fast, offline, online
-from hlm.streamcycle import LIVE_STATS
 from hlm.params import HLMParams
+from hlm.streamcycle import LIVE_STATS
+from lacuna import modelfile
+from lacuna.filler import Fill, FillerError, check_frame
+from mocap.feature_model import CoreOut, FeatureModel
 from mocap.representation import Representation
 
 METHOD = "hlm"
@@ -88,7 +88,7 @@ class HLMModel(FeatureModel):
                                                 self.options.kappa, self.options.width, self.options.kappa_global,
                                                 self.options.style_switch)
 
-    def with_options(self, **kw) -> "HLMModel":
+    def with_options(self, **kw) -> HLMModel:
         """A copy with other inference options (the learned parameters are shared, read-only);
         ``root_tau`` (frames) and ``root_power`` change the representation's root damping, which nothing learned
         depends on."""
@@ -198,7 +198,7 @@ class HLMModel(FeatureModel):
         out += st.flush()
         return np.stack([f.frame for f in out]), np.stack([f.std for f in out])
 
-    def lag_stream(self, lag: int | None = None) -> "LagStream":
+    def lag_stream(self, lag: int | None = None) -> LagStream:
         return LagStream(self, self.options.lag if lag is None else int(lag))
 
     # ---- persistence --------------------------------------------------------------------------

@@ -9,8 +9,8 @@ EM steps of eq. (16) starting from the population d (the sequence is new, so it 
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

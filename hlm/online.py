@@ -40,11 +40,20 @@ than the training population moves probability to longer jumps within a second o
 from __future__ import annotations
 
 import numpy as np
-
 from scipy.ndimage import correlate1d
 
-from hlm.streamcycle import (LIVE_STATS, _live, _runs, accumulate, adapted_loglik, cycle_stats,  # noqa: F401
-                             group_stats, knot_offsets, pair_offsets, stream_offset)
+from hlm.streamcycle import (  # noqa: F401
+    LIVE_STATS,
+    _live,
+    _runs,
+    accumulate,
+    adapted_loglik,
+    cycle_stats,
+    group_stats,
+    knot_offsets,
+    pair_offsets,
+    stream_offset,
+)
 from hlm.tables import FilterTables
 
 

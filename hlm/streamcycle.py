@@ -18,7 +18,7 @@ uncertainty of the offset estimate itself (about 1 / sqrt(lambda (kappa + W)) pe
 
 Every function here works batched over streams; the statistics D, W (n, C n_bins, F) and their
 per-style sums G, GW (n, C, F) live in the stream state (``hlm.online.init_state``), in a model's
-state pool when served through ``lacuna.feature_model`` (then indexed by the pool rows ``prow``).
+state pool when served through ``mocap.feature_model`` (then indexed by the pool rows ``prow``).
 """
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ def accumulate(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, z
     """Add this frame's residuals to the stream-cycle statistics D, W (only when ``kappa > 0``).
 
     prow (n,): when given, D and W are a state pool's (capacity, C n_bins, F) arrays and stream i
-    of the batch owns their row prow[i] (``lacuna.feature_model``); else they are the batch's own.
+    of the batch owns their row prow[i] (``mocap.feature_model``); else they are the batch's own.
 
     Vectorised over the batch: the live (stream, state) pairs of every stream that observed
     something are scattered at once into the (n, C n_bins, F) statistics.  Each knot belongs to

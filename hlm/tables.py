@@ -36,7 +36,7 @@ class FilterTables:
     @classmethod
     def build(cls, mu: np.ndarray, var: np.ndarray, lam: np.ndarray, tau: np.ndarray, d_pop: np.ndarray,
               adapt_rate: float = 0.0, prior_strength: float = 240.0, kappa: float = 0.0,
-              width: int = 5, kappa_global: float = 0.0, style_switch: float = 0.0) -> "FilterTables":
+              width: int = 5, kappa_global: float = 0.0, style_switch: float = 0.0) -> FilterTables:
         C, M, F = mu.shape
         ang = 2.0 * np.pi * np.arange(M) / M
         with np.errstate(divide="ignore"):  # a style with tau = 0 is impossible: log 0 = -inf

@@ -26,14 +26,14 @@ import contextvars
 import sys
 import time
 import warnings
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from hlm import cyclic, hmm
 from hlm.emissions import LOG2PI
-from lacuna.blas import single_thread_blas
 from hlm.params import BoundWarning, FitResult, HLMParams
+from lacuna.blas import single_thread_blas
 
 __all__ = ["VariationalEM", "fit", "pi_stats", "estep_map", "HLMParams", "FitResult", "BoundWarning"]
 

@@ -7,7 +7,7 @@ call.
 """
 from __future__ import annotations
 
-from typing import ContextManager
+from contextlib import AbstractContextManager as ContextManager
 
 from threadpoolctl import threadpool_limits as _limits
 

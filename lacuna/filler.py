@@ -20,8 +20,9 @@ observed : (n_channels,) bool, True where the value was measured this frame
 from __future__ import annotations
 
 import abc
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Sequence
+from typing import Any, ClassVar
 
 import numpy as np
 

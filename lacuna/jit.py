@@ -10,12 +10,13 @@ reference the compiled code is tested against.
 from __future__ import annotations
 
 import os
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 try:  # without numba the numpy path serves every stream
     import numba
 except (ImportError, OSError):  # not installed, or (PermissionError) this process may not run JIT code
-    numba = None
+    numba = None  # type: ignore[assignment]
 
 
 def enabled() -> bool:

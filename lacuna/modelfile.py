@@ -17,7 +17,8 @@ import io
 import json
 import os
 import zipfile
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +35,7 @@ def save_arrays(path: str | os.PathLike, meta: dict[str, Any], arrays: dict[str,
     meta = dict(meta)
     meta.setdefault("format", FORMAT)
     meta.setdefault("format_version", FORMAT_VERSION)
-    meta.setdefault("saved", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    meta.setdefault("saved", _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"))
     for k, v in arrays.items():
         if k == "__meta__":
             raise ValueError("array name __meta__ is reserved")
@@ -44,7 +45,7 @@ def save_arrays(path: str | os.PathLike, meta: dict[str, Any], arrays: dict[str,
     path = os.fspath(path)
     tmp = f"{path}.tmp{os.getpid()}"
     buf = io.BytesIO()
-    np.savez_compressed(buf, __meta__=np.array(json.dumps(meta, sort_keys=True)), **{k: np.asarray(v) for k, v in arrays.items()})
+    np.savez_compressed(buf, __meta__=np.array(json.dumps(meta, sort_keys=True)), **{k: np.asarray(v) for k, v in arrays.items()})  # type: ignore[arg-type]
     with open(tmp, "wb") as fh:
         fh.write(buf.getvalue())
         fh.flush()

@@ -47,11 +47,11 @@ class HoldModel(_Saveable):
         self.std_ = np.asarray(std, dtype=np.float64)
 
     @classmethod
-    def fit(cls, sequences: list[np.ndarray], channels: list[str]) -> "HoldModel":
+    def fit(cls, sequences: list[np.ndarray], channels: list[str]) -> HoldModel:
         mean, std = _channel_stats(np.vstack(sequences), channels)
         return cls(channels, mean, std)
 
-    def stream(self) -> "HoldState":
+    def stream(self) -> HoldState:
         return HoldState(self)
 
     def step_batch(self, states, frames, observed):
@@ -73,7 +73,7 @@ class HoldModel(_Saveable):
         modelfile.save_arrays(path, self._meta(), {"mean": self.mean_, "std": self.std_})
 
     @classmethod
-    def load(cls, path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> "HoldModel":
+    def load(cls, path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> HoldModel:
         C = len(meta["channels"])
         return cls(meta["channels"], modelfile.require(path, arrays, "mean", (C,)),
                    modelfile.require(path, arrays, "std", (C,)))
@@ -106,10 +106,9 @@ class NearestNeighbourModel(_Saveable):
         self.scale_ = np.where(np.asarray(scale) > 1e-9, scale, 1.0)
         self.method = method  # type: ignore[misc]
         self._z = self.train_ / self.scale_
-        self._sq = None
 
     @classmethod
-    def fit(cls, sequences: list[np.ndarray], channels: list[str], scaled: bool = False) -> "NearestNeighbourModel":
+    def fit(cls, sequences: list[np.ndarray], channels: list[str], scaled: bool = False) -> NearestNeighbourModel:
         train = np.vstack(sequences)
         scale = _channel_stats(train, channels)[1] if scaled else np.ones(train.shape[1])
         return cls(channels, train, scale, "scaled-nn" if scaled else "nn")
@@ -136,7 +135,7 @@ class NearestNeighbourModel(_Saveable):
         idx = self.nearest(np.where(observed, frames, 0.0), observed)
         return np.where(observed, frames, self.train_[idx])
 
-    def stream(self) -> "NNState":
+    def stream(self) -> NNState:
         return NNState(self)
 
     def step_batch(self, states, frames, observed):
@@ -152,7 +151,7 @@ class NearestNeighbourModel(_Saveable):
         modelfile.save_arrays(path, self._meta(), {"train": self.train_, "scale": self.scale_})
 
     @classmethod
-    def load(cls, path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> "NearestNeighbourModel":
+    def load(cls, path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> NearestNeighbourModel:
         C = len(meta["channels"])
         return cls(meta["channels"], modelfile.require(path, arrays, "train", (None, C)),
                    modelfile.require(path, arrays, "scale", (C,)), meta["method"])

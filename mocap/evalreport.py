@@ -83,14 +83,14 @@ def plot(result: dict[str, Any], path: str, max_cases: int = 4, max_channels: in
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mocap.evaluate import activity_of
+    from mocap.splits import ACTIVITY
 
     cases, fills, stds = result["_cases"], result["_fills"], result["_stds"]
     if not cases:
         raise ValueError("no cases to plot (evaluate(..., keep=False) drops them)")
     first_of: dict[str, int] = {}
     for i, c in enumerate(cases):
-        first_of.setdefault(activity_of(c.test), i)
+        first_of.setdefault(ACTIVITY.get(c.test, "unknown"), i)
     order = list(first_of.values()) + [i for i in range(len(cases)) if i not in first_of.values()]
     order = order[:max_cases]
     fig, axes = plt.subplots(len(order), max_channels, figsize=(4.2 * max_channels, 2.6 * len(order)), squeeze=False)

@@ -1,7 +1,7 @@
 """The representation's causal encoder/decoder compiled with numba, stream by stream: the same
 arithmetic as ``mocap.representation.ReprState.encode`` / ``decode`` / ``commit`` (and the
 feature-to-raw std of ``Representation.raw_std``), in two calls per step instead of about a
-hundred and fifty numpy calls.  ``lacuna.feature_model`` uses it when ``lacuna.jit.enabled()``
+hundred and fifty numpy calls.  ``mocap.feature_model`` uses it when ``lacuna.jit.enabled()``
 (numba importable, LACUNA_NO_JIT unset, JIT code allowed); the numpy code stays the reference
 (``tests/test_hlm_fast.py`` checks the two agree frame by frame on real motion, for both root
 modes, normalised or not).

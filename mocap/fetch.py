@@ -27,8 +27,8 @@ from typing import TextIO
 
 from lacuna import __version__
 from lacuna.errors import DataError, ParseError
-from mocap.atomic import atomic_write_bytes
 from mocap.asf import Skeleton, parse_amc, parse_asf, read_asf
+from mocap.atomic import atomic_write_bytes
 from mocap.datasets import SUBJECT35_RUNS, SUBJECT35_WALKS, cache_dir
 
 CMU_BASE_URL = "http://mocap.cs.cmu.edu/subjects"

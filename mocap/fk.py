@@ -27,7 +27,8 @@ mm, cm, inch, CMU's 1/0.45 inch and m that makes the rest skeleton nearest 1.7 m
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -127,7 +128,7 @@ class Kinematics:
     # ---- construction ------------------------------------------------------------------------
     @classmethod
     def from_motion(cls, motion: Motion, length_unit: float | None = None, up_axis: str | None = None,
-                    skeleton: Any = None) -> "Kinematics":
+                    skeleton: Any = None) -> Kinematics:
         """FK for ``motion.frames`` (its channels, its skeleton).  ValueError for a CSV motion.
         ``skeleton``: the skeleton map (name, file or map) whose length unit and up axis a BVH
         file takes when not given (default: recognised from the bone names)."""
@@ -137,7 +138,7 @@ class Kinematics:
     @classmethod
     def from_skeleton(cls, skeleton: Any, channels: Sequence[str] | None = None, length_unit: float | None = None,
                       up_axis: str | None = None, source: str = "", frames: np.ndarray | None = None,
-                      skeleton_map: Any = None) -> "Kinematics":
+                      skeleton_map: Any = None) -> Kinematics:
         """FK for an ``mocap.asf.Skeleton`` or ``mocap.bvh.Hierarchy`` over ``channels`` (default:
         the skeleton's own).  Channels the skeleton has but ``channels`` lacks are taken as 0."""
         from mocap.asf import Skeleton

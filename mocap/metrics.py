@@ -125,7 +125,7 @@ class Values:
     joint_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @staticmethod
-    def concat(tables: list["Values"]) -> "Values":
+    def concat(tables: list[Values]) -> Values:
         if not tables:
             raise ValueError("no values to pool")
         units = {t.root_unit for t in tables if t.root_err.size}

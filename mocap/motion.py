@@ -1,8 +1,9 @@
 """The in-memory form of a take: frames of named channels at a frame rate."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -50,9 +51,9 @@ class Motion:
             out.append(pos[n])
         return np.asarray(out, dtype=int)
 
-    def select(self, names: Sequence[str]) -> "Motion":
+    def select(self, names: Sequence[str]) -> Motion:
         """A copy with only (and in the order of) the named channels."""
         return Motion(self.frames[:, self.index(names)].copy(), list(names), self.fps, None, self.source, dict(self.meta))
 
-    def slice(self, start: int, stop: int | None = None, step: int = 1) -> "Motion":
+    def slice(self, start: int, stop: int | None = None, step: int = 1) -> Motion:
         return Motion(self.frames[start:stop:step].copy(), list(self.channels), self.fps / step, self.skeleton, self.source, dict(self.meta))

@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import functools
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -44,13 +45,12 @@ _CMU = skelmap.load("cmu-asf")
 JOINT_GROUPS = {g: tuple(b for b, i in _CMU.bones.items() if i.part == g and b != "lhipjoint" and b != "rhipjoint")
                 for g in skelmap.GROUPS}
 LEG_BONES = JOINT_GROUPS["left-leg"] + JOINT_GROUPS["right-leg"]
-RIGHT_LEG = JOINT_GROUPS["right-leg"]
 # the gaps protocol also drops the root (pelvis markers occluded: its rotation and translation)
 GAP_GROUPS = {**JOINT_GROUPS, "root": ("root",)}
 GAP_BINS = ((0.1, 0.25), (0.25, 0.5), (0.5, 1.0), (1.0, 2.0))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def load_take(name: str) -> Motion:
     """A named take (``splits.load_take``), parsed once per process; its frames are read-only."""
     m = splits.load_take(name)

@@ -39,13 +39,13 @@ spec, found from the channel names by the skeleton map) and brought into that fr
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
 from lacuna.errors import LacunaError
-
 from mocap.rootrot import _matrix_to_rxyz, _matrix_to_ypr, _rxyz_to_matrix, _ypr_to_matrix, wrap180  # noqa: F401
 
 ROOT_ROT = ("root.rx", "root.ry", "root.rz")
@@ -84,7 +84,7 @@ class Representation:
     @classmethod
     def fit(cls, sequences: Sequence[np.ndarray], channels: Sequence[str], root_mode: str = "relative",
             normalize: bool = True, drop_constant: bool = True, skeleton: Any = None,
-            root_tau: float = 0.0, root_power: float = 1.0) -> "Representation":
+            root_tau: float = 0.0, root_power: float = 1.0) -> Representation:
         """sequences: list of (n_frames, n_channels) raw frames.  ``skeleton``: a skeleton map
         (name, file or ``mocap.skelmap.SkeletonMap``) naming the root; else recognised from the
         channel names."""
@@ -154,7 +154,7 @@ class Representation:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Representation":
+    def from_dict(cls, d: dict[str, Any]) -> Representation:
         rep = cls(**{k: d[k] for k in ("channels", "keep", "const_value", "center", "root_mode", "normalize",
                                         "mean", "std", "features")}, root=d.get("root"),
                   root_tau=float(d.get("root_tau", 0.0)), root_power=float(d.get("root_power", 1.0)))
@@ -173,7 +173,7 @@ class Representation:
                              f"(got {rep.root_tau}, {rep.root_power})")
         return rep
 
-    def with_root_damping(self, root_tau: float, root_power: float) -> "Representation":
+    def with_root_damping(self, root_tau: float, root_power: float) -> Representation:
         """A copy with another root damping (not learned, so no refit)."""
         d = self.to_dict()
         d["root_tau"], d["root_power"] = float(root_tau), float(root_power)
@@ -295,7 +295,7 @@ class Representation:
             st.commit(out[t : t + 1])
         return out
 
-    def new_state(self, n_streams: int = 1) -> "ReprState":
+    def new_state(self, n_streams: int = 1) -> ReprState:
         return ReprState(self, n_streams)
 
 
@@ -317,9 +317,9 @@ class ReprState:
 
     @classmethod
     def of(cls, rep: Representation, prev_u: np.ndarray, prev_raw: np.ndarray, prev_yaw: np.ndarray,
-           started: np.ndarray, root_st: np.ndarray | None = None) -> "ReprState":
+           started: np.ndarray, root_st: np.ndarray | None = None) -> ReprState:
         """A state over existing arrays (n, C), (n, C), (n,), (n,), (n, 3): writes go to them (views
-        of a model's state pool, see ``lacuna.feature_model``)."""
+        of a model's state pool, see ``mocap.feature_model``)."""
         st = cls.__new__(cls)
         st.rep, st.n, st._C = rep, started.shape[0], len(rep.channels)
         st.prev_u, st.prev_raw, st.prev_yaw, st.started = prev_u, prev_raw, prev_yaw, started

@@ -19,7 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from mocap.representation import _matrix_to_rxyz as matrix_to_rxyz, _rxyz_to_matrix as rxyz_to_matrix, wrap180
+from mocap.rootrot import _matrix_to_rxyz as matrix_to_rxyz
+from mocap.rootrot import _rxyz_to_matrix as rxyz_to_matrix
+from mocap.rootrot import wrap180
 
 _AXES = "xyz"
 _Q = {

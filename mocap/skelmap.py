@@ -30,9 +30,10 @@ from __future__ import annotations
 
 import re
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from lacuna.errors import LacunaError
 
@@ -264,7 +265,7 @@ class Binding:
     source: str = ""
 
     @classmethod
-    def of(cls, channels: Sequence[str], spec: str | SkeletonMap | None = None, source: str = "") -> "Binding":
+    def of(cls, channels: Sequence[str], spec: str | SkeletonMap | None = None, source: str = "") -> Binding:
         channels = list(channels)
         m = resolve(spec, channels, source)
         parts, root = [], ""
@@ -289,7 +290,7 @@ class Binding:
                 raise SkeletonError(f"unknown joint group {g!r} (known: {', '.join(GROUPS + tuple(COMPOSITES))})")
         return out
 
-    def mask(self, groups: Sequence[str] | str, what: str = "", require: bool = True) -> "Any":
+    def mask(self, groups: Sequence[str] | str, what: str = "", require: bool = True) -> Any:
         """(C,) bool: the channels of bones in these groups.  With ``require``, SkeletonError when
         there are none (a drop pattern that would erase nothing), naming the skeleton and groups."""
         import numpy as np

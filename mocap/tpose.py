@@ -10,7 +10,7 @@ degrees against 12.9, 19.2, 17.2; CMU AMC 07_01: 2.7 against 12.3).
 from __future__ import annotations
 
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

@@ -5,21 +5,16 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
+
+from clients.configfile import free_port
 
 CONNECT_TIMEOUT_S = 60      # scheduler up and answering
 WORKERS_TIMEOUT_S = 120     # workers joined (imports under load take a while)
 STOP_TIMEOUT_S = 20
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass
@@ -37,9 +32,6 @@ class Cluster:
             if p == pid:
                 return next((w for w in self.workers if w.pid == ppids[addr]), None)
         return None
-
-    def address_of_pid(self, pid: int) -> str | None:
-        return next((a for a, p in self.client.run(os.getpid).items() if p == pid), None)
 
 
 def _stop(p: subprocess.Popen) -> None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import random
 import struct
-from typing import Callable
+from collections.abc import Callable
 
 import msgpack
 import numpy as np
@@ -64,10 +64,6 @@ def osc_frame(sid: str, seq: int, t: float, values) -> bytes:
 
 def pack(d: object) -> bytes:
     return msgpack.packb(d, use_bin_type=True)
-
-
-def f32(values) -> bytes:
-    return np.asarray(values, dtype=F32).tobytes()
 
 
 # ---- expected outcome, from the daemon's own decoders ------------------------------------------

@@ -1,172 +1,46 @@
-"""A real `lacuna serve` process for the reliability tests, and the small tools around it.
+"""The reliability tests' tools around a real `lacuna serve` (clients.harness.DaemonProcess).
 
-Unlike daemon.loadgen.DaemonProcess (which parses every log line in the test process), the
-daemon's stderr goes to a file here: the fuzz test makes the daemon log ~10^5 rejections and
-the test process needs its CPU for sending.  Ports are chosen up front (not ``:*``) so that a
-restarted daemon comes back on the same endpoints and clients can reconnect to it.
+The daemon's stderr goes to a file (the fuzz test makes the daemon log ~10^5 rejections and the
+test process needs its CPU for sending).  Ports are chosen up front (clients.configfile's
+``loopback_config``, not ``:*``) so that a restarted daemon comes back on the same endpoints and
+clients can reconnect to it.
 
 Everything has a timeout; ``stop()`` kills what does not exit, so teardown never hangs.
 """
 from __future__ import annotations
 
-import json
 import os
-import signal as _signal
-import socket
 import subprocess
-import sys
 import threading
 import time
 from typing import Any
 
 import zmq
 
+from clients import control as _control
+from clients.configfile import free_port
+from clients.configfile import loopback_config as write_config
+from clients.harness import DaemonProcess
+from clients.session import DaemonRefused
 from daemon import wire
 
-READY_TIMEOUT_S = 60.0
+__all__ = ["Daemon", "DaemonProcess", "LockStep", "Sockets", "Supervisor", "control", "free_port", "recv_msg",
+           "status", "udp_queue", "write_config"]
+
 RECV_MS = 5000
 
 
-def free_port(kind: int = socket.SOCK_STREAM, host: str = "127.0.0.1") -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
-def write_config(path, models: dict[str, dict[str, Any]], *, router: str | None = None, pull: bool = False,
-                 pub: bool = True, osc: bool = False, daemon: dict[str, Any] | None = None,
-                 extra: str = "") -> dict[str, Any]:
-    """Write a TOML config on fixed free loopback ports; returns the endpoints it names."""
-    ep: dict[str, Any] = {"router": router or f"tcp://127.0.0.1:{free_port()}"}
-    # (a generous budget: with overdue = "drop", the default, a frame a stall of the test machine
-    # holds past the budget is answered `overdue`, and these tests are about other things)
-    d = {"budget_ms": 250.0, "idle_timeout_s": 3600, **(daemon or {})}
-    lines = ["[daemon]"] + [f"{k} = {json.dumps(v)}" for k, v in d.items()]
-    for name, spec in models.items():
-        lines.append(f"[models.{name}]")
-        lines += [f"{k} = {json.dumps(v)}" for k, v in spec.items()]
-    lines += ["[zmq]", f'router = "{ep["router"]}"']
-    if pull:
-        ep["pull"] = f"tcp://127.0.0.1:{free_port()}"
-        lines.append(f'pull = "{ep["pull"]}"')
-    if pub or pull:
-        ep["pub"] = f"tcp://127.0.0.1:{free_port()}"
-        lines.append(f'pub = "{ep["pub"]}"')
-    if osc:
-        ep["osc"] = ("127.0.0.1", free_port(socket.SOCK_DGRAM))
-        lines += ["[osc]", f'listen = "127.0.0.1:{ep["osc"][1]}"']
-    with open(path, "w") as fh:
-        fh.write("\n".join(lines) + "\n" + extra)
-    return ep
-
-
-class Daemon:
-    """One `python -m lacuna.cli serve` child; stderr (JSON lines) appended to ``log_path``."""
-
-    def __init__(self, config: str, log_path: str, env: dict[str, str] | None = None):
-        self.config = str(config)
-        self.log_path = str(log_path)
-        self.env = {**os.environ, **(env or {})}
-        self.proc: subprocess.Popen | None = None
-        self._offset = 0  # log bytes already scanned by wait_for
-
-    def start(self, timeout_s: float = READY_TIMEOUT_S) -> "Daemon":
-        with open(self.log_path, "ab") as fh:
-            self._offset = fh.tell()
-            self.proc = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "serve", "--config", self.config],
-                                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=fh, env=self.env)
-        self.wait_for("ready", timeout_s)
-        return self
-
-    @property
-    def pid(self) -> int:
-        assert self.proc is not None
-        return self.proc.pid
-
-    def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
-
-    def records(self, since: int = 0) -> list[dict[str, Any]]:
-        out = []
-        with open(self.log_path, "rb") as fh:
-            fh.seek(since)
-            for line in fh:
-                try:
-                    out.append(json.loads(line))
-                except ValueError:
-                    continue
-        return out
-
-    def wait_for(self, event: str, timeout_s: float = 10.0, **match: Any) -> dict[str, Any]:
-        """Next log record (after the last one found) with this event and fields."""
-        deadline = time.monotonic() + timeout_s
-        buf = b""
-        with open(self.log_path, "rb") as fh:
-            fh.seek(self._offset)
-            while True:
-                chunk = fh.readline()
-                if chunk:
-                    buf += chunk
-                    if not buf.endswith(b"\n"):
-                        continue
-                    line, buf = buf, b""
-                    self._offset = fh.tell()
-                    try:
-                        rec = json.loads(line)
-                    except ValueError:
-                        continue
-                    if rec.get("event") == event and all(rec.get(k) == v for k, v in match.items()):
-                        return rec
-                    continue
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"daemon did not log {event!r} within {timeout_s} s; log tail:\n{self.tail()}")
-                if self.proc is not None and self.proc.poll() is not None and not chunk:
-                    raise RuntimeError(f"daemon exited ({self.proc.returncode}) before logging {event!r}:\n{self.tail()}")
-                time.sleep(0.01)
-
-    def tail(self, n: int = 15) -> str:
-        try:
-            with open(self.log_path, "rb") as fh:
-                return b"".join(fh.readlines()[-n:]).decode(errors="replace")
-        except OSError:
-            return ""
-
-    def rss_kib(self) -> int:
-        """Resident set size from /proc (VmRSS), KiB."""
-        with open(f"/proc/{self.pid}/status") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1])
-        raise RuntimeError("no VmRSS")
-
-    def cpu_s(self) -> float:
-        """utime + stime of the daemon, seconds."""
-        with open(f"/proc/{self.pid}/stat") as fh:
-            f = fh.read().rsplit(")", 1)[1].split()
-        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
-
-    def signal(self, sig: int) -> None:
-        assert self.proc is not None
-        self.proc.send_signal(sig)
-
-    def stop(self, sig: int = _signal.SIGTERM, timeout_s: float = 10.0) -> int | None:
-        if self.proc is None:
-            return None
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
-        return self.proc.returncode
+def Daemon(config: str | os.PathLike[str], log_path: str | os.PathLike[str],  # noqa: N802 (reads as the class)
+           env: dict[str, str] | None = None) -> DaemonProcess:
+    """A daemon of ``config`` whose output goes to ``log_path``."""
+    return DaemonProcess(config, env=env, log_path=log_path)
 
 
 class Supervisor:
     """What systemd's Restart=on-failure does, as a thread: when the daemon dies with a failure
     status (or a signal), start it again after ``restart_s``.  ``restarts`` counts them."""
 
-    def __init__(self, daemon: Daemon, restart_s: float = 0.2):
+    def __init__(self, daemon: DaemonProcess, restart_s: float = 0.2):
         self.daemon = daemon
         self.restart_s = restart_s
         self.restarts = 0
@@ -174,7 +48,7 @@ class Supervisor:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
 
-    def start(self) -> "Supervisor":
+    def start(self) -> Supervisor:
         self.daemon.start()
         self._thread.start()
         return self
@@ -232,14 +106,17 @@ def recv_msg(sock: zmq.Socket, timeout_ms: int = RECV_MS) -> wire.Message:
 
 
 def control(sock: zmq.Socket, cmd: str, stream: str | None = None, timeout_ms: int = RECV_MS) -> dict[str, Any]:
-    """A control request on a DEALER that carries nothing else; returns the result map."""
-    sock.send(wire.encode(wire.Control(cmd, stream)))
-    while True:
-        m = recv_msg(sock, timeout_ms)
-        if isinstance(m, wire.ControlReply) and m.cmd == cmd:
-            if not m.ok and cmd != "reload":
-                raise RuntimeError(f"{cmd} refused: {m.error}")
-            return {**m.result, "_ok": m.ok, "_error": m.error}
+    """clients.control.request on a DEALER of the test's; the result map with ``_ok`` and ``_error``.
+    A refused command (but ``reload``, whose refusal the tests read) raises RuntimeError."""
+    try:
+        m = _control.request(sock, cmd, stream, timeout_s=timeout_ms / 1000)
+    except _control.DaemonUnavailable as e:
+        raise TimeoutError(str(e)) from None
+    except DaemonRefused as e:
+        raise RuntimeError(f"{cmd} refused: {e}") from None
+    if not m.ok and cmd != "reload":
+        raise RuntimeError(f"{cmd} refused: {m.error}")
+    return {**m.result, "_ok": m.ok, "_error": m.error}
 
 
 def status(ctx_or_sockets: Sockets, endpoint: str, timeout_ms: int = RECV_MS) -> dict[str, Any]:

@@ -88,7 +88,7 @@ def bvh_text(chain: dict, n_frames: int = 240, fps: float = 120.0, tpose: bool =
     """BVH text of the chain with a walking-like motion (and a leading T-pose when asked)."""
     pre, spec = chain["prefix"], chain["spec"]
     kids: dict[str, list[int]] = {}
-    for i, (n, p, _) in enumerate(spec):
+    for i, (_n, p, _) in enumerate(spec):
         kids.setdefault(p, []).append(i)
     lines = ["HIERARCHY"]
     cols: list[tuple[str, str]] = []  # (joint, channel)

@@ -9,10 +9,10 @@ import signal
 
 import numpy as np
 import pytest
+from dask_cluster import dask_cluster
 
 from archive.formats import FILL_SUFFIX, read_fill_sidecar, std_decode
 from lacuna.cli import main
-from dask_cluster import dask_cluster
 
 pytestmark = [pytest.mark.realdata, pytest.mark.slow]
 

@@ -1,6 +1,6 @@
 """Issue 20: the commands that take motion files work on BVH of every shipped naming, and a model
 trained on CMU's BVH fills a BVH take through a real daemon process (``lacuna replay --serve``
-starts one: clients/daemon_proc.py)."""
+starts one: clients/harness.py)."""
 from __future__ import annotations
 
 import json

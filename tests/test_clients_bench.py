@@ -8,8 +8,8 @@ import time
 import numpy as np
 
 from clients import bench
-from clients.client import control
-from clients.daemon_proc import DaemonProcess, cpu_seconds
+from clients.control import control
+from clients.harness import DaemonProcess, cpu_seconds
 from lacuna.cli import main
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial

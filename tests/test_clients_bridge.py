@@ -11,7 +11,8 @@ from pythonosc.osc_bundle import OscBundle
 from pythonosc.osc_message_builder import OscMessageBuilder
 
 from clients.bridge import Bridge
-from clients.daemon_proc import DaemonProcess, free_port
+from clients.configfile import free_port
+from clients.harness import DaemonProcess
 from mocap.baselines import HoldModel
 
 CH = ["lfemur.rx", "lfemur.ry", "ltibia.rx", "rfemur.rx", "rtibia.rx"]

@@ -13,7 +13,8 @@ import pytest
 
 from clients import Client, DaemonUnavailable
 from clients.aio import AsyncClient
-from clients.daemon_proc import DaemonProcess, free_port
+from clients.configfile import free_port
+from clients.harness import DaemonProcess
 from daemon import wire
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from clients import Client
-from clients.daemon_proc import DaemonProcess, free_port
-from clients.recording import RecordingWriter, read_recording
+from clients.configfile import free_port
+from clients.harness import DaemonProcess
 from clients.record import record
+from clients.recording import RecordingWriter, read_recording
 from clients.takes import drop_mask
 from daemon import wire
 from lacuna.cli import main

@@ -6,7 +6,6 @@ Every test starts `python -m lacuna.cli serve --config ...` with ``tcp://127.0.0
 """
 from __future__ import annotations
 
-import json
 import os
 import signal
 import socket
@@ -24,7 +23,11 @@ from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
 from waiting import wait_until
 
-from daemon import loadgen, wire
+from clients import loadgen
+from clients.configfile import write_config as write_toml
+from clients.control import control
+from clients.harness import DaemonProcess
+from daemon import wire
 from mocap.baselines import HoldModel, NearestNeighbourModel
 
 RECV_MS = 5000
@@ -41,27 +44,15 @@ def write_config(tmp_path, models: dict[str, dict], *, default=None, osc=False, 
                  budget_ms=250.0, overdue=None, realtime=None, extra="") -> str:
     # (a generous budget by default: with overdue = "drop" a frame a stall of the test machine holds
     # past the budget is answered `overdue`; the tests about the budget set their own)
-    lines = ["[daemon]", f"budget_ms = {budget_ms}", "idle_timeout_s = 60", "max_gap_frames = 5"]
-    if overdue:
-        lines.append(f'overdue = "{overdue}"')
-    if realtime:
-        lines.append(f"realtime_priority = {realtime}")
-    if default:
-        lines.append(f'default_model = "{default}"')
-    for name, spec in models.items():
-        lines.append(f"[models.{name}]")
-        for k, v in spec.items():
-            lines.append(f"{k} = {json.dumps(v)}")
-    lines += ["[zmq]", 'router = "tcp://127.0.0.1:*"', 'pub = "tcp://127.0.0.1:*"']
-    if pull:
-        lines.append('pull = "tcp://127.0.0.1:*"')
+    d: dict = {"budget_ms": budget_ms, "idle_timeout_s": 60, "max_gap_frames": 5}
+    d.update({k: v for k, v in (("overdue", overdue), ("realtime_priority", realtime), ("default_model", default)) if v})
+    cfg = {"daemon": d, **{f"models.{name}": spec for name, spec in models.items()},
+           "zmq": {"router": "tcp://127.0.0.1:*", "pub": "tcp://127.0.0.1:*", **({"pull": "tcp://127.0.0.1:*"} if pull else {})}}
     if osc:
-        lines += ["[osc]", 'listen = "127.0.0.1:0"']
+        cfg["osc"] = {"listen": "127.0.0.1:0"}
     if http:
-        lines += ["[metrics]", 'http = "127.0.0.1:0"']
-    p = tmp_path / "lacuna.toml"
-    p.write_text("\n".join(lines) + "\n" + extra)
-    return str(p)
+        cfg["metrics"] = {"http": "127.0.0.1:0"}
+    return write_toml(tmp_path / "lacuna.toml", cfg, extra)
 
 
 @pytest.fixture
@@ -83,10 +74,10 @@ def ctx():
 
 @pytest.fixture
 def daemons():
-    procs: list[loadgen.DaemonProcess] = []
+    procs: list[DaemonProcess] = []
 
     def start(config, env=None):
-        d = loadgen.DaemonProcess(config, env)
+        d = DaemonProcess(config, env=env)
         procs.append(d)
         return d.start()
 
@@ -187,7 +178,7 @@ def test_many_streams_at_once_all_answered_and_counts_agree(tmp_path, daemons):
     miss = np.zeros(len(CH), bool)
     miss[[1, 5]] = True
     frames = loadgen.make_frames(240, len(CH), miss, rng)
-    res = loadgen.run_load(d.endpoints["router"], 48, 60.0, 1.0, frames, warmup_s=0.0)
+    res = loadgen.run_load(d.endpoints["router"], None, frames, n_streams=48, rate=60.0, seconds=1.0, progress=False)
     assert res.lost == 0 and res.errors == 0
     assert res.served + res.dropped == res.sent == 48 * 60
     st = loadgen_status(d)
@@ -198,7 +189,7 @@ def test_many_streams_at_once_all_answered_and_counts_agree(tmp_path, daemons):
 
 
 def loadgen_status(d):
-    rep = __import__("daemon.server", fromlist=["control"]).control(d.endpoints["router"], "status")
+    rep = control(d.endpoints["router"], "status", timeout_s=5.0)
     assert rep.ok
     return rep.result
 
@@ -415,8 +406,8 @@ if os.geteuid() == 0:  # PR_CAPBSET_DROP (24) CAP_SYS_NICE (23): gone from root 
 os.execv(sys.executable, [sys.executable, *sys.argv[1:]])
 """)
     wrapper.chmod(0o755)
-    d = loadgen.DaemonProcess(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 3.0)}}, realtime=3),
-                              python=str(wrapper))
+    d = DaemonProcess(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 3.0)}}, realtime=3),
+                      python=str(wrapper))
     try:
         d.start()
         refused = d.wait_for("realtime_refused", 10)
@@ -1103,8 +1094,6 @@ def test_cpu_latency_refused_is_reported_and_the_daemon_serves_on(tmp_path, daem
     import shutil
     import tempfile
 
-    from daemon.loadgen import DaemonProcess
-
     if os.geteuid() == 0 and shutil.which("setpriv") is None:
         pytest.skip("running as root without setpriv: no way to start an unprivileged daemon here")
     d_dir = tempfile.mkdtemp(prefix="lacuna-qos-")              # readable by the unprivileged daemon
@@ -1120,7 +1109,7 @@ def test_cpu_latency_refused_is_reported_and_the_daemon_serves_on(tmp_path, daem
         with open(python, "w") as fh:
             fh.write(f"#!/bin/sh\nexec setpriv --reuid=65534 --regid=65534 --clear-groups {sys.executable} \"$@\"\n")
         os.chmod(python, 0o755)
-    d = DaemonProcess(dst, {"HOME": d_dir}, python=python)
+    d = DaemonProcess(dst, env={"HOME": d_dir}, python=python)
     try:
         d.start()
         rec = d.wait_for("cpu_latency_refused", 5)

@@ -15,7 +15,8 @@ import pytest
 import zmq
 
 from clients.client import Client
-from clients.daemon_proc import DaemonProcess, free_port
+from clients.configfile import free_port
+from clients.harness import DaemonProcess
 from clients.session import DaemonRefused
 from daemon import wire
 from lacuna.cli import main

@@ -209,8 +209,8 @@ def test_a_daemon_paced_at_120_hz_rehearses_before_its_frames_and_fills_as_the_m
     reports a period; lead 0 never rehearses."""
     import zmq
 
-    from daemon import loadgen
-    from daemon.server import control
+    from clients.control import control
+    from clients.harness import DaemonProcess
     from lacuna.modelfile import load_model
 
     path, channels, test = hlm_walk
@@ -222,7 +222,7 @@ def test_a_daemon_paced_at_120_hz_rehearses_before_its_frames_and_fills_as_the_m
             cfg.write_text("[daemon]\nbudget_ms = 250.0\nlog_level = \"warning\"\n"
                            + ("" if lead is None else f"prewarm_ms = {lead}\n")
                            + f"[models.hlm]\nfile = \"{path}\"\n[zmq]\nrouter = \"tcp://127.0.0.1:*\"\n")
-            d = loadgen.DaemonProcess(str(cfg))
+            d = DaemonProcess(str(cfg))
             procs.append(d)
             d.start()
             s = ctx.socket(zmq.DEALER)
@@ -243,7 +243,7 @@ def test_a_daemon_paced_at_120_hz_rehearses_before_its_frames_and_fills_as_the_m
                 assert m.angles.tobytes() == np.where(np.isnan(test[t]), r.frame.astype(np.float32), test[t]).tobytes()
                 assert m.std.tobytes() == r.std.astype(np.float32).tobytes()
             s.close(0)
-            info = control(d.endpoints["router"], "status").result["prewarm"]
+            info = control(d.endpoints["router"], "status", timeout_s=5.0).result["prewarm"]
             if lead is None:  # the default: on
                 assert info["lead_ms"] == config.PREWARM_MS and info["errors"] == 0
                 # (how many: a frame that came early, or a stall of the machine, costs a rehearsal;

@@ -533,7 +533,7 @@ def _burst(rng, C: int, turn: int, clock=time.perf_counter) -> list[tuple[bytes,
     some malformed (wrong width, infinity, not msgpack, bad seq), now and then a hello."""
     items = []
     seqs = {"a": 100 * turn, "b": 100 * turn, "c": 100 * turn}
-    for k in range(int(rng.integers(3, 40))):
+    for _k in range(int(rng.integers(3, 40))):
         sid = str(rng.choice(["a", "a", "b", "c"]))
         seqs[sid] += int(rng.choice([1, 1, 1, 2, 0, -1, -3]))
         vals = rng.normal(size=C).astype(np.float32)

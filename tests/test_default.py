@@ -210,7 +210,8 @@ def test_daemon_serves_default_over_a_real_socket(small, tmp_path):
 
     import zmq
 
-    from daemon import loadgen, wire
+    from clients.harness import DaemonProcess
+    from daemon import wire
 
     model, _ = small
     path = tmp_path / "default.npz"
@@ -219,7 +220,7 @@ def test_daemon_serves_default_over_a_real_socket(small, tmp_path):
     cfg.write_text("\n".join(["[daemon]", "budget_ms = 250.0", "idle_timeout_s = 60", "max_gap_frames = 5",
                               'default_model = "default"', "[models.default]", f"file = {json.dumps(str(path))}",
                               "[zmq]", 'router = "tcp://127.0.0.1:*"', 'pub = "tcp://127.0.0.1:*"']) + "\n")
-    d = loadgen.DaemonProcess(str(cfg)).start()
+    d = DaemonProcess(str(cfg)).start()
     ctx = zmq.Context()
     s = ctx.socket(zmq.DEALER)
     s.setsockopt(zmq.LINGER, 0)

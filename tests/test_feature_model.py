@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from lacuna.feature_model import CoreOut, FeatureModel
 from mocap.datasets import load_trial
-from mocap.representation import Representation, wrap180
+from mocap.feature_model import CoreOut, FeatureModel
+from mocap.representation import Representation
 
 
 class MeanModel(FeatureModel):

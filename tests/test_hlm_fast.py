@@ -55,7 +55,7 @@ def test_compiled_step_equals_numpy_step(walk, monkeypatch, options):
     a = _run(m, frames, obs, monkeypatch, jit=True)
     b = _run(m, frames, obs, monkeypatch, jit=False)
     c = _run(m, frames, obs, monkeypatch, jit=True, batch=True)   # the daemon's path: step_batch of one
-    for (fa, sa, ya, pa), (fb, sb, yb, pb), (fc, sc, yc, pc) in zip(a, b, c):
+    for (fa, sa, ya, pa), (fb, sb, yb, pb), (fc, sc, _yc, _pc) in zip(a, b, c):
         np.testing.assert_allclose(fa, fb, rtol=0, atol=1e-9)
         np.testing.assert_allclose(sa, sb, rtol=0, atol=1e-9)
         np.testing.assert_allclose(ya, yb, rtol=0, atol=1e-9)

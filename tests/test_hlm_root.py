@@ -8,7 +8,7 @@ import pytest
 from hlm.methods import FAITHFUL_TRAIN, train_model
 from mocap import splits
 from mocap.baselines import HoldModel
-from mocap.protocols import Gaps, LEG_BONES, TrainingSet, bone
+from mocap.protocols import LEG_BONES, Gaps, TrainingSet, bone
 from mocap.representation import _matrix_to_rxyz, _matrix_to_ypr, _rxyz_to_matrix
 
 pytestmark = [pytest.mark.realdata]

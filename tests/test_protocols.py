@@ -7,7 +7,6 @@ import sys
 import numpy as np
 import pytest
 
-from lacuna.registry import get_method
 from mocap.evaluate import evaluate
 from mocap.protocols import get_protocol
 
@@ -62,7 +61,7 @@ def test_gaps_is_seeded_and_looks_like_a_take(data):
     for case in a:
         bursts = case.info["bursts"]
         assert bursts, case.test
-        for g, s, e in bursts:
+        for _g, s, e in bursts:
             assert (e - s) / case.fps <= 2.0 + 1e-9
         # several groups out at once somewhere in the takes
     overlap = max(int(((~x.observed).reshape(x.observed.shape).sum(1) > 0).sum()) for x in a)

@@ -13,13 +13,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import fuzzgen
 import numpy as np
 import pytest
 import zmq
-
-import fuzzgen
-from daemon import security, wire
 from reliability_daemon import Daemon, Sockets, control, free_port, recv_msg, status, write_config
+
+from daemon import security, wire
 
 NO_ANSWER_MS = 1500  # "gets nothing": a CURVE handshake on loopback takes ~1 ms
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,11 +14,12 @@ import io
 import json
 import random
 import zipfile
+from pathlib import Path
 
+import fuzzgen
 import numpy as np
 import pytest
 
-import fuzzgen
 from daemon import config, osc, wire
 from daemon.config import ModelSpec
 from daemon.models import load_one
@@ -27,8 +28,6 @@ from lacuna.errors import LacunaError
 from mocap import asf, bvh, csvio
 from mocap.baselines import HoldModel, NearestNeighbourModel
 from mocap.datasets import data_dir, load_trial
-
-from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 TOKENS = ["nan", "NaN", "inf", "-inf", "1e999", "-", "", "abc", "{", "}", "=", "[", "]", "\"", "ROOT", "JOINT",
@@ -157,7 +156,7 @@ def test_model_files_are_checked_before_use(tmp_path, seed, data):
         _load(path)
     refused = 0
     # byte level: flips, truncation, inserted bytes anywhere in the zip container
-    for i in range(400):
+    for _i in range(400):
         b = bytearray(good[r.choice(list(good))])
         op = r.randrange(3)
         if op == 0:

@@ -22,17 +22,17 @@ import sys
 import textwrap
 import time
 
+import fuzzgen
 import numpy as np
 import pytest
 import zmq
+from reliability_daemon import Daemon, LockStep, Sockets, Supervisor, control, recv_msg, status, write_config
+from waiting import wait_until
 
-import fuzzgen
 from daemon import wire
 from lacuna import modelfile
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial
-from reliability_daemon import Daemon, LockStep, Sockets, Supervisor, control, recv_msg, status, write_config
-from waiting import wait_until
 
 
 @pytest.fixture(scope="module")

@@ -25,16 +25,16 @@ import socket
 import threading
 import time
 
+import fuzzgen
 import numpy as np
 import pytest
 import zmq
+from reliability_daemon import Daemon, Sockets, control, recv_msg, status, udp_queue, write_config
+from waiting import wait_until
 
-import fuzzgen
 from daemon import wire
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial
-from reliability_daemon import Daemon, Sockets, control, recv_msg, status, udp_queue, write_config
-from waiting import wait_until
 
 N_ZMQ_DEALER = 30_000
 N_ZMQ_PUSH = 30_000

@@ -13,18 +13,18 @@ from __future__ import annotations
 
 import socket
 
+import fuzzgen
 import msgpack
 import numpy as np
 import pytest
 import zmq
-
-import fuzzgen
-from daemon import wire
-from mocap.baselines import HoldModel
-from mocap.datasets import load_trial
 from reliability_daemon import Daemon, LockStep, Sockets, recv_msg, status, write_config
 from test_reliability_faults import all_filled
 from waiting import wait_until
+
+from daemon import wire
+from mocap.baselines import HoldModel
+from mocap.datasets import load_trial
 
 MiB = 1 << 20
 
@@ -230,7 +230,7 @@ def test_osc_error_answers_are_bounded(tmp_path):
         assert len(got) == 1 and len(got[0]) <= len(bundle) and b"1024 message(s)" in got[0], got[:2]
         st = status(S, ep["router"])
         assert st["rejected"]["unknown_type"] == 1024
-        for i in range(100):  # single bad datagrams, as fast as the socket takes them
+        for _i in range(100):  # single bad datagrams, as fast as the socket takes them
             u.sendto(bad, ep["osc"])
         got = _until_fill(u, ep, "b", 2)
         assert 1 <= len(got) <= 40 and all(len(g) <= max(len(bad), 64) for g in got)  # (20 a second, burst 20)

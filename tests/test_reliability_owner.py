@@ -12,18 +12,18 @@ from __future__ import annotations
 import shutil
 import socket
 
+import fuzzgen
 import numpy as np
 import pytest
 import zmq
+from reliability_daemon import Daemon, LockStep, Sockets, control, recv_msg, status, write_config
+from test_reliability_access import curve_dealer, lacuna
+from test_reliability_faults import all_filled
 
-import fuzzgen
 from clients.client import Client
 from daemon import wire
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial
-from reliability_daemon import Daemon, LockStep, Sockets, control, recv_msg, status, write_config
-from test_reliability_access import curve_dealer, lacuna
-from test_reliability_faults import all_filled
 
 
 @pytest.fixture(scope="module")

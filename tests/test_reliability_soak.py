@@ -31,19 +31,19 @@ import time
 
 import numpy as np
 import pytest
-
-from daemon import loadgen
-from mocap.baselines import NearestNeighbourModel
-from mocap.datasets import SUBJECT35_WALKS, load_trial
 from reliability_daemon import Daemon, Sockets, status, write_config
 from waiting import wait_until
+
+from clients import loadgen
+from mocap.baselines import NearestNeighbourModel
+from mocap.datasets import SUBJECT35_WALKS, load_trial
 
 N_STREAMS = 64
 RATE_HZ = 120.0
 SOAK_S = 20.0
 BUDGET_MS = 4.0
 RSS_GROWTH_KIB = 8 * 1024
-ANSWER_WAIT_S = 30.0  # the load generator waits this long after its last send (it always waits it out)
+ANSWER_WAIT_S = 30.0  # the load generator waits up to this long after its last send for the answers still out
 P99_BOUND_MS = 250.0  # (bench/reliability_soak.py --check) far above any budget, far below a 20 s queue's
 
 
@@ -77,7 +77,8 @@ def soak(tmp_path, n_streams=N_STREAMS, rate_hz=RATE_HZ, seconds=SOAK_S, budget_
         sampler.start()
         # (an answer still missing ANSWER_WAIT_S after the last send counts as lost: long enough
         # for a daemon that gets a sliver of a loaded machine to clear what it has read)
-        res = loadgen.run_load(ep["router"], n_streams, rate_hz, seconds, frames, warmup_s=0.5, timeout_s=ANSWER_WAIT_S)
+        res = loadgen.run_load(ep["router"], None, frames, n_streams=n_streams, rate=rate_hz, seconds=seconds,
+                               warmup_s=0.5, drain_s=ANSWER_WAIT_S, progress=False)
         stop.set()
         sampler.join(5)
         cpu = d.cpu_s() - cpu0

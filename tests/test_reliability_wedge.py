@@ -19,13 +19,13 @@ import time
 import numpy as np
 import pytest
 import zmq
+from reliability_daemon import Daemon, LockStep, Sockets, control, free_port, recv_msg, status, write_config
+from test_reliability_faults import all_filled
+from waiting import wait_until
 
 from daemon import wire
 from mocap.baselines import HoldModel
 from mocap.datasets import load_trial
-from reliability_daemon import Daemon, LockStep, Sockets, control, free_port, recv_msg, status, write_config
-from waiting import wait_until
-from test_reliability_faults import all_filled
 
 
 @pytest.fixture(scope="module")

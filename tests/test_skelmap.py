@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from skeleton_headers import NAMINGS, bvh_text
 
 from clients.takes import drop_mask
 from lacuna.errors import LacunaError
@@ -13,7 +14,6 @@ from mocap import skelmap
 from mocap.bvh import parse_bvh
 from mocap.motion import Motion
 from mocap.tpose import leading_tpose, skip_tpose
-from skeleton_headers import NAMINGS, bvh_text
 
 GROUP_BONES = {  # a bone of every group, per naming, as a studio would name it
     "humanik": {"left-arm": "LeftForeArm", "right-leg": "RightLeg", "head-neck": "Head", "torso": "Spine1"},

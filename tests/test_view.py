@@ -16,7 +16,8 @@ import pytest
 from waiting import wait_until
 
 from clients import Client
-from clients.daemon_proc import DaemonProcess, free_port
+from clients.configfile import free_port
+from clients.harness import DaemonProcess
 from clients.recording import RecordingWriter
 from daemon import wire
 from lacuna.cli import main
@@ -187,7 +188,6 @@ def _state(url: str) -> dict:
 def test_view_plays_a_recording(data, tmp_path):
     """--play an .lrec: the recorded fills reach the page's feed with the joints they filled."""
     take = load_trial("07_01").slice(0, 120)
-    C = len(take.channels)
     leg = np.array([c.split(".")[0] in ("lfemur", "ltibia") for c in take.channels])
     path = tmp_path / "take.lrec"
     with RecordingWriter(path, take.channels, take.fps, "rec-1", "test") as w:

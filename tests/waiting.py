@@ -3,7 +3,8 @@ and fails the test, saying what it waited for, when the timeout passes."""
 from __future__ import annotations
 
 import time
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 T = TypeVar("T")
 

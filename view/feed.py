@@ -64,13 +64,13 @@ class Skeleton:
         self.turn = TO_Y_UP[getattr(kin, "up_axis", "y")]
 
     @classmethod
-    def from_motion(cls, motion: Motion) -> "Skeleton":
+    def from_motion(cls, motion: Motion) -> Skeleton:
         from mocap.fk import Kinematics  # the one FK (issue 20, part 2)
 
         return cls(Kinematics.from_motion(motion), motion.frames[0] if motion.n_frames else None, motion.source)
 
     @classmethod
-    def from_model(cls, path: str) -> "Skeleton | None":
+    def from_model(cls, path: str) -> Skeleton | None:
         """The skeleton a model file was trained on (``meta["training"]["skeleton"]``), or None."""
         from lacuna import modelfile
         from mocap.fk import from_record
@@ -79,7 +79,7 @@ class Skeleton:
         rec = (meta.get("training") or {}).get("skeleton")
         return cls(from_record(rec), None, f"{path} (its training skeleton)") if isinstance(rec, dict) else None
 
-    def mapping(self, stream_channels: list[str]) -> "ChannelMap":
+    def mapping(self, stream_channels: list[str]) -> ChannelMap:
         return ChannelMap(self, stream_channels)
 
 

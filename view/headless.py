@@ -174,7 +174,7 @@ class Browser:
 
     def cpu_seconds(self) -> float:
         """User + system CPU seconds of Chromium and every process it started (Linux /proc)."""
-        from clients.daemon_proc import cpu_seconds
+        from clients.harness import cpu_seconds
 
         kids: dict[int, list[int]] = {}
         for d in os.listdir("/proc"):
@@ -221,7 +221,7 @@ class Browser:
         self._log.close()
         shutil.rmtree(self.profile, ignore_errors=True)
 
-    def __enter__(self) -> "Browser":
+    def __enter__(self) -> Browser:
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -8,7 +8,7 @@ import signal
 import subprocess
 import sys
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 from lacuna.errors import LacunaError
 
@@ -27,7 +27,7 @@ class ViewProcess:
         self.url = ""
         self.stderr = ""
 
-    def start(self, timeout_s: float = START_TIMEOUT_S) -> "ViewProcess":
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> ViewProcess:
         self.proc = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "view", *self.args, "--listen", "127.0.0.1:0"],
                                      stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                      env=self.env, start_new_session=True)
@@ -68,7 +68,7 @@ class ViewProcess:
             p.stdout.close()
         return p.returncode
 
-    def __enter__(self) -> "ViewProcess":
+    def __enter__(self) -> ViewProcess:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

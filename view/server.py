@@ -68,7 +68,7 @@ class ViewServer:
     def url(self) -> str:
         return f"http://{self.host}:{self.port}/"
 
-    def start(self) -> "ViewServer":
+    def start(self) -> ViewServer:
         for target, name in ((self.httpd.serve_forever, "view-http"), (self._tick_loop, "view-tick")):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -129,7 +129,7 @@ class _Handler(BaseHTTPRequestHandler):
             self._events()
         elif path == "/state.json":
             bc = self.view.bc
-            body = '{"meta":%s,"update":%s}' % (bc.meta, bc.update or "null")
+            body = '{{"meta":{},"update":{}}}'.format(bc.meta, bc.update or "null")
             self._send(200, "application/json", body.encode())
         else:
             self._send(404, "text/plain; charset=utf-8", b"not found\n")

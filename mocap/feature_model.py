@@ -22,8 +22,9 @@ place (``state[k][...] = ...``, ``+=``), never by rebinding ``state[k]``.
 from __future__ import annotations
 
 import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -50,7 +51,7 @@ class StatePool:
     owns one row.  Rows are handed out lowest-free-first and start from the model's initial state
     (``core_init(1)`` and a fresh representation state); capacity doubles when full."""
 
-    def __init__(self, model: "FeatureModel"):
+    def __init__(self, model: FeatureModel):
         self._core0 = model.core_init(1)
         rs = model.representation.new_state(1)
         self._repr0 = {a: getattr(rs, a) for a in REPR_ATTRS}
@@ -118,13 +119,8 @@ class FeatureModel(Model):
             pool = self.__dict__["_pool"] = StatePool(self)
         return pool
 
-    def stream(self) -> "FeatureStream":
+    def stream(self) -> FeatureStream:
         return FeatureStream(self)
-
-    def _raw_std(self, z_std: np.ndarray) -> np.ndarray:
-        """Feature std (normalised units) -> raw channel std (degrees / length units)."""
-        rep = self.representation
-        return rep.raw_std(z_std * rep._plan()["std"] if rep.normalize else z_std)
 
     def step_arrays(self, repr_state: ReprState, core_state: dict[str, np.ndarray],
                     frames: np.ndarray, observed: np.ndarray,
