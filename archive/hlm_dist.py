@@ -33,9 +33,9 @@ CHUNKS_PER_WORKER = 1
 
 def _chunk_task(X: np.ndarray, lengths: np.ndarray, Baug: np.ndarray, plam: np.ndarray, log_d: np.ndarray,
                 want_G: bool) -> dict:
-    from archive.worker import tune_malloc
-
     import time
+
+    from archive.worker import tune_malloc
 
     tune_malloc()  # the nanny's MALLOC_TRIM_THRESHOLD_ doubled this task's CPU (archive/worker.py)
     # one BLAS thread: a Dask worker's nanny sets OPENBLAS_NUM_THREADS=1 (pre-spawn-environ)

@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from default_tune import BINS, offline_fill, subset  # noqa: E402
+
 from blend.fit import collect, fit_gaussian, fit_weights, velocity_gain, velocity_rms  # noqa: E402
 from blend.model import GROUP_NAMES, DefaultModel  # noqa: E402
 from blend.train import SEEDS, shipped  # noqa: E402

@@ -26,7 +26,8 @@ Runtime knobs (not learned; the daemon turns them under load, see ``set_iteratio
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from scipy.special import expit

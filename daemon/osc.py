@@ -7,6 +7,7 @@ returns the same message objects as the msgpack decoder (Hello, Frame, Control) 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import msgpack
@@ -21,7 +22,7 @@ BUNDLE_PREFIX = b"#bundle\x00"
 MAX_DEPTH = 4  # bundles within bundles, at most
 
 
-def _msg(address: str, args: list[tuple[object, str]]) -> OscMessageBuilder:
+def _msg(address: str, args: Sequence[tuple[object, str]]) -> OscMessageBuilder:
     b = OscMessageBuilder(address)
     for v, t in args:
         b.add_arg(v, t)  # type: ignore[arg-type]
@@ -78,7 +79,7 @@ def decode(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES) -> wire.Message
             return _via_wire({"type": "frame", "stream": sid, "seq": seq, "t": t, "angles": args[3], "observed": args[4]})
         if addr in ("/lacuna/hello", "/lacuna/hello/positions"):  # the second: fills carry joint positions
             sid, model = _str(args, 0, addr), _str(args, 1, addr)
-            d = {"type": "hello", "stream": sid, "channels": args[2:], "model": model or None}
+            d: dict[str, Any] = {"type": "hello", "stream": sid, "channels": args[2:], "model": model or None}
             if addr == "/lacuna/hello/positions":
                 d["positions"] = True
             return _via_wire(d)

@@ -49,7 +49,7 @@ def _http_info(d) -> dict:
     return control(d.endpoint, "status").result["metrics_http"]
 
 
-def test_the_daemon_serves_the_view_page_that_colours_a_dropped_group(served, chromium):
+def test_the_daemon_serves_the_view_page_that_colours_a_dropped_group(served, chromium):  # noqa: F811
     d = served
     take = load_trial("07_01")
     sid = "performer-1"

@@ -1,12 +1,17 @@
 """CPU per frame of the pass-through path as the loop takes a turn (both trees have these):
 _batch(the tick's messages) -> _serve() -> _answer_superseded(); frames from pan2009's first case."""
-import sys, time, json
+import json
+import sys
+import time
+
 import numpy as np
+
 sys.path.insert(0, "bench")
 from daemon import config, wire
 from daemon.models import load_all
 from daemon.server import Daemon
 from mocap.protocols import get_protocol
+
 proto = get_protocol("pan2009")
 ch = list(proto.training_set().channels)
 frames = proto.cases()[0].truth.astype(np.float32)
