@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 
 from clients import Client
-from clients.daemon_proc import DaemonProcess, control, free_port
+from clients.configfile import free_port
+from clients.control import control
+from clients.harness import DaemonProcess
 from daemon import wire
 from lacuna.cli import main
 from mocap.baselines import HoldModel
