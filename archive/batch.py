@@ -39,7 +39,7 @@ class BatchResult:
     ship_s: float = 0.0                        # model scattered to the workers
     workers: int = 0
     scheduler: str = ""
-    warm: list[dict[str, Any]] = field(default_factory=list)   # archive.worker.warm's timers per worker
+    warm: list[dict[str, Any]] = field(default_factory=list)   # archive.warmup.warm's timers per worker
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -108,7 +108,7 @@ def sweep_temporaries(jobs: list[TakeJob]) -> int:
 def run_batch(jobs: list[TakeJob], spec: FillSpec, model_file: str | None, client=None, progress: bool = True,
               on_row: Callable[[dict[str, Any]], None] | None = None, warm: bool = True) -> BatchResult:
     """Fill every take of ``jobs`` not already done; on ``client``'s cluster, else in this process.
-    ``warm``: each worker first runs ``archive.worker.warm`` (imports, model) as a task of its own."""
+    ``warm``: each worker first runs ``archive.warmup.warm`` (imports, model) as a task of its own."""
     t0 = time.perf_counter()
     todo, done = pending(jobs, spec, model_file)
     blob = None
@@ -142,7 +142,7 @@ def run_batch(jobs: list[TakeJob], spec: FillSpec, model_file: str | None, clien
         token = uuid.uuid4().hex[:12]
         warming = []
         if warm:
-            from archive.worker import warm as warm_fn
+            from archive.warmup import warm as warm_fn
 
             # one start-up task per worker (imports, model), ahead of every take; not waited for: a
             # worker lost meanwhile leaves its warm-up to run on another one or not at all

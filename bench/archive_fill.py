@@ -15,7 +15,7 @@ worker), from which the scheduling gap (a worker idle between the end of one tak
 of its next) is measured per take, and the workers' CPU time (getrusage) over the batch.
 
 Two rates per run: ``takes_per_s`` over the batch's wall time (cluster up; it includes the
-workers' warm-up, ``archive.worker.warm``, and the model's scatter) and ``e2e_takes_per_s`` over
+workers' warm-up, ``archive.warmup.warm``, and the model's scatter) and ``e2e_takes_per_s`` over
 that plus the cluster's start, i.e. what ``lacuna fill`` takes from the first worker process to the
 last output.  ``process`` runs the batch in this process (no Dask: a worker's own cost); a
 ``-cold`` suffix (``local-2-cold``) skips the warm-up task (each worker's first take then pays the

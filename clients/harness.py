@@ -53,7 +53,7 @@ class DaemonProcess:
     default_model : (with models) the model streams get without asking; the first by default.
     workdir : (with models) where the config and log go.
     port : (with models) the ROUTER port, a free one by default; kept across restarts.
-    daemon, zmq, osc : (with models) extra keys of those config sections.
+    daemon, zmq, osc, metrics : (with models) extra keys of those config sections.
     env : extra environment of the child; log_path : where its output goes
         (``daemon.log`` in workdir with models, a fresh file beside the config otherwise).
     python : the interpreter that runs ``-m lacuna.cli serve``.
@@ -63,7 +63,8 @@ class DaemonProcess:
                  env: Mapping[str, str] | None = None, log_path: str | os.PathLike[str] | None = None,
                  workdir: str | os.PathLike[str] | None = None, port: int | None = None,
                  daemon: dict[str, Any] | None = None, zmq: dict[str, Any] | None = None,
-                 osc: dict[str, Any] | None = None, python: str = sys.executable):
+                 osc: dict[str, Any] | None = None, metrics: dict[str, Any] | None = None,
+                 python: str = sys.executable):
         self.env = dict(os.environ, PYTHONUNBUFFERED="1")
         self.env.pop("NOTIFY_SOCKET", None)  # not ours to notify, unless the caller says so
         self.env.update(env or {})
@@ -74,7 +75,7 @@ class DaemonProcess:
             self.workdir.mkdir(parents=True, exist_ok=True)
             self.port = port or free_port()
             self.endpoint = f"tcp://127.0.0.1:{self.port}"
-            self._cfg = _models_config(config, default_model, self.endpoint, daemon, zmq, osc)
+            self._cfg = _models_config(config, default_model, self.endpoint, daemon, zmq, osc, metrics)
             self.config_path = self.workdir / "lacuna.toml"
             write_config(self.config_path, self._cfg)
             self.log_path = Path(log_path or self.workdir / "daemon.log")
@@ -114,6 +115,10 @@ class DaemonProcess:
     @property
     def zmq_opts(self) -> dict[str, Any]:
         return self.config().get("zmq", {})
+
+    @property
+    def osc_opts(self) -> dict[str, Any]:
+        return self.config().get("osc", {})
 
     # ---- lifecycle ----------------------------------------------------------------------------
     def start(self, timeout_s: float = START_TIMEOUT_S) -> DaemonProcess:
@@ -270,11 +275,14 @@ class DaemonProcess:
 
 
 def _models_config(models: Mapping[str, Any], default_model: str | None, router: str, daemon: dict[str, Any] | None,
-                   zmq: dict[str, Any] | None, osc: dict[str, Any] | None) -> Config:
+                   zmq: dict[str, Any] | None, osc: dict[str, Any] | None,
+                   metrics: dict[str, Any] | None = None) -> Config:
     cfg: Config = {"daemon": {"default_model": default_model or next(iter(models)), **(daemon or {})},
                    "zmq": {"router": router, **(zmq or {})}}
     if osc:
         cfg["osc"] = dict(osc)
+    if metrics:
+        cfg["metrics"] = dict(metrics)
     for name, spec in models.items():
         if isinstance(spec, (str, os.PathLike)):
             cfg[f"models.{name}"] = {"file": os.path.abspath(os.fspath(spec))}  # the config's dir is not ours

@@ -202,11 +202,3 @@ class SessionError(Exception):
     def __init__(self, reason: str, detail: str):
         self.reason, self.detail = reason, detail
         super().__init__(f"{reason}: {detail}")
-
-
-def __getattr__(name: str) -> Any:
-    # (the table of sessions lives in daemon/sessions.py; older imports find it here too)
-    if name == "SessionTable":
-        from daemon.sessions import SessionTable
-        return SessionTable
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

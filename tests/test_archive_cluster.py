@@ -257,7 +257,7 @@ def test_local_cluster_workers_each_lead_a_session_of_their_own():
 
 
 def test_every_worker_warms_up_once_before_its_takes_with_one_thread_per_pool(data, tmp_path):
-    """archive.worker.warm runs as one task per worker ahead of the takes (imports and the model:
+    """archive.warmup.warm runs as one task per worker ahead of the takes (imports and the model:
     no take's timers carry them), inside workers whose BLAS/OpenMP/numba pools have one thread."""
     from archive.batch import run_batch
     from archive.cluster import open_client

@@ -142,7 +142,7 @@ def test_demo_ctrl_c_stops_the_daemon_it_started(tmp_path):
 
     out = tmp_path / "demo"
     p = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "demo", "--source", "synthetic", "--methods", "none",
-                          "--speed", "0.5", "--out", str(out), "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                          "--speed", "0.1", "--out", str(out), "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     log = out / "daemon" / "daemon.log"
     pid = None
     try:

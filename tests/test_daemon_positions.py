@@ -162,7 +162,7 @@ def test_a_reload_keeps_a_positions_stream_on_a_model_with_a_skeleton_only(serve
     """In-process SessionTable: a reload swapping the model rebinds a stream that asked for
     positions when the new model has a skeleton (its FK rebuilt), and keeps the old model (and
     positions) when the new one has none, rather than silently dropping the positions."""
-    from daemon.session import SessionTable
+    from daemon.sessions import SessionTable
     from lacuna.modelfile import load_model
 
     d, take = served

@@ -38,9 +38,8 @@ def served(tmp_path_factory, data):
     assert main(["train", "hlm", str(trial_path("07_02")), "-o", str(d / "hlm.npz"), *TINY_HLM]) == 0
     http = free_port()
     proc = DaemonProcess({"hlm": str(d / "hlm.npz"), "hold": str(d / "hold.npz")}, "hlm", workdir=str(d / "daemon"),
-                         daemon={"budget_ms": 200.0}, zmq={"pub": f"tcp://127.0.0.1:{free_port()}"})
-    base = proc.config
-    proc.config = lambda: {**base(), "metrics": {"http": f"127.0.0.1:{http}", "view": True}}
+                         daemon={"budget_ms": 200.0}, zmq={"pub": f"tcp://127.0.0.1:{free_port()}"},
+                         metrics={"http": f"127.0.0.1:{http}", "view": True})
     proc.start()
     proc.hold, proc.http = hold, f"http://127.0.0.1:{http}"
     yield proc
