@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from blend.model import GROUP_NAMES, GROUPS, NO_REGRESSION, ROOT_POS, DefaultModel, Settings, Weights, group_of, wrap
+from mocap.protocols import erase_bursts
 from mocap.representation import circular_mean_deg, is_angle
 
 GAP_RANGE = (0.1, 2.0)
@@ -98,14 +99,7 @@ def occlusion(name: str, T: int, channels: Sequence[str], fps: float, seed: int,
         cols = (grp == gi) | ((gi == 0) & (grp == ROOT_POS))
         if not cols.any():
             continue
-        t = fps * (LEAD + rng.exponential(1.0 / rate))
-        while t < T:
-            dur = np.exp(rng.uniform(np.log(lo), np.log(hi)))
-            a, b = int(t), min(T, int(t + dur * fps))
-            if b > a:
-                obs[a:b, cols] = False
-                bursts.append((g, a, b))
-            t = b + fps * rng.exponential(1.0 / rate)
+        erase_bursts(obs, cols, g, rng, fps, LEAD, rate, lo, hi, bursts)
     return obs, bursts
 
 

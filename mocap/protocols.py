@@ -98,6 +98,23 @@ def _skeleton_info(b: skelmap.Binding, skeleton: Any = None) -> dict[str, Any]:
     return out
 
 
+def erase_bursts(obs: np.ndarray, cols: Any, group: str, rng: np.random.Generator, fps: float, lead_s: float,
+                 rate_per_s: float, lo_s: float, hi_s: float, bursts: list[tuple[str, int, int]]) -> None:
+    """Erase ``cols`` of the (T, C) mask ``obs`` in bursts, in place: onsets a Poisson process of
+    ``rate_per_s`` starting ``lead_s`` in, durations log-uniform in [lo_s, hi_s]; each burst is
+    appended to ``bursts`` as (group, start, stop).  The gaps protocol's dropouts, also drawn by
+    blend/fit.py for fitting `default`'s weights."""
+    T = obs.shape[0]
+    t = fps * (lead_s + rng.exponential(1.0 / rate_per_s))
+    while t < T:
+        dur = np.exp(rng.uniform(np.log(lo_s), np.log(hi_s)))
+        a, b = int(t), min(T, int(t + dur * fps))
+        if b > a:
+            obs[a:b, cols] = False
+            bursts.append((group, a, b))
+        t = b + fps * rng.exponential(1.0 / rate_per_s)
+
+
 @dataclass
 class TrainingSet:
     """sequences: list of (n_frames, n_channels) raw frames (degrees), all on ``channels``."""
@@ -408,14 +425,7 @@ class Gaps(Protocol):
         sk.mask(list(GAP_GROUPS), "gaps")  # a skeleton with none of the groups would erase nothing
         for g in GAP_GROUPS:
             cols = sk.mask(g, require=False)
-            t = fps * (self.CLEAN_LEAD + rng.exponential(1.0 / self.RATE_PER_GROUP))
-            while t < T:
-                dur = np.exp(rng.uniform(np.log(lo), np.log(hi)))
-                a, b = int(t), min(T, int(t + dur * fps))
-                if b > a:
-                    obs[a:b, cols] = False
-                    bursts.append((g, a, b))
-                t = b + fps * rng.exponential(1.0 / self.RATE_PER_GROUP)
+            erase_bursts(obs, cols, g, rng, fps, self.CLEAN_LEAD, self.RATE_PER_GROUP, lo, hi, bursts)
         return obs, bursts
 
     def cases(self, test_files: str | list[str] | None = None, asf: str | None = None) -> list[Case]:
