@@ -115,11 +115,10 @@ class Dispatch(Parts):
         served before the rest (a slice of a long burst of costly requests, see below), and
         returns the rest of its answers.  The loop hands them to the transport.
 
-        Under a backlog most of them are frames  Under a backlog most of them are frames
-        that a newer frame of the same stream in the same burst supersedes; only the newest is
-        served.  Those superseded frames are set aside, each burst only unpacked, and handled
-        after the turn's fills went out (:meth:`_answer_superseded`), so the frames served do
-        not wait for them.  Everything else is handled now, in order.
+        Under a backlog most of them are frames that a newer frame of the same stream in the
+        same burst supersedes; only the newest is served.  Those superseded frames are set
+        aside, each burst only unpacked, and handled after the turn's fills went out
+        (:meth:`superseded_answers`), so the frames served do not wait for them.  Everything else is handled now, in order.
 
         The answers are exactly those of handling every message in order: a set-aside frame is
         decoded and checked later through the same session code, against the stream's state
@@ -220,7 +219,7 @@ class Dispatch(Parts):
 
     def _frame_answers(self, out: Answers) -> None:
         """A session's immediate answers to a frame: a ``conflated`` drop (of the frame it
-        replaced) waits for the turn's fills (:meth:`_answer_superseded`), the rest go now."""
+        replaced) waits for the turn's fills (:meth:`superseded_answers`), the rest go now."""
         for o, m in out:
             if type(m) is wire.Drop and m.reason == "conflated":
                 self._conflated.append((o, m))
