@@ -16,6 +16,9 @@ def add_commands(cli) -> None:
                         "in blend/weights.json, fitted on the validation split)")
     p.add_argument("--fps", type=float, help="resample every file to this rate first")
     p.add_argument("--quiet", "-q", action="store_true")
+    from mocap import skelmap
+
+    skelmap.add_argument(p)
     p.set_defaults(func=_run)
 
 
@@ -55,7 +58,8 @@ def _run(args: argparse.Namespace) -> int:
 
             raise LacunaError(f"{args.calibrate[0]}: channels differ from the training takes'")
         cal = [(os.path.basename(p), s, "take") for p, s in zip(args.calibrate, cseqs)]
-    model = train_model(seqs, ch, [os.path.basename(p) for p in args.data], calibrate=cal, fps=rate)
+    model = train_model(seqs, ch, [os.path.basename(p) for p in args.data], calibrate=cal, fps=rate,
+                        skeleton=args.skeleton)
     from mocap.fk import skeleton_record
 
     # as `lacuna train hlm|crbm` do: the rate (lacuna fill checks a take's against it) and the
@@ -66,18 +70,24 @@ def _run(args: argparse.Namespace) -> int:
     if rec:
         training["skeleton"] = rec
     model.save(args.output)
-    from blend.model import GROUPS, ROOT_POS
+    from blend.groups import limb_channels
 
-    if not ((model.group > 0) & (model.group < len(GROUPS)) & (model.group != ROOT_POS)).any():
-        # its weights and groups are CMU ASF's: another skeleton's limbs are all "other", which the
-        # shipped weights hold.  Mapping them through the skeleton map was tried: trained on
-        # 08_02.bvh it was worse than hold on 07_01.bvh (7.97 against 6.38 deg), so it stays off
-        print(f"lacuna: warning: {args.data[0]}: default knows CMU ASF bone names only; on this skeleton it "
-              "holds the last value of every missing channel (use `lacuna train hlm` for this skeleton)",
+    skel = model.meta.get("skeleton_map") or ""
+    if not limb_channels(model.group):
+        # no channel in a body part: every missing channel would only be held
+        why = (f"its bones match no known skeleton ({', '.join(_maps())}): pass --skeleton NAME|FILE"
+               if not skel else f"no channel falls in a body part of skeleton {skel}")
+        print(f"lacuna: warning: {args.data[0]}: {why}; default will hold the last value of every missing channel",
               file=sys.stderr)
     if not args.quiet:
-        print(f"default: {len(seqs)} takes, {sum(s.shape[0] for s in seqs)} frames at {rate:g} fps, "
+        print(f"default: {len(seqs)} takes ({skel or 'no known skeleton'}), {sum(s.shape[0] for s in seqs)} frames at {rate:g} fps, "
               f"{len(model.reg_idx)} regression channels, weights "
               f"{'fitted on ' + str(len(cal)) + ' takes' if cal else 'shipped (validation split)'}; wrote {args.output}",
               file=sys.stderr)
     return 0
+
+
+def _maps() -> list[str]:
+    from mocap import skelmap
+
+    return skelmap.available()

@@ -171,11 +171,11 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                     rp = 0.0
                     for q in range(nO):
                         rp += B[i, q] * zp[q]
-                    off[c] = R[c] - (mean[c] + (rp + mu[mm[i]]))
+                    off[c] = _wrap(R[c] - (mean[c] + (rp + mu[mm[i]])))  # the short way round (an angle)
                 off[c] *= a
                 val = mean[c] + r + off[c]
                 R[c] = val
-                Rv[c] = val
+                Rv[c] = h[c] + _wrap(val - h[c])  # R on the branch of the last value: never 360 away
         scale = 1.0
         if sv[1] != 0.0:
             scale = min(max(np.sqrt((cal_prior + sv[0]) / (cal_prior + sv[1])), 0.33), 3.0)

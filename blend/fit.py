@@ -15,7 +15,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from blend.model import GROUP_NAMES, GROUPS, NO_REGRESSION, ROOT_POS, DefaultModel, Settings, Weights, group_of, wrap
+from blend.groups import groups_or_legacy
+from blend.model import GROUP_NAMES, GROUPS, NO_REGRESSION, ROOT_POS, DefaultModel, Settings, Weights, wrap
 from mocap.protocols import erase_bursts
 from mocap.representation import circular_mean_deg, is_angle
 
@@ -25,14 +26,16 @@ ROOT_RATE = 0.6   # the root drops out as often as a limb (as in the gaps protoc
 LEAD = 0.25
 
 
-def fit_gaussian(sequences: Sequence[np.ndarray], channels: Sequence[str], settings: Settings):
-    """mean, std (C,), reg_idx (R,), mu (nb R,), cov (nb R, nb R) over [pose deviation, change over each lag]."""
+def fit_gaussian(sequences: Sequence[np.ndarray], channels: Sequence[str], settings: Settings, group: np.ndarray | None = None):
+    """mean, std (C,), reg_idx (R,), mu (nb R,), cov (nb R, nb R) over [pose deviation, change over each lag];
+    ``group``: each channel's row (blend.groups; default through the recognised skeleton map)."""
+    grp = groups_or_legacy(channels)[0] if group is None else group
     X = np.vstack(sequences)
     ang = np.array([is_angle(c) for c in channels])
     mean = np.where(ang, circular_mean_deg(X), X.mean(0))
     dev = np.where(ang[None], wrap(X - mean), X - mean)
     std = np.sqrt(np.mean(dev**2, 0))
-    reg = np.array([i for i, c in enumerate(channels) if ang[i] and group_of(c) not in NO_REGRESSION and std[i] > 1e-3], int)
+    reg = np.array([i for i, c in enumerate(channels) if ang[i] and grp[i] not in NO_REGRESSION and std[i] > 1e-3], int)
     Ls = settings.per_frame()["L"]
     Lm = max(Ls)
     feats = []
@@ -56,13 +59,13 @@ def velocity_rms(sequences: Sequence[np.ndarray], channels: Sequence[str]) -> np
 
 
 def velocity_gain(sequences: Sequence[np.ndarray], channels: Sequence[str], settings: Settings,
-                  horizon_s: float = 0.1) -> np.ndarray:
+                  horizon_s: float = 0.1, group: np.ndarray | None = None) -> np.ndarray:
     """(C,) least-squares gain of the damped velocity extrapolation over ``horizon_s`` on the takes,
     with the stream's own velocity filter; clipped to [0, 1]."""
     from scipy.signal import lfilter
 
     probe = DefaultModel(list(channels), np.zeros(len(channels)), np.ones(len(channels)), np.zeros(0, int),
-                         np.zeros(0), np.zeros((0, 0)), settings, Weights.initial())
+                         np.zeros(0), np.zeros((0, 0)), settings, Weights.initial(), group=group)
     ang = probe.ang
     d = probe._pf["d"]
     h = max(1, int(round(horizon_s * settings.fps)))
@@ -85,12 +88,13 @@ def velocity_gain(sequences: Sequence[np.ndarray], channels: Sequence[str], sett
     return np.clip(num / np.maximum(den, 1e-12), 0.0, 1.0)
 
 
-def occlusion(name: str, T: int, channels: Sequence[str], fps: float, seed: int, root: bool = True):
-    """(T, C) observed mask and bursts [(group, start, stop)]."""
+def occlusion(name: str, T: int, channels: Sequence[str], fps: float, seed: int, root: bool = True,
+              group: np.ndarray | None = None):
+    """(T, C) observed mask and bursts [(group, start, stop)]; ``group`` as in fit_gaussian."""
     rng = np.random.default_rng([seed, zlib.crc32(name.encode()), 7])
     obs = np.ones((T, len(channels)), bool)
     bursts = []
-    grp = np.array([group_of(c) for c in channels])
+    grp = groups_or_legacy(channels)[0] if group is None else group
     lo, hi = GAP_RANGE
     for gi, g in enumerate(GROUPS):
         if g == "root" and not root:
@@ -109,7 +113,7 @@ def collect(model: DefaultModel, takes: Sequence[tuple[str, np.ndarray, str]], s
     acts = sorted({a for _, _, a in takes})
     for seed in seeds:
         for ti, (name, frames, act) in enumerate(takes):
-            obs, _ = occlusion(name, frames.shape[0], model.channels, model.settings.fps, seed)
+            obs, _ = occlusion(name, frames.shape[0], model.channels, model.settings.fps, seed, group=model.group)
             st = model.stream()
             st.collect = True
             for t in range(frames.shape[0]):

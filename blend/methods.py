@@ -12,7 +12,8 @@ def _train(training_set: Any, **options: Any) -> DefaultModel:
     from blend.train import train_model
 
     return train_model(training_set.sequences, training_set.channels, list(getattr(training_set, "names", []) or []),
-                       fps=options.get("fps") or getattr(training_set, "fps", None))
+                       fps=options.get("fps") or getattr(training_set, "fps", None),
+                       skeleton=getattr(training_set, "skeleton", None))
 
 
 register_method(MethodSpec("default", _train,

@@ -44,34 +44,15 @@ from typing import Any
 
 import numpy as np
 
+from blend.groups import GROUP_NAMES, GROUPS, NO_REGRESSION, ROOT_POS, group_of, model_groups  # noqa: F401
 from lacuna import modelfile
 from lacuna.filler import Model
 from mocap.representation import is_angle
 
-GROUPS = {
-    "root": ("root",),
-    "torso": ("lowerback", "upperback", "thorax"),
-    "head-neck": ("lowerneck", "upperneck", "head"),
-    "left-arm": ("lclavicle", "lhumerus", "lradius", "lwrist", "lhand", "lfingers", "lthumb"),
-    "right-arm": ("rclavicle", "rhumerus", "rradius", "rwrist", "rhand", "rfingers", "rthumb"),
-    "left-leg": ("lfemur", "ltibia", "lfoot", "ltoes"),
-    "right-leg": ("rfemur", "rtibia", "rfoot", "rtoes"),
-}
-GROUP_NAMES = list(GROUPS) + ["other", "root-pos"]  # root rotations and root translation weigh apart
-ROOT_POS = len(GROUP_NAMES) - 1
-NO_REGRESSION = (0, ROOT_POS)
 # seconds since the gap began; beyond the last knot the weights stay as they are there (the calibration gaps
 # end at 2 s: a knot further out would only be extrapolated)
 CACHE_PATTERNS = 512  # regression matrices kept, one per pattern of missing channels
 KNOTS = (0.0, 1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0)
-
-
-def group_of(channel: str) -> int:
-    bone = channel.split(".", 1)[0]
-    for i, bones in enumerate(GROUPS.values()):
-        if bone in bones or (i == 0 and bone.lower() in ("root", "hips")):
-            return ROOT_POS if i == 0 and not is_angle(channel) else i
-    return len(GROUPS)
 
 
 def wrap(x: np.ndarray) -> np.ndarray:
@@ -130,9 +111,12 @@ class DefaultModel(Model):
 
     def __init__(self, channels: list[str], mean: np.ndarray, std: np.ndarray, reg_idx: np.ndarray,
                  mu: np.ndarray, cov: np.ndarray, settings: Settings, weights: Weights,
-                 meta: dict[str, Any] | None = None, vrms: np.ndarray | None = None, vgain: np.ndarray | None = None):
+                 meta: dict[str, Any] | None = None, vrms: np.ndarray | None = None, vgain: np.ndarray | None = None,
+                 group: np.ndarray | None = None):
         self.channels = list(channels)
         C = len(self.channels)
+        # each channel's weight row (blend.groups): given (a model file's record), else through the skeleton map
+        self.group = model_groups(self.channels, group)
         self.mean_ = np.asarray(mean, float)
         self.std_ = np.asarray(std, float)
         # RMS per-frame change of each channel in training: the onset velocity is capped at vcap_mult of it
@@ -142,7 +126,7 @@ class DefaultModel(Model):
         # how far each channel's smoothed velocity predicts its motion 0.1 s on (training least squares, in
         # [0, 1]): a jittery thumb's velocity is noise and is not extrapolated
         self.vgain_ = np.ones(C) if vgain is None or not settings.vel_gain else np.asarray(vgain, float)
-        root = np.array([group_of(c) in NO_REGRESSION for c in self.channels])
+        root = np.isin(self.group, NO_REGRESSION)
         self.beta = np.where(root, 1.0 - np.exp(-1.0 / max(settings.vel_root_s * settings.fps, 1e-9)),
                              1.0 - np.exp(-1.0 / max(settings.vel_s * settings.fps, 1e-9)))
         self.reg_idx = np.asarray(reg_idx, int)
@@ -152,7 +136,6 @@ class DefaultModel(Model):
         self.weights = weights
         self.meta = dict(meta or {})
         self.ang = np.array([is_angle(c) for c in self.channels])
-        self.group = np.array([group_of(c) for c in self.channels])
         self.knots = np.asarray(settings.knots, float)
         self._pf = settings.per_frame()
         R = len(self.reg_idx)
@@ -255,7 +238,7 @@ class DefaultModel(Model):
 
     def with_weights(self, weights: Weights) -> DefaultModel:
         return DefaultModel(self.channels, self.mean_, self.std_, self.reg_idx, self.mu_, self.cov_, self.settings,
-                            weights, self.meta, self.vrms_, self.vgain_)
+                            weights, self.meta, self.vrms_, self.vgain_, self.group)
 
     def info(self) -> dict[str, Any]:
         return {**super().info(), "fps": self.settings.fps, "regression_channels": int(len(self.reg_idx))}
@@ -266,7 +249,7 @@ class DefaultModel(Model):
                 "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self.settings).items()},
                 "groups": GROUP_NAMES}
         arrays = {"mean": self.mean_, "std": self.std_, "reg_idx": self.reg_idx, "mu": self.mu_, "cov": self.cov_, "vrms": self.vrms_, "vgain": self.vgain_,
-                  "wv": self.weights.wv, "wl": self.weights.wl, "wr": self.weights.wr, "wg": self.weights.wg, "sc": self.weights.sc}
+                  "group": self.group, "wv": self.weights.wv, "wl": self.weights.wl, "wr": self.weights.wr, "wg": self.weights.wg, "sc": self.weights.sc}
         modelfile.save_arrays(path, meta, arrays)
 
     @classmethod
@@ -291,4 +274,5 @@ class DefaultModel(Model):
         return cls(meta["channels"], modelfile.require(path, arrays, "mean", (C,)), modelfile.require(path, arrays, "std", (C,)),
                    reg, modelfile.require(path, arrays, "mu", (nb * R,)), modelfile.require(path, arrays, "cov", (nb * R, nb * R)),
                    settings, w, {k: v for k, v in meta.items() if k not in ("settings", "groups")},
-                   modelfile.require(path, arrays, "vrms", (C,)), modelfile.require(path, arrays, "vgain", (C,)))
+                   modelfile.require(path, arrays, "vrms", (C,)), modelfile.require(path, arrays, "vgain", (C,)),
+                   model_groups(meta["channels"], arrays.get("group", "legacy"), path))

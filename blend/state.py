@@ -211,11 +211,11 @@ class DefaultState(FillerState):
         if key != self.miss_key:
             # the pattern changed: re-anchor so R continues from where it was on the previous frame
             r_prev = m.mu_[mm] + B @ self._features(self.hist[int(self.sv[3])], 1, O)
-            self.off[cols] = self.R[cols] - (m.mean_[cols] + r_prev)
+            self.off[cols] = wrap(self.R[cols] - (m.mean_[cols] + r_prev))  # the short way round (an angle)
             self.miss_key = key
         self.off[cols] *= a
         val = m.mean_[cols] + r + self.off[cols]
         self.R[cols] = val
         pos = np.searchsorted(idx, cols)
-        Rout[pos] = val
+        Rout[pos] = self.h[cols] + wrap(val - self.h[cols])  # on the branch of the last value: never 360 away
         return Rout

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from blend.fit import collect, fit_gaussian, fit_weights, velocity_gain, velocity_rms
+from blend.groups import groups_or_legacy
 from blend.model import GROUP_NAMES, DefaultModel, Settings, Weights
 
 SHIPPED = Path(__file__).with_name("weights.json")
@@ -40,19 +41,23 @@ def write_shipped(settings: Settings, weights: Weights, chosen: dict[str, Any], 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
                 calibrate: Sequence[tuple[str, np.ndarray, str]] | None = None, settings: Settings | None = None,
-                fps: float | None = None, **_: Any) -> DefaultModel:
-    """``calibrate``: held-out (name, frames, activity) takes to fit the weights on; None = shipped."""
+                fps: float | None = None, skeleton: Any = None, **_: Any) -> DefaultModel:
+    """``calibrate``: held-out (name, frames, activity) takes to fit the weights on; None = shipped.
+    ``skeleton``: the takes' skeleton map (name, .toml file or SkeletonMap; default recognised from
+    the bone names): it sets each channel's weight row (blend.groups), recorded in the model."""
     t0 = time.perf_counter()
     s0, w0, chosen = shipped()
     s = settings or s0
     if fps:
         s = Settings(**{**s.__dict__, "fps": float(fps)})
-    mean, std, reg, mu, cov = fit_gaussian(sequences, channels, s)
+    group, skel = groups_or_legacy(channels, skeleton, names[0] if names else "")
+    mean, std, reg, mu, cov = fit_gaussian(sequences, channels, s, group)
     meta = {"training": {"data": list(names), "frames": int(sum(x.shape[0] for x in sequences)),
                          "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")},
-            "components": "hold, damped velocity and the conditional Gaussian are all inline in this file"}
+            "components": "hold, damped velocity and the conditional Gaussian are all inline in this file",
+            "skeleton_map": skel}
     model = DefaultModel(list(channels), mean, std, reg, mu, cov, s, w0 or Weights.initial(len(GROUP_NAMES), len(s.knots)), meta,
-                         velocity_rms(sequences, channels), velocity_gain(sequences, channels, s))
+                         velocity_rms(sequences, channels), velocity_gain(sequences, channels, s, group=group), group)
     if calibrate:
         w = fit_weights(model, collect(model, calibrate, SEEDS))
         model = model.with_weights(w)

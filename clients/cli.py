@@ -225,7 +225,8 @@ def _replay(args: argparse.Namespace) -> int:
     acc, lat = summ["accuracy"], summ["latency"]
     rms = "-" if acc["rms_deg"] is None else f"{acc['rms_deg']:.2f}"
     print(f"filled take: {out}")
-    print(f"model {summ['model']}: RMS error on {acc['erased_angle_values']} erased angle values {rms} deg; "
+    hold = "" if acc.get("hold_rms_deg") is None else f" (holding the last value: {acc['hold_rms_deg']:.2f})"
+    print(f"model {summ['model']}: RMS error on {acc['erased_angle_values']} erased angle values {rms} deg{hold}; "
           f"status {summ['status']}; dropped {summ['dropped']}; held {summ['held_values']} values")
     jp = summ.get("joint_positions")
     if jp and jp["n"]:

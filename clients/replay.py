@@ -155,8 +155,14 @@ def errors(truth: np.ndarray, filled: np.ndarray, erased: np.ndarray, channels: 
     per = {}
     for j in np.flatnonzero(ea.any(0)):
         per[channels[j]] = float(np.sqrt(np.mean(err[ea[:, j], j] ** 2)))
+    # the trivial fill on the same values: the last value sent before each erased one (scored
+    # where there was one)
+    held = _hold_forward(np.where(erased, np.nan, truth)) if ea.any() else truth
+    he = ea & np.logical_or.accumulate(~erased, axis=0)
+    hold = wrap180(np.nan_to_num(held) - np.nan_to_num(truth))
     return {
         "rms_deg": float(np.sqrt(np.mean(err[ea] ** 2))) if ea.any() else None,
+        "hold_rms_deg": float(np.sqrt(np.mean(hold[he] ** 2))) if he.any() else None,
         "erased_values": int(erased.sum()),
         "erased_angle_values": int(ea.sum()),
         "per_channel_rms_deg": per,

@@ -124,6 +124,7 @@ class TrainingSet:
     fps: float
     names: list[str]
     labels: list[str] = field(default_factory=list)
+    skeleton: str | None = None  # --skeleton NAME|FILE of the takes (None: recognised from the bone names)
 
     @property
     def n_frames(self) -> int:
@@ -229,7 +230,7 @@ class Protocol:
             names.append(Path(f).stem)
         if ch is None:
             raise DataError("no training files given")
-        return TrainingSet(seqs, list(ch), fps, names, [splits.ACTIVITY.get(n, "walk") for n in names])
+        return TrainingSet(seqs, list(ch), fps, names, [splits.ACTIVITY.get(n, "walk") for n in names], self.skeleton)
 
 
 # ---- pan2009 ------------------------------------------------------------------------------------
