@@ -57,6 +57,11 @@ def _run(args: argparse.Namespace) -> int:
             from lacuna.errors import LacunaError
 
             raise LacunaError(f"{args.calibrate[0]}: channels differ from the training takes'")
+        from mocap import skelmap
+
+        # the weights are fitted on dropouts of the joint groups: a skeleton without any would erase
+        # nothing but the root (SkeletonError naming the skeleton and the bones looked for)
+        skelmap.Binding.of(ch, args.skeleton, args.calibrate[0]).mask(list(skelmap.GROUPS), "--calibrate")
         cal = [(os.path.basename(p), s, "take") for p, s in zip(args.calibrate, cseqs)]
     model = train_model(seqs, ch, [os.path.basename(p) for p in args.data], calibrate=cal, fps=rate,
                         skeleton=args.skeleton)

@@ -189,6 +189,7 @@ def _replay(args: argparse.Namespace) -> int:
     daemon = None
     try:
         if args.serve:
+            _check_skeleton(args.serve, motion, args.skeleton)
             daemon = DaemonProcess({"model": args.serve}).start()
             endpoint = daemon.endpoint
         else:
@@ -277,3 +278,19 @@ def _demo(args: argparse.Namespace) -> int:
     from clients import demo
 
     return demo.run(args)
+
+
+def _check_skeleton(model_path: str, motion: Any, skeleton: str | None) -> None:
+    """A model of another skeleton than the take's: a clear error before any daemon starts."""
+    from lacuna import modelfile
+    from mocap import skelmap
+
+    try:
+        meta, _ = modelfile.load_arrays(model_path)
+    except (OSError, modelfile.ModelFileError):
+        return  # the daemon reports an unreadable model file itself
+    ch = meta.get("channels")
+    if isinstance(ch, list):
+        why = skelmap.mismatch(ch, motion.channels, motion.source, skeleton, str(meta.get("skeleton_map") or ""))
+        if why:
+            raise LacunaError(f"{model_path}: {why}")

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from lacuna import modelfile, registry
-from mocap import metrics, splits
+from mocap import metrics, skelmap, splits
 from mocap.protocols import GAP_GROUPS, Case, Protocol, get_protocol
 
 ACTIVITIES = ("walk", "turn", "run", "nonloco")
@@ -149,6 +149,10 @@ def evaluate(protocol_name: str, method: str, model_path: str | None = None,
     cases_all, fills_all, stds_all = [], [], []
     for proto, cases in zip(protocols, case_lists):
         if list(model.channels) != list(cases[0].channels):
+            why = skelmap.mismatch(model.channels, cases[0].channels, cases[0].test, skeleton,
+                                   str(getattr(model, "meta", {}).get("skeleton_map") or "")) if test_file else None
+            if why:
+                raise ValueError(why)
             raise ValueError(f"model channels ({len(model.channels)}) do not match the protocol's ({len(cases[0].channels)})"
                              + ("; the protocols train on CMU ASF takes: for takes of another skeleton train a model "
                                 "on that skeleton (lacuna train hlm TAKE.bvh ...) and pass --model" if test_file else ""))

@@ -352,3 +352,32 @@ def add_argument(parser: Any) -> None:
     parser.add_argument("--skeleton", metavar="NAME|FILE",
                         help="skeleton map of the motion files: a shipped name (" + ", ".join(available()) +
                         ") or a .toml map file (default: recognised from the bone names)")
+
+
+def mismatch(model_channels: Sequence[str], take_channels: Sequence[str], source: str = "",
+             spec: str | SkeletonMap | None = None, model_skeleton: str = "") -> str | None:
+    """Why a model cannot fill a take of another skeleton (None when every model channel is in
+    the take).  A model's Gaussian, Euler conventions and channel names are its training
+    skeleton's: an ASF ``lfemur.rx`` and a BVH ``LeftUpLeg.rx`` rotate the same thigh about other
+    axes from another rest pose, so no renaming makes one model fill the other's takes."""
+    mc, tc = list(model_channels), set(take_channels)
+    if all(c in tc for c in mc):
+        return None
+
+    def name(channels: Sequence[str], s: Any = None, given: str = "") -> str:
+        if given:
+            return given
+        try:
+            return resolve(s, channels).name
+        except SkeletonError:
+            return "an unknown skeleton"
+
+    ms, ts = name(mc, given=model_skeleton), name(list(take_channels), spec)
+    if ms == ts:
+        missing = [c for c in mc if c not in tc]
+        return (f"{source or 'the take'} lacks {len(missing)} of the model's {len(mc)} channels "
+                f"(e.g. {', '.join(missing[:3])}): train the model on takes with the same channels")
+    return (f"the model was trained on skeleton {ms} ({len(mc)} channels: {', '.join(bones_of(mc)[:3])}, ...) and "
+            f"{source or 'the take'} is {ts} ({len(tc)} channels): their angles differ by convention (each "
+            f"skeleton's own rest pose, joint axes and rotation order), so a model fills takes of its own skeleton "
+            f"only; train one on {ts} takes (lacuna train default TAKE ...)")
