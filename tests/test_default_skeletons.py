@@ -20,7 +20,7 @@ from mocap import skelmap
 from mocap.bvh import BVH_CHANNELS, Hierarchy, Joint, write_bvh
 from mocap.io import read_motion
 from mocap.motion import Motion
-from mocap.representation import is_angle
+from mocap.representation import circular_mean_deg, is_angle, wrap180
 from mocap.tpose import skip_tpose
 
 pytestmark = pytest.mark.realdata
@@ -272,3 +272,31 @@ def test_trained_on_bvh_default_beats_hold_in_eval_and_through_the_daemon(data, 
             n += k
     assert np.sqrt(se / n) < 0.9 * np.sqrt(sh / n), (np.sqrt(se / n), np.sqrt(sh / n))
     capsys.readouterr()
+
+
+def test_a_channel_that_wraps_at_180_fills_as_if_it_did_not(data, tmp_path):
+    """Euler angles wrap: a BVH joint whose rest sits near +-180 degrees (another rotation order or
+    rest pose) must fill as one that does not.  The limbs' channels of CMU's BVH 08_02 (training)
+    and 07_01 (filled) are turned so that each one's mean is at 180 degrees and its values cross
+    +-180 all the time; the errors of the fill are the same as on the original takes."""
+    from blend.train import train_model
+    from mocap.protocols import Gaps
+
+    train = converted(data, "08_02", "cmu-bvh", tmp_path / "a.bvh")
+    test = converted(data, "07_01", "cmu-bvh", tmp_path / "b.bvh")
+    ang = np.array([is_angle(c) for c in test.channels])
+    limbs = ang & ~np.array([c.startswith("Hips.") for c in test.channels])
+
+    shift = np.where(limbs, 180.0 - circular_mean_deg(train.frames), 0.0)
+
+    def turned(x):
+        return np.where(limbs, wrap180(x + shift), x)
+
+    assert (np.abs(turned(test.frames)[:, limbs]) > 170).mean() > 0.2  # most channels cross +-180
+    errs = []
+    for a, b in ((train.frames, test.frames), (turned(train.frames), turned(test.frames))):
+        model = train_model([a], train.channels, ["08_02"])
+        obs, _ = Gaps(0).occlusion("07_01", test.n_frames, test.channels, test.fps)
+        errs.append(wrap180(_fill(model, b, obs) - b)[~obs & ang[None]])
+    assert errs[0].size > 1000
+    np.testing.assert_allclose(errs[1], errs[0], atol=1e-6)
