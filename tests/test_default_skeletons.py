@@ -300,3 +300,15 @@ def test_a_channel_that_wraps_at_180_fills_as_if_it_did_not(data, tmp_path):
         errs.append(wrap180(_fill(model, b, obs) - b)[~obs & ang[None]])
     assert errs[0].size > 1000
     np.testing.assert_allclose(errs[1], errs[0], atol=1e-6)
+
+
+def test_bones_no_map_knows_train_with_a_warning_that_default_only_holds(tmp_path, capsys):
+    t = np.arange(240)
+    rows = ["# fps=120", "frame,knee.rx,knee.ry,elbow.rx"] + [
+        f"{k},{10 * np.sin(k / 10):.4f},{5 * np.cos(k / 7):.4f},{3 * np.sin(k / 5):.4f}" for k in t]
+    (tmp_path / "odd.csv").write_text("\n".join(rows) + "\n")
+    assert main(["train", "default", str(tmp_path / "odd.csv"), "-o", str(tmp_path / "m.npz")]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "match no known skeleton" in err and "hold the last value" in err
+    model = modelfile.load_model(str(tmp_path / "m.npz"))
+    assert set(model.group.tolist()) == {OTHER} and model.meta["skeleton_map"] == ""
