@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from blend import guard
 from lacuna import modelfile
 from lacuna.filler import Model
 from mocap.representation import is_angle
@@ -101,6 +102,9 @@ class Settings:
     vcap_mult: float = 1e9    # onset velocity capped at this many training RMS changes per frame (1e9: no cap)
     vel_gain: float = 0.0     # 1: each channel's onset velocity scaled by its training gain (vgain); 0: not
     knots: tuple = KNOTS
+    guard_s: float = 0.0      # the guard (blend.guard): decay time constant of its evidence, seconds (0: off)
+    guard_n0: float = 120.0   # ... its ridge toward lambda = 1: guard_n0 / n times the diagonal (n: frames of evidence)
+    guard_max: float = 1.0    # ... the largest lambda (1: the guard only shrinks toward hold)
 
     def per_frame(self) -> dict[str, float]:
         f = self.fps
@@ -167,6 +171,21 @@ class DefaultModel(Model):
         self._none_i = np.zeros(0, np.int64)
         self._none_B = np.zeros((0, 0))
         self._shadow()
+        self.guard_on = settings.guard_s > 0
+        self.guard_h = guard.horizons(settings.fps)
+        self.guard_hf = self.guard_h.astype(float)
+        Gn = int(self.group.max()) + 1 if C else 0
+        self.guard_cols = [np.flatnonzero(self.group == g) for g in range(Gn)]
+        self.guard_cols_flat = np.concatenate(self.guard_cols + [np.zeros(0, np.int64)]).astype(np.int64)
+        self.guard_cols_ptr = np.cumsum([0] + [len(c) for c in self.guard_cols]).astype(np.int64)
+        self.guard_pos = np.zeros(C, np.int64)
+        for cols in self.guard_cols:
+            self.guard_pos[cols] = np.arange(len(cols))
+        self.guard_sh = np.full(Gn, -1, np.int64)
+        for i, g in enumerate(self.sh_g):
+            self.guard_sh[g] = i
+        self.guard_par = np.array([float(np.exp(-1.0 / max(settings.guard_s * settings.fps, 1e-9))) if self.guard_on else 1.0,
+                                   settings.guard_n0, settings.guard_max, 1.0 if self.guard_on else 0.0])
         from lacuna import jit
 
         self.compiled = jit.enabled()

@@ -1,0 +1,141 @@
+"""The guard of ``default``: every stream runs virtual gaps on the joint groups it still sees and
+re-weighs its own fill's parts, online, by how they did there.
+
+Whenever a joint group g is fully observed and no virtual gap of it runs, one starts: the group is
+treated as missing from this frame on (hold value H = its last value, onset velocity v0, the
+regression's anchoring offset, all as a real gap would set them), for up to the last horizon of
+``GUARD_S``, or until a channel of g really drops out.  Each frame the stream computes the two
+non-hold parts a real fill of g would add k frames after onset, with the stacking weights of
+blend.model,
+
+    P = w_v(g, t) (V - H) + w_l(g, t) (W - H)                  (velocity)
+    Q = (w_r(g, t) gamma'_g + w_g(g, t) gamma_g) (R - H)        (regression; its matrix is the
+                                                                 shadow check's, g from the rest)
+
+and sees the truth's change over hold, y = x - H.  Per group and horizon (each frame's sums shared
+between the two nearest horizons, linearly) it keeps decayed sums (time constant ``guard_s``) of
+PP, PQ, QQ, yP, yQ and their weight n, and a real gap k frames in fills
+
+    H + lambda_v(g, t) P + lambda_r(g, t) Q,
+
+(lambda_v, lambda_r) the least-squares scales of the two parts on the stream's own virtual gaps,
+with a ridge toward (1, 1) of ``guard_n0`` / n times the diagonal (thin evidence keeps the fitted
+weights), each clipped to [0, ``guard_max``].  A run, whose limbs reverse faster than the damping
+assumes, finds lambda_v < 1 and falls back on hold and the regression; a performer whose body
+moves unlike the training takes finds lambda_r < 1.  No activity label is needed, so it carries
+to motion the weights never saw.  ``guard_s`` = 0 turns it off (models saved before it load so).
+
+Here the numpy reference (DefaultState.step_numpy calls it); blend.fast has the same arithmetic.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mocap.rootrot import wrap180 as wrap
+
+if TYPE_CHECKING:
+    from blend.state import DefaultState
+
+GUARD_S = (1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0)  # horizons, seconds since a (virtual) gap's onset
+NS = 6  # sums per group and horizon: PP, PQ, QQ, yP, yQ, n
+
+
+def horizons(fps: float) -> np.ndarray:
+    """(B,) horizons in frames, increasing, at least 1."""
+    return np.array(sorted({max(1, int(round(s * fps))) for s in GUARD_S}), np.int64)
+
+
+def hat(kk: np.ndarray, hf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frames since onset -> (lower horizon index, weight of the upper one)."""
+    B = len(hf)
+    if B == 1:
+        return np.zeros(len(kk), int), np.zeros(len(kk))
+    p = np.interp(np.asarray(kk, float), hf, np.arange(B, dtype=float))
+    i = np.minimum(p.astype(int), B - 2)
+    return i, p - i
+
+
+def solve(S: np.ndarray, n0: float, mx: float) -> np.ndarray:
+    """(G, B, NS) sums -> (G, B, 2) scales (lambda_v, lambda_r)."""
+    pp, pq, qq, yp, yq, n = (S[..., i] for i in range(NS))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kap = np.where(n > 0, n0 / np.maximum(n, 1e-300), 0.0)
+    a11 = pp * (1 + kap) + 1e-12
+    a22 = qq * (1 + kap) + 1e-12
+    b1 = yp + kap * pp
+    b2 = yq + kap * qq
+    det = a11 * a22 - pq * pq
+    both = (pp > 1e-9) & (qq > 1e-9) & (det > 1e-12 * a11 * a22)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lv = np.where(both, (b1 * a22 - b2 * pq) / np.where(both, det, 1.0), b1 / a11)
+        lr = np.where(both, (a11 * b2 - pq * b1) / np.where(both, det, 1.0), b2 / a22)
+    lv = np.where((n > 0) & (pp > 1e-9), lv, 1.0)
+    lr = np.where((n > 0) & (qq > 1e-9), lr, 1.0)
+    return np.stack([np.clip(lv, 0.0, mx), np.clip(lr, 0.0, mx)], -1)
+
+
+def guard_update(st: DefaultState, f: np.ndarray, obs: np.ndarray) -> None:
+    """Advance every virtual gap by this frame (before the frame updates h and the velocity)."""
+    m = st.m
+    pf = m._pf
+    st.GS *= m.guard_par[0]
+    cnt = int(st.sv[5])
+    st.sv[5] += 1
+    if cnt <= max(pf["L"]) or st.sv[2] == 0:
+        return
+    Kmax = int(m.guard_h[-1])
+    x = np.where(obs, f, st.last)
+    zf = None
+    for g, cols in enumerate(m.guard_cols):
+        if not len(cols):
+            continue
+        if not (obs[cols].all() and (st.vk[g] > 0 or (st.k[cols] == 0).all())):
+            st.vk[g] = 0
+            continue
+        new = st.vk[g] == 0 or st.vk[g] >= Kmax
+        if new:
+            st.vk[g] = 0
+            st.vh[cols] = st.h[cols]
+            st.vv[cols] = np.clip(st.vel[cols] * m.vgain_[cols], -m.vcap[cols], m.vcap[cols])
+        st.vk[g] += 1
+        kk = int(st.vk[g])
+        t = kk / m.settings.fps
+        H = st.vh[cols]
+        y = f[cols] - H
+        y = np.where(m.ang[cols], wrap(y), y)
+        d, d2 = pf["d"], pf["d2"]
+        gg = np.full(1, g)
+        P = st.vv[cols] * (m.knot_weights(m.weights.wv, gg, t)[0] * (d * (1.0 - d**kk) / (1.0 - d))
+                           + m.knot_weights(m.weights.wl, gg, t)[0] * (d2 * (1.0 - d2**kk) / (1.0 - d2)))
+        Q = np.zeros(len(cols))
+        si = m.guard_sh[g]
+        if si >= 0:
+            if zf is None:
+                zf = st._features(x, 0, np.arange(len(m.mu_)))
+            mm = m.sh_m[si, :m.sh_nm[si]]
+            O = m.sh_O[si, :m.sh_nO[si]]
+            r = m.mu_[mm] + m.sh_B[si, :len(mm), :len(O)] @ zf[O]
+            rc = m.reg_idx[mm]
+            if new:
+                st.voff[rc] = st.vh[rc] - (m.mean_[rc] + r)
+            st.voff[rc] *= pf["a"]
+            Rk = m.mean_[rc] + r + st.voff[rc]
+            gi = np.array([g])
+            wq = (m.knot_weights(m.weights.wr, gg, t)[0] * st.gate(gi, weak=True)[0]
+                  + m.knot_weights(m.weights.wg, gg, t)[0] * st.gate(gi)[0])
+            Q[m.guard_pos[rc]] = wq * (Rk - st.vh[rc])
+        i, fr = hat(np.array([kk]), m.guard_hf)
+        s = np.array([P @ P, P @ Q, Q @ Q, y @ P, y @ Q, 1.0])
+        st.GS[g, i[0]] += (1.0 - fr[0]) * s
+        st.GS[g, i[0] + 1] += fr[0] * s
+
+
+def guard_lambda(st: DefaultState, g: np.ndarray, kk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lambda_v, lambda_r) for missing channels of groups g, kk frames since their onset."""
+    m = st.m
+    L = solve(st.GS, m.guard_par[1], m.guard_par[2])
+    i, fr = hat(kk, m.guard_hf)
+    lam = L[g, i] * (1.0 - fr)[:, None] + L[g, np.minimum(i + 1, L.shape[1] - 1)] * fr[:, None]
+    return lam[:, 0], lam[:, 1]
