@@ -77,14 +77,18 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
         ok = True
         for q in range(c0, c1):
             j = gcols[q]
-            if not obs[j] or (vk[g] == 0 and k[j] != 0):
+            if not obs[j]:
                 ok = False
         if not ok:
-            vk[g] = 0
+            vk[g] = -12 - (1 + (cnt * 7919 + g * 104729) % 61)  # blend.guard.SETTLE + wait
             continue
-        new = vk[g] == 0 or vk[g] >= Kmax
+        if vk[g] >= Kmax:
+            vk[g] = -(1 + (cnt * 7919 + g * 104729) % 61)
+        if vk[g] < 0:
+            vk[g] += 1
+            continue
+        new = vk[g] == 0
         if new:
-            vk[g] = 0
             for q in range(c0, c1):
                 j = gcols[q]
                 vh[j] = h[j]

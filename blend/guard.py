@@ -1,7 +1,9 @@
 """The guard of ``default``: every stream runs virtual gaps on the joint groups it still sees and
 re-weighs its own fill's parts, online, by how they did there.
 
-Whenever a joint group g is fully observed and no virtual gap of it runs, one starts: the group is
+Whenever a joint group g is fully observed and no virtual gap of it runs (after a pause of 1-61
+frames, pseudo-random, since the last one ended; 12 more after a real gap, so its onset velocity
+is not the stale one of before that gap), one starts: the group is
 treated as missing from this frame on (hold value H = its last value, onset velocity v0, the
 regression's anchoring offset, all as a real gap would set them), for up to the last horizon of
 ``GUARD_S``, or until a channel of g really drops out.  Each frame the stream computes the two
@@ -40,6 +42,7 @@ if TYPE_CHECKING:
 
 GUARD_S = (1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0)  # horizons, seconds since a (virtual) gap's onset
 NS = 6  # sums per group and horizon: PP, PQ, QQ, yP, yQ, n
+SETTLE = 12  # frames a group is observed again before its next virtual gap can start (+ the pause)
 
 
 def horizons(fps: float) -> np.ndarray:
@@ -76,6 +79,12 @@ def solve(S: np.ndarray, n0: float, mx: float) -> np.ndarray:
     return np.stack([np.clip(lv, 0.0, mx), np.clip(lr, 0.0, mx)], -1)
 
 
+def wait(cnt: int, g: int) -> int:
+    """Frames between one virtual gap of group g and the next: 1-61, pseudo-random in the frame count
+    (virtual gaps back to back would start at one phase of a gait cycle as long as the cycle lasts)."""
+    return 1 + (cnt * 7919 + g * 104729) % 61
+
+
 def guard_update(st: DefaultState, f: np.ndarray, obs: np.ndarray) -> None:
     """Advance every virtual gap by this frame (before the frame updates h and the velocity)."""
     m = st.m
@@ -91,12 +100,16 @@ def guard_update(st: DefaultState, f: np.ndarray, obs: np.ndarray) -> None:
     for g, cols in enumerate(m.guard_cols):
         if not len(cols):
             continue
-        if not (obs[cols].all() and (st.vk[g] > 0 or (st.k[cols] == 0).all())):
-            st.vk[g] = 0
+        if not obs[cols].all():
+            st.vk[g] = -SETTLE - wait(cnt, g)  # after a real gap the velocity needs frames to settle
             continue
-        new = st.vk[g] == 0 or st.vk[g] >= Kmax
+        if st.vk[g] >= Kmax:  # done: the next one starts after a pause that no motion's period locks to
+            st.vk[g] = -wait(cnt, g)
+        if st.vk[g] < 0:
+            st.vk[g] += 1
+            continue
+        new = st.vk[g] == 0
         if new:
-            st.vk[g] = 0
             st.vh[cols] = st.h[cols]
             st.vv[cols] = np.clip(st.vel[cols] * m.vgain_[cols], -m.vcap[cols], m.vcap[cols])
         st.vk[g] += 1
