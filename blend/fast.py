@@ -50,8 +50,8 @@ def _features_all(x, ri, mean, mu, Ls, hist, pos, zf):
 @jit
 def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
                   h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
-                  ER, EH, gate_rho, gate_weak, Lm):
-    """blend.guard.guard_update, channel by channel."""
+                  ER, EH, gate_rho, gate_weak, Lm, gbuf, gbin):
+    """blend.guard.guard_update, channel by channel (``gbuf``: the state's scratch, 2 C + len(mu))."""
     G = GS.shape[0]
     B = GS.shape[1]
     for g in range(G):
@@ -64,10 +64,11 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
         return
     Kmax = gz[B - 1]
     C = f.shape[0]
-    x = np.empty(C)
+    x = gbuf[:C]  # scratch of the state: no allocation per step
+    zf = gbuf[C:C + mu.shape[0]]
+    Qb = gbuf[C + mu.shape[0]:]
     for j in range(C):
         x[j] = f[j] if obs[j] else last[j]
-    zf = np.empty(mu.shape[0])
     have_z = False
     for g in range(G):
         c0 = gptr[g]
@@ -95,19 +96,13 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
                 vv[j] = min(max(vel[j] * vgain[j], -vcap[j]), vcap[j])
         vk[g] += 1
         kk = vk[g]
+        b0 = gbin[kk]
+        if b0 < 0:
+            continue
         t = kk / fps
         cv = _knot(wv, g, t, knots) * (d * (1.0 - d ** kk) / (1.0 - d)) + _knot(wl, g, t, knots) * (d2 * (1.0 - d2 ** kk) / (1.0 - d2))
-        nc = c1 - c0
-        P = np.empty(nc)
-        Q = np.zeros(nc)
-        Y = np.empty(nc)
         for q in range(c0, c1):
-            j = gcols[q]
-            y = f[j] - vh[j]
-            if ang[j]:
-                y = _wrap(y)
-            Y[q - c0] = y
-            P[q - c0] = vv[j] * cv
+            Qb[gcols[q]] = 0.0
         si = gsh[g]
         if si >= 0:
             if not have_z:
@@ -126,41 +121,30 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
                 c = ri[mi]
                 if new:
                     voff[c] = vh[c] - (mean[c] + r)
-                voff[c] *= a
-                Q[gpos[c]] = wq * (mean[c] + r + voff[c] - vh[c])
+                Qb[c] = wq * (mean[c] + r + voff[c] * a ** kk - vh[c])
         pp = 0.0
         pq = 0.0
         qq2 = 0.0
         yp = 0.0
         yq = 0.0
-        for i in range(nc):
-            pp += P[i] * P[i]
-            pq += P[i] * Q[i]
-            qq2 += Q[i] * Q[i]
-            yp += Y[i] * P[i]
-            yq += Y[i] * Q[i]
-        if B == 1:
-            b0 = 0
-            fr = 0.0
-        else:
-            if kk <= gzf[0]:
-                p = 0.0
-            elif kk >= gzf[B - 1]:
-                p = B - 1.0
-            else:
-                s = 0
-                while gzf[s + 1] <= kk:
-                    s += 1
-                p = (kk - gzf[s]) * (1.0 / (gzf[s + 1] - gzf[s])) + s
-            b0 = min(int(p), B - 2)
-            fr = p - b0
-        for b, wgt in ((b0, 1.0 - fr), (min(b0 + 1, B - 1), fr)):
-            GS[g, b, 0] += wgt * pp
-            GS[g, b, 1] += wgt * pq
-            GS[g, b, 2] += wgt * qq2
-            GS[g, b, 3] += wgt * yp
-            GS[g, b, 4] += wgt * yq
-            GS[g, b, 5] += wgt
+        for q in range(c0, c1):
+            j = gcols[q]
+            y = f[j] - vh[j]
+            if ang[j]:
+                y = _wrap(y)
+            P = vv[j] * cv
+            Qj = Qb[j]
+            pp += P * P
+            pq += P * Qj
+            qq2 += Qj * Qj
+            yp += y * P
+            yq += y * Qj
+        GS[g, b0, 0] += pp
+        GS[g, b0, 1] += pq
+        GS[g, b0, 2] += qq2
+        GS[g, b0, 3] += yp
+        GS[g, b0, 4] += yq
+        GS[g, b0, 5] += 1.0
 
 
 @jit
@@ -217,7 +201,7 @@ def _guard_lambda(L, g, kk, gzf, which):
 @jit
 def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
                 last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
-                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS):
+                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, GL, gbuf, gbin):
     _beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
                                                                  par[6], par[7], par[8])
     gate_rho, gate_decay, gate_weak = par[9], par[10], par[11]
@@ -279,7 +263,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
     if guard_on:
         _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
                       h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
-                      ER, EH, gate_rho, gate_weak, Lm)
+                      ER, EH, gate_rho, gate_weak, Lm, gbuf, gbin)
     anyobs = False
     anymiss = False
     for j in range(C):
@@ -363,7 +347,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 val = mean[c] + r + off[c]
                 R[c] = val
                 Rv[c] = val
-        L = np.ones((GS.shape[0], GS.shape[1], 2))
+        L = GL
         if guard_on:
             _guard_solve(GS, gpar[1], gpar[2], L)
         scale = 1.0

@@ -6,7 +6,7 @@ frames, pseudo-random, since the last one ended; 12 more after a real gap, so it
 is not the stale one of before that gap), one starts: the group is
 treated as missing from this frame on (hold value H = its last value, onset velocity v0, the
 regression's anchoring offset, all as a real gap would set them), for up to the last horizon of
-``GUARD_S``, or until a channel of g really drops out.  Each frame the stream computes the two
+``GUARD_S``, or until a channel of g really drops out.  At every horizon k it computes the two
 non-hold parts a real fill of g would add k frames after onset, with the stacking weights of
 blend.model,
 
@@ -14,14 +14,15 @@ blend.model,
     Q = (w_r(g, t) gamma'_g + w_g(g, t) gamma_g) (R - H)        (regression; its matrix is the
                                                                  shadow check's, g from the rest)
 
-and sees the truth's change over hold, y = x - H.  Per group and horizon (each frame's sums shared
-between the two nearest horizons, linearly) it keeps decayed sums (time constant ``guard_s``) of
-PP, PQ, QQ, yP, yQ and their weight n, and a real gap k frames in fills
+and sees the truth's change over hold, y = x - H.  At each horizon k of ``GUARD_S`` (only there: the
+regression's prediction costs a matrix-vector product) it adds to that group's and horizon's
+decayed sums (time constant ``guard_s``) PP, PQ, QQ, yP, yQ and a count n, and a real gap k frames in fills
 
     H + lambda_v(g, t) P + lambda_r(g, t) Q,
 
 (lambda_v, lambda_r) the least-squares scales of the two parts on the stream's own virtual gaps,
-with a ridge toward (1, 1) of ``guard_n0`` / n times the diagonal (thin evidence keeps the fitted
+with a ridge toward (1, 1) of ``guard_n0`` / n times the diagonal (n: virtual gaps that reached
+that horizon, decayed) (thin evidence keeps the fitted
 weights), each clipped to [0, ``guard_max``].  A run, whose limbs reverse faster than the damping
 assumes, finds lambda_v < 1 and falls back on hold and the regression; a performer whose body
 moves unlike the training takes finds lambda_r < 1.  No activity label is needed, so it carries
@@ -114,6 +115,9 @@ def guard_update(st: DefaultState, f: np.ndarray, obs: np.ndarray) -> None:
             st.vv[cols] = np.clip(st.vel[cols] * m.vgain_[cols], -m.vcap[cols], m.vcap[cols])
         st.vk[g] += 1
         kk = int(st.vk[g])
+        b = m.guard_bin[kk]
+        if b < 0:  # scored at the horizons only (a step is then barely dearer than without the guard)
+            continue
         t = kk / m.settings.fps
         H = st.vh[cols]
         y = f[cols] - H
@@ -131,18 +135,14 @@ def guard_update(st: DefaultState, f: np.ndarray, obs: np.ndarray) -> None:
             O = m.sh_O[si, :m.sh_nO[si]]
             r = m.mu_[mm] + m.sh_B[si, :len(mm), :len(O)] @ zf[O]
             rc = m.reg_idx[mm]
-            if new:
+            if new:  # the regression's anchoring offset, decaying from the onset as a real gap's
                 st.voff[rc] = st.vh[rc] - (m.mean_[rc] + r)
-            st.voff[rc] *= pf["a"]
-            Rk = m.mean_[rc] + r + st.voff[rc]
+            Rk = m.mean_[rc] + r + st.voff[rc] * pf["a"] ** kk
             gi = np.array([g])
             wq = (m.knot_weights(m.weights.wr, gg, t)[0] * st.gate(gi, weak=True)[0]
                   + m.knot_weights(m.weights.wg, gg, t)[0] * st.gate(gi)[0])
             Q[m.guard_pos[rc]] = wq * (Rk - st.vh[rc])
-        i, fr = hat(np.array([kk]), m.guard_hf)
-        s = np.array([P @ P, P @ Q, Q @ Q, y @ P, y @ Q, 1.0])
-        st.GS[g, i[0]] += (1.0 - fr[0]) * s
-        st.GS[g, i[0] + 1] += fr[0] * s
+        st.GS[g, b] += np.array([P @ P, P @ Q, Q @ Q, y @ P, y @ Q, 1.0])
 
 
 def guard_lambda(st: DefaultState, g: np.ndarray, kk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

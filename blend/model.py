@@ -103,7 +103,7 @@ class Settings:
     vel_gain: float = 0.0     # 1: each channel's onset velocity scaled by its training gain (vgain); 0: not
     knots: tuple = KNOTS
     guard_s: float = 0.0      # the guard (blend.guard): decay time constant of its evidence, seconds (0: off)
-    guard_n0: float = 120.0   # ... its ridge toward lambda = 1: guard_n0 / n times the diagonal (n: frames of evidence)
+    guard_n0: float = 120.0   # ... its ridge toward lambda = 1: guard_n0 / n times the diagonal (n: virtual gaps seen)
     guard_max: float = 1.0    # ... the largest lambda (1: the guard only shrinks toward hold)
 
     def per_frame(self) -> dict[str, float]:
@@ -174,6 +174,8 @@ class DefaultModel(Model):
         self.guard_on = settings.guard_s > 0
         self.guard_h = guard.horizons(settings.fps)
         self.guard_hf = self.guard_h.astype(float)
+        self.guard_bin = np.full(int(self.guard_h[-1]) + 1, -1, np.int64)  # frames since onset -> horizon index
+        self.guard_bin[self.guard_h] = np.arange(len(self.guard_h))
         Gn = int(self.group.max()) + 1 if C else 0
         self.guard_cols = [np.flatnonzero(self.group == g) for g in range(Gn)]
         self.guard_cols_flat = np.concatenate(self.guard_cols + [np.zeros(0, np.int64)]).astype(np.int64)

@@ -57,6 +57,8 @@ class DefaultState(FillerState):
         self.vv = np.zeros(C)
         self.voff = np.zeros(C)
         self.GS = np.zeros((G, len(model.guard_h), NS))
+        self.GL = np.ones((G, len(model.guard_h), 2))      # the compiled step's scales and scratch
+        self.gbuf = np.zeros(2 * C + len(model.mu_))
         G = int(model.group.max()) + 1
         self.ER = np.zeros(G)               # shadow check: decayed squared error of the regression ...
         self.EH = np.zeros(G)               # ... and of the group's own change over the longest lag
@@ -104,7 +106,7 @@ class DefaultState(FillerState):
                     self.v0, self.k, self.R, self.off, self.amean, self.avar, self.lstd, self.hist, self.sv, out, std,
                     self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH,
                     m.guard_h, m.guard_hf, m.guard_par, m.guard_cols_flat, m.guard_cols_ptr, m.guard_sh, m.guard_pos,
-                    self.vk, self.vh, self.vv, self.voff, self.GS)
+                    self.vk, self.vh, self.vv, self.voff, self.GS, self.GL, self.gbuf, m.guard_bin)
         return Fill(out, std, ~obs)
 
     def _shadow(self, f: np.ndarray, obs: np.ndarray) -> None:
