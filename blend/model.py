@@ -28,6 +28,10 @@ longest lag)^2, decayed, and gamma_g = 1 / (1 + (rho_g / gate_rho)^2) weighs the
 w_g of the regression (gamma'_g, the same with ``gate_rho_weak``, its other part), so a stream whose body does not move the way the training takes did
 falls back on hold and velocity.
 
+The guard (blend.guard) scales the velocity part (w_v, w_l terms) and the regression part of every
+fill by per-stream factors lambda_v(g, t), lambda_r(g, t) in [0, 1], learnt online from virtual
+gaps on the groups the stream still observes (``guard_s`` = 0: off, both 1).
+
 The std of a filled value is c(g, t) * a_j * s, with a_j the channel's own recent spread (an
 exponentially weighted std over ``amp_s`` seconds while it was observed) so that a still
 performer gets a tight band and a basketball player a wide one; c is fitted on validation
