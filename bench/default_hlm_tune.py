@@ -81,16 +81,26 @@ def parts(data: dict[str, np.ndarray], tau: float):
     return tb, qb, r, dd
 
 
+BY_ACTIVITY = False   # True: also the smallest weight over activities (on validation: costs walks, no gain elsewhere)
+COVER_EACH = 0.92    # share within 2 std asked of each activity in a cell (the pooled cell: 0.95)
 MIN_VALUES = 100  # per fold and cell; fewer: the cell takes the limbs' pooled weight
 
 
-def _ls(r, dd, sel, fold):
+def _ls(r, dd, sel, fold, act):
+    """The smallest least-squares weight over the two folds by take and, within the cell, over every
+    activity with MIN_VALUES values in it (a cell leans to default unless each half and each
+    activity gains); None where a fold has fewer."""
     ws = []
     for f in (0, 1):
         m = sel & (fold == f)
         if m.sum() < MIN_VALUES:
             return None
         ws.append(float(np.sum(r[m] * dd[m]) / max(np.sum(dd[m] ** 2), 1e-9)))
+    if BY_ACTIVITY:
+        for a in np.unique(act[sel]):
+            m = sel & (act == a)
+            if m.sum() >= MIN_VALUES:
+                ws.append(float(np.sum(r[m] * dd[m]) / max(np.sum(dd[m] ** 2), 1e-9)))
     return float(np.clip(min(ws), 0.0, 1.0))
 
 
@@ -102,13 +112,14 @@ def fit(data: dict[str, np.ndarray], tau: float) -> tuple[np.ndarray, np.ndarray
     W = np.zeros((G, TB, QB))
     for t in range(TB):
         for q in range(QB):
-            pooled = _ls(r, dd, limbs & (tb == t) & (qb == q), fold) or 0.0
+            pooled = _ls(r, dd, limbs & (tb == t) & (qb == q), fold, data['act']) or 0.0
             for g in range(G):
-                own = _ls(r, dd, (data["g"] == g) & (tb == t) & (qb == q), fold)
+                own = _ls(r, dd, (data["g"] == g) & (tb == t) & (qb == q), fold, data['act'])
                 if own is None and t == TB - 1:   # past the last bin's data (gaps over 2 s): the last bin's weight
                     own = W[g, t - 1, q]
                 W[g, t, q] = own if own is not None else (pooled if g in withhlm.SHADOW_GROUPS else 0.0)
     W[withhlm.ROOT_POS] = 0.0
+    W[:, :, -1] = 0.0    # as the model does (blend.withhlm): q > 1.1 yields to default
     w = W[data["g"], tb, qb]
     var = (1 - w) * data["sD"] ** 2 + w * data["sH"] ** 2 + w * (1 - w) * dd ** 2
     e = r - w * dd
@@ -116,9 +127,13 @@ def fit(data: dict[str, np.ndarray], tau: float) -> tuple[np.ndarray, np.ndarray
     S = np.ones((G, TB))
     for g in range(G):
         for t in range(TB):
-            m = (data["g"] == g) & (tb == t)
-            if m.sum() >= 100:
-                S[g, t] = float(np.quantile(z[m], 0.95) / 2.0)
+            cell = (data["g"] == g) & (tb == t)
+            if cell.sum() < MIN_VALUES:
+                continue
+            # 95% over the cell, and at least COVER_EACH in every activity with values in it
+            qs = [np.quantile(z[cell], 0.95)] + [np.quantile(z[m], COVER_EACH) for a in range(4)
+                                                 if (m := cell & (data["act"] == a)).sum() >= MIN_VALUES]
+            S[g, t] = float(max(qs) / 2.0)
     return W, S
 
 

@@ -17,11 +17,13 @@ first filled frame is off by a median 2.85 deg) and comes to its own cycle over 
 still observed (a *shadow check*): while at most ``SHADOW_MAX_MISS`` channels are really missing,
 one observed limb group at a time is hidden from the HLM (never from ``default``, never from the
 output: the caller gets the observed values) for ``SHADOW_LEN`` frames, then ``SHADOW_PAUSE``
-frames rest, groups in turn.  Over a window the HLM's squared error on the hidden group is
-compared with holding the group's value from the window's start: r = e_HLM / e_hold, and
-log q = the decayed mean of log r over windows (``Q_DECAY`` per window, one prior window of
-log q = 0).  A walk the HLM knows gives q well below 1; basketball gives q above 1, where the
-fitted W is 0 and the fill is ``default``'s own.
+frames rest, groups in turn.  A second ``default`` stream (the *twin*, cheap: a step of default
+costs a fraction of the HLM's) sees the same hidden group, so over a window the HLM's squared error
+on the hidden group is compared with ``default``'s own: r = e_HLM / e_default, and log q = the
+decayed mean of log r over windows (``Q_DECAY`` per window, one prior window of log q = 0).  A walk
+the HLM knows gives q well below 1; referee signals give q above 1, where the fitted W is about 0
+and the fill is ``default``'s own (W = 0 in the last q bin, q > 1.1, whatever the fit says).  The
+main ``default`` stream never sees the shadow mask.
 
 W is fitted on VALIDATION only (bench/default_hlm_tune.py: the gaps protocol's bursts with seeds
 100-102 and pan2009's pattern, on the experts trained on TRAIN): per cell the least-squares
@@ -31,7 +33,8 @@ of the two kept (a cell the two halves disagree on leans to ``default``).  Root 
 with the root erased), so W[root-pos] = 0 and the fill there is ``default``'s hold/velocity.
 
 std: the experts as a two-part mixture, var = (1 - w) sd_D^2 + w sd_H^2 + w (1 - w) wrap(H - D)^2,
-times a scale S[g, bin(k)] fitted on VALIDATION so that 2 std hold 95% of the errors there.
+times a scale S[g, bin(k)] fitted on VALIDATION so that 2 std hold 95% of the errors there in the
+activity that needs the widest band (walk, turn, run, non-locomotion: each then holds >= 95%).
 """
 from __future__ import annotations
 
@@ -53,7 +56,7 @@ GROUP_NAMES = ("root", "torso", "head-neck", "left-arm", "right-arm", "left-leg"
 SHADOW_GROUPS = (1, 2, 3, 4, 5, 6)     # the limb groups a shadow window may hide (never the root)
 ROOT_POS = 8
 T_EDGES = np.array([1.5, 6, 12, 30, 60, 120, 240])   # frames since onset (at 120 Hz: 1, 50, 100, 250 ms, 0.5, 1, 2 s)
-Q_EDGES = np.log(np.array([0.35, 0.6, 1.0]))          # log q bins
+Q_EDGES = np.log(np.array([0.4, 0.7, 1.1]))           # log q bins (chosen on VALIDATION among 4 sets)
 SHADOW_LEN = 60
 SHADOW_PAUSE = 30
 SHADOW_MAX_MISS = 12
@@ -108,11 +111,14 @@ class WithHLMModel(Model):
         self.ang = np.array([is_angle(c) for c in self.channels])
         W = np.clip(np.asarray(W, float), 0.0, 1.0).copy()
         W[ROOT_POS] = 0.0    # root translation: hold/velocity only (module doc)
+        W[:, :, -1] = 0.0    # q > 1.1: the HLM predicts what is observed worse than default does; it yields
         self.W, self.S = W, np.asarray(S, float)
         self.tau = float(tau)
         self.anchor = float(np.exp(-1.0 / self.tau)) if self.tau > 0 else 0.0
         self.meta = dict(meta or {})
         self._cols = [np.flatnonzero(self.group == g) for g in SHADOW_GROUPS]
+        self._member = np.stack([self.group == g for g in SHADOW_GROUPS], 1).astype(np.float64)   # (C, groups)
+        self._nonpos = self.group != ROOT_POS
 
     def stream(self) -> WithHLMState:
         return WithHLMState(self)
@@ -129,10 +135,54 @@ class WithHLMModel(Model):
         if (O & ~np.isfinite(F)).any():
             i, j = np.argwhere(O & ~np.isfinite(F))[0]
             raise FillerError(f"observed values must be finite (got NaN/inf in stream {i} at channel {j})")
-        HO = np.stack([s._hlm_mask(O[i]) for i, s in enumerate(states)])
+        return self._step(states, F, O)
+
+    def _step(self, states: list[WithHLMState], F: np.ndarray, O: np.ndarray) -> list[Fill]:
+        """Every stream of the batch at once: plan the shadow masks, step each expert once for the
+        batch, then mix (module doc) as (n, C) arrays."""
+        busy = ((~O) & self._nonpos).sum(1) > SHADOW_MAX_MISS
+        gmiss = (~O).astype(np.float64) @ self._member            # (n, shadow groups) channels missing
+        HO = O.copy()
+        for i, s in enumerate(states):
+            g = s._plan(bool(busy[i]), gmiss[i])
+            if g >= 0:
+                HO[i, self._cols[g]] = False
         dfills = self.default.step_batch([s.ds for s in states], F, O)
         hfills = self.hlm.step_batch([s.hs for s in states], F, HO)
-        return [s._combine(F[i], O[i], dfills[i], hfills[i]) for i, s in enumerate(states)]
+        tfills = self.default.step_batch([s.twin for s in states], F, HO)
+        Df, Dsd = np.stack([f.frame for f in dfills]), np.stack([f.std for f in dfills])
+        Hf, Hsd = np.stack([f.frame for f in hfills]), np.stack([f.std for f in hfills])
+        Tf = np.stack([f.frame for f in tfills])
+        hid = O & ~HO & self.ang
+        if hid.any():
+            eh = np.where(hid, wrap(Hf - F), 0.0)
+            e0 = np.where(hid, wrap(Tf - F), 0.0)
+            eh, e0 = (eh * eh).sum(1), (e0 * e0).sum(1)
+            for i, s in enumerate(states):
+                if s.sh >= 0:
+                    s.eh += float(eh[i])
+                    s.e0 += float(e0[i])
+                    s.sh_n += 1
+        K = np.where(O, 0, np.stack([s.k for s in states]) + 1)
+        logq = np.array([s.logq for s in states])
+        raw = np.where(self.ang, wrap(Hf - Df), Hf - Df)
+        off = np.where(K == 1, -raw, np.stack([s.o for s in states]))
+        diff = raw + (off * self.anchor ** np.maximum(K - 1, 0) if self.tau > 0 else 0.0)
+        tb = t_bin(K)
+        w = np.where(O, 0.0, self.W[self.group[None, :], tb, np.searchsorted(Q_EDGES, logq, side="right")[:, None]])
+        out = np.where(O, F, Df + w * diff)
+        var = (1 - w) * Dsd ** 2 + w * Hsd ** 2 + w * (1 - w) * diff ** 2
+        std = np.where(O, 0.0, self.S[self.group[None, :], tb] * np.sqrt(var))
+        fills = []
+        for i, s in enumerate(states):
+            s.k, s.o = K[i], off[i]
+            if s.collect:
+                j = np.flatnonzero(~O[i])
+                s.comp = None if not len(j) else {
+                    "idx": j, "k": K[i, j], "D": Df[i, j], "H": Df[i, j] + raw[i, j], "o": off[i, j], "sD": Dsd[i, j],
+                    "sH": Hsd[i, j], "logq": np.full(len(j), logq[i])}
+            fills.append(Fill(out[i], std[i], ~O[i], {**hfills[i].extras, "hlm_q": float(np.exp(logq[i]))}))
+        return fills
 
     def info(self) -> dict[str, Any]:
         return {**super().info(), "experts": [self.default.method, self.hlm.method]}
@@ -185,6 +235,7 @@ class WithHLMState(FillerState):
         self.m = model
         C = model.n_channels
         self.ds = model.default.stream()
+        self.twin = model.default.stream()   # default under the shadow mask (module doc)
         self.hs = model.hlm.stream()
         self.k = np.zeros(C, np.int64)
         self.o = np.zeros(C)         # the HLM's anchoring offset (module doc)
@@ -192,7 +243,6 @@ class WithHLMState(FillerState):
         self.sh = -1                 # index into SHADOW_GROUPS of the hidden group, -1: none
         self.sh_n = 0                # frames into the window (or, with sh = -1, the pause left)
         self.sh_next = 0             # the next group to hide
-        self.sh_hold = np.zeros(C)   # last observed values (the window's hold baseline)
         self.eh = self.e0 = 0.0
         self.collect = False         # bench/default_hlm_tune.py reads ``comp`` after each step
         self.comp: dict[str, np.ndarray] | None = None
@@ -208,67 +258,26 @@ class WithHLMState(FillerState):
             self.logq_n = Q_DECAY * self.logq_n + 1.0
         self.sh, self.sh_n, self.eh, self.e0 = -1, SHADOW_PAUSE, 0.0, 0.0
 
-    def _hlm_mask(self, obs: np.ndarray) -> np.ndarray:
-        """The HLM's mask this frame: ``obs`` with the shadow group hidden (opens/closes windows)."""
-        m = self.m
-        busy = int((~obs & (m.group != ROOT_POS)).sum()) > SHADOW_MAX_MISS
+    def _plan(self, busy: bool, gmiss: np.ndarray) -> int:
+        """This frame's hidden group (index into SHADOW_GROUPS) or -1; opens and closes windows.
+        ``busy``: more than SHADOW_MAX_MISS channels really missing; ``gmiss``: each shadow group's
+        missing channels."""
         if self.sh >= 0:
-            cols = m._cols[self.sh]
-            if busy or not obs[cols].all() or self.sh_n >= SHADOW_LEN:
+            if busy or gmiss[self.sh] > 0 or self.sh_n >= SHADOW_LEN:
                 self._close()
         elif self.sh_n > 0:
             self.sh_n -= 1
         elif not busy:
             for i in range(len(SHADOW_GROUPS)):
                 g = (self.sh_next + i) % len(SHADOW_GROUPS)
-                cols = m._cols[g]
-                if len(cols) and obs[cols].all():
+                if len(self.m._cols[g]) and gmiss[g] == 0:
                     self.sh, self.sh_n, self.sh_next = g, 0, (g + 1) % len(SHADOW_GROUPS)
                     break
-        if self.sh < 0:
-            return obs
-        ho = obs.copy()
-        ho[m._cols[self.sh]] = False
-        return ho
+        return self.sh
 
     def step(self, frame, observed=None) -> Fill:
         f, obs = check_frame(frame, observed, self.m.n_channels)
-        ho = self._hlm_mask(obs)
-        return self._combine(f, obs, self.ds.step(f, obs), self.hs.step(f, ho))
-
-    def _combine(self, f: np.ndarray, obs: np.ndarray, d: Fill, h: Fill) -> Fill:
-        m = self.m
-        if self.sh >= 0:
-            cols = m._cols[self.sh]
-            a = cols[m.ang[cols]]
-            self.eh += float(np.sum(wrap(h.frame[a] - f[a]) ** 2))
-            self.e0 += float(np.sum(wrap(self.sh_hold[a] - f[a]) ** 2))
-            self.sh_n += 1
-        else:
-            self.sh_hold = np.where(obs, f, self.sh_hold)
-        self.k = np.where(obs, 0, self.k + 1)
-        miss = ~obs
-        out = np.where(obs, f, d.frame)
-        std = np.zeros(m.n_channels)
-        if miss.any():
-            j = np.flatnonzero(miss)
-            g, tb = m.group[j], t_bin(self.k[j])
-            w = m.W[g, tb, q_bin(self.logq)]
-            D, H = d.frame[j], h.frame[j]
-            raw = np.where(m.ang[j], wrap(H - D), H - D)
-            first = self.k[j] == 1
-            self.o[j[first]] = -raw[first]
-            off = self.o[j] * m.anchor ** (self.k[j] - 1) if m.tau > 0 else 0.0
-            diff = raw + off
-            out[j] = D + w * diff
-            var = (1 - w) * d.std[j] ** 2 + w * h.std[j] ** 2 + w * (1 - w) * diff ** 2
-            std[j] = m.S[g, tb] * np.sqrt(var)
-            if self.collect:
-                self.comp = {"idx": j, "k": self.k[j].copy(), "D": D.copy(), "H": D + raw, "o": self.o[j].copy(), "sD": d.std[j].copy(),
-                             "sH": h.std[j].copy(), "logq": np.full(len(j), self.logq)}
-        elif self.collect:
-            self.comp = None
-        return Fill(out, std, miss, {**h.extras, "hlm_q": float(np.exp(self.logq))})
+        return self.m._step([self], f[None], obs[None])[0]
 
 
 LOCOMOTION = ("walk", "turn", "run")
