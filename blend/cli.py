@@ -17,9 +17,6 @@ def add_commands(cli) -> None:
     p.add_argument("--fps", type=float, help="resample every file to this rate first")
     p.add_argument("--quiet", "-q", action="store_true")
     p.set_defaults(func=_run)
-    from blend.withhlm_cli import add_commands as with_hlm
-
-    with_hlm(cli)
 
 
 def _load(paths: list[str], fps: float | None):

@@ -124,3 +124,11 @@ def test_truncated_model_file_is_a_clear_error(model, tmp_path, capsys):
     modelfile.save_arrays(str(bad), meta, arrays)
     with pytest.raises(modelfile.ModelFileError, match="two experts"):
         modelfile.load_model(str(bad))
+
+
+def test_train_without_a_locomotion_file_is_a_clear_error(data, tmp_path, capsys):
+    files = [str(splits.take_path(t)) for t in ("basketball_1", "soccer_1")]
+    rc = cli_main(["train", "default-hlm", *files, "-o", str(tmp_path / "dh.npz"), "-q"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("lacuna: error:") and "locomotion" in err
+    assert not (tmp_path / "dh.npz").exists()
