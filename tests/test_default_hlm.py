@@ -67,8 +67,9 @@ def test_beats_default_on_a_test_walk_with_pan2009s_pattern(model):
 def test_no_worse_than_default_on_a_test_take_that_is_not_locomotion(model):
     """TEST take basketball_signal_5 (referee signals), the gaps protocol's bursts: the shadow check
     sees that the HLM does not predict this body (q > 1) and the blend stays within 3% of
-    ``default`` (3%: the cells fitted on validation give the HLM up to 0.2 at q > 1, where its
-    gain there was within noise; see bench/notebook/hlmx.md)."""
+    ``default`` (q > 1.1 yields entirely; 3% is for the first second, before the first shadow
+    windows, when q is still its prior 1 and the validation-fitted cells give the HLM a share;
+    measured: 1.00x default, q 5.4)."""
     c = [c for c in protocols.Gaps(seed=0, split="test").cases() if c.test == "basketball_signal_5"][0]
     T = 900
     truth, obs = c.truth[:T], c.observed[:T]
