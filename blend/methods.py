@@ -21,3 +21,22 @@ register_method(MethodSpec("default", _train,
                            "channels, anchored at the last value and stacked by weights chosen on validation (blend)",
                            None, True))
 register_loader("default", DefaultModel.load)
+
+
+def _train_with_hlm(training_set: Any, **options: Any):
+    from blend.withhlm import train_model
+
+    return train_model(training_set, **options)
+
+
+def _load_with_hlm(path: str, meta: dict[str, Any], arrays: dict[str, Any]):
+    from blend.withhlm import WithHLMModel
+
+    return WithHLMModel.load(path, meta, arrays)
+
+
+register_method(MethodSpec("default-hlm", _train_with_hlm,
+                           "default and the HLM's online filter (trained on the locomotion takes) side by side, "
+                           "weighed per joint group by how well the HLM predicts what is still observed (blend.withhlm)",
+                           None, True))
+register_loader("default-hlm", _load_with_hlm)

@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from lacuna import __version__
 from lacuna.errors import LacunaError
 
-COMMAND_MODULES = ["mocap.cli", "mocap.data_cli", "hlm.cli", "crbm.cli", "daemon.cli", "daemon.keys_cli", "clients.cli", "blend.cli", "view.cli",
+COMMAND_MODULES = ["mocap.cli", "mocap.data_cli", "hlm.cli", "crbm.cli", "daemon.cli", "daemon.keys_cli", "clients.cli", "blend.cli", "blend.withhlm_cli", "view.cli",
                    "archive.cli"]
 
 

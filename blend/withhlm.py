@@ -1,0 +1,309 @@
+"""``default-hlm``: ``default`` and the HLM's online filter side by side, weighed per joint group.
+
+Both experts run on every frame of a stream, composed through the public Model interface only
+(``stream`` / ``step`` / ``step_batch`` / ``Fill.std``): ``default`` (blend.model: hold, damped
+velocity, a conditional Gaussian) and ``hlm`` (hlm.model: the locomotion model's forward filter,
+trained on the locomotion takes).  For a channel j of group g missing for k frames, with D and H
+the experts' fills and sd_D, sd_H their stds:
+
+    fill = D + w wrap(H' - D),      w = W[g, bin(k), bin(q)] in [0, 1]
+    H'   = H + o a^(k - 1),         o = wrap(D - H) on the gap's first frame, a = exp(-1 / tau)
+
+so the HLM's part starts the gap where ``default`` does (where the performer was: the HLM's own
+first filled frame is off by a median 2.85 deg) and comes to its own cycle over ``tau`` frames
+(ANCHOR_TAU, chosen on VALIDATION with W).
+
+``q`` is the stream's evidence that the HLM understands this motion, learnt online from what is
+still observed (a *shadow check*): while at most ``SHADOW_MAX_MISS`` channels are really missing,
+one observed limb group at a time is hidden from the HLM (never from ``default``, never from the
+output: the caller gets the observed values) for ``SHADOW_LEN`` frames, then ``SHADOW_PAUSE``
+frames rest, groups in turn.  A second ``default`` stream (the *twin*, cheap: a step of default
+costs a fraction of the HLM's) sees the same hidden group, so over a window the HLM's squared error
+on the hidden group is compared with ``default``'s own: r = e_HLM / e_default, and log q = the
+decayed mean of log r over windows (``Q_DECAY`` per window, one prior window of log q = 0).  A walk
+the HLM knows gives q well below 1; referee signals give q above 1, where the fitted W is about 0
+and the fill is ``default``'s own (W = 0 in the last q bin, q > 1.1, whatever the fit says).  The
+main ``default`` stream never sees the shadow mask.
+
+W is fitted on VALIDATION only (bench/default_hlm_tune.py: the gaps protocol's bursts with seeds
+100-102 and pan2009's pattern, on the experts trained on TRAIN): per cell the least-squares
+weight of (H - D) against (truth - D), clipped to [0, 1], in two folds by take, and the smaller
+of the two kept (a cell the two halves disagree on leans to ``default``).  Root translation
+(``root-pos``) is never taken from the HLM: its root position drifts over long gaps (1.1-1.4 m
+with the root erased), so W[root-pos] = 0 and the fill there is ``default``'s hold/velocity.
+
+std: the experts as a two-part mixture, var = (1 - w) sd_D^2 + w sd_H^2 + w (1 - w) wrap(H - D)^2,
+times a scale S[g, bin(k)] fitted on VALIDATION so that 2 std hold 95% of the errors there in the
+activity that needs the widest band (walk, turn, run, non-locomotion: each then holds >= 95%).
+"""
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lacuna import modelfile
+from lacuna.filler import Fill, FillerError, FillerState, Model, check_frame
+from mocap.representation import is_angle
+from mocap.rootrot import wrap180 as wrap
+
+METHOD = "default-hlm"
+SHIPPED = Path(__file__).with_name("withhlm.json")
+GROUP_NAMES = ("root", "torso", "head-neck", "left-arm", "right-arm", "left-leg", "right-leg", "other", "root-pos")
+SHADOW_GROUPS = (1, 2, 3, 4, 5, 6)     # the limb groups a shadow window may hide (never the root)
+ROOT_POS = 8
+T_EDGES = np.array([1.5, 6, 12, 30, 60, 120, 240])   # frames since onset (at 120 Hz: 1, 50, 100, 250 ms, 0.5, 1, 2 s)
+Q_EDGES = np.log(np.array([0.4, 0.7, 1.1]))           # log q bins (chosen on VALIDATION among 4 sets)
+SHADOW_LEN = 60
+SHADOW_PAUSE = 30
+SHADOW_MAX_MISS = 12
+Q_DECAY = 0.85
+ANCHOR_TAU = 30.0   # frames; replaced by the shipped choice (withhlm.json)
+
+
+def group_index(channels: list[str]) -> np.ndarray:
+    """The joint group of each channel, as blend.model groups them (its 9 groups, same order)."""
+    from blend.model import GROUP_NAMES as BG
+    from blend.model import group_of
+
+    if tuple(BG) != GROUP_NAMES:
+        raise RuntimeError(f"blend.model's groups {BG} are not the ones {METHOD}'s weights are fitted on")
+    return np.array([group_of(c) for c in channels], np.int64)
+
+
+def t_bin(k: np.ndarray) -> np.ndarray:
+    return np.searchsorted(T_EDGES, k, side="right")
+
+
+def q_bin(logq: float) -> int:
+    return int(np.searchsorted(Q_EDGES, logq, side="right"))
+
+
+def shipped() -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """(W (G, T, Q), S (G, T), what was chosen) from blend/withhlm.json; zeros (= ``default``) and
+    ones before tuning."""
+    G, TB, QB = len(GROUP_NAMES), len(T_EDGES) + 1, len(Q_EDGES) + 1
+    if not SHIPPED.exists():
+        return np.zeros((G, TB, QB)), np.ones((G, TB)), {}
+    d = json.loads(SHIPPED.read_text())
+    W, S = np.array(d["W"], float), np.array(d["S"], float)
+    if W.shape != (G, TB, QB) or S.shape != (G, TB):
+        raise ValueError(f"{SHIPPED}: W {W.shape} / S {S.shape} do not match ({G}, {TB}, {QB}) / ({G}, {TB})")
+    return W, S, d.get("chosen", {})
+
+
+class WithHLMModel(Model):
+    """``default`` and ``hlm`` on the same channels, stacked by W and S (module doc)."""
+
+    method = METHOD
+    causal = True
+
+    def __init__(self, default: Model, hlm: Model, W: np.ndarray, S: np.ndarray, meta: dict[str, Any] | None = None,
+                 tau: float = ANCHOR_TAU):
+        if list(default.channels) != list(hlm.channels):
+            raise FillerError(f"{METHOD}: the experts' channels differ ({len(default.channels)} vs {len(hlm.channels)})")
+        self.default, self.hlm = default, hlm
+        self.channels = list(default.channels)
+        self.group = group_index(self.channels)
+        self.ang = np.array([is_angle(c) for c in self.channels])
+        W = np.clip(np.asarray(W, float), 0.0, 1.0).copy()
+        W[ROOT_POS] = 0.0    # root translation: hold/velocity only (module doc)
+        W[:, :, -1] = 0.0    # q > 1.1: the HLM predicts what is observed worse than default does; it yields
+        self.W, self.S = W, np.asarray(S, float)
+        self.tau = float(tau)
+        self.anchor = float(np.exp(-1.0 / self.tau)) if self.tau > 0 else 0.0
+        self.meta = dict(meta or {})
+        self._cols = [np.flatnonzero(self.group == g) for g in SHADOW_GROUPS]
+        self._member = np.stack([self.group == g for g in SHADOW_GROUPS], 1).astype(np.float64)   # (C, groups)
+        self._nonpos = self.group != ROOT_POS
+
+    def stream(self) -> WithHLMState:
+        return WithHLMState(self)
+
+    def step_batch(self, states, frames, observed, level=None):
+        mine = all(isinstance(s, WithHLMState) and s.m is self for s in states)
+        if not mine or not states:
+            return super().step_batch(states, frames, observed, level)
+        F = np.asarray(frames, np.float64)
+        O = np.asarray(observed, bool)
+        if F.shape != (len(states), self.n_channels) or O.shape != F.shape:
+            raise FillerError(f"a batch of {len(states)} streams needs frames and masks of shape "
+                              f"({len(states)}, {self.n_channels}) (got {F.shape} and {O.shape})")
+        if (O & ~np.isfinite(F)).any():
+            i, j = np.argwhere(O & ~np.isfinite(F))[0]
+            raise FillerError(f"observed values must be finite (got NaN/inf in stream {i} at channel {j})")
+        return self._step(states, F, O)
+
+    def _step(self, states: list[WithHLMState], F: np.ndarray, O: np.ndarray) -> list[Fill]:
+        """Every stream of the batch at once: plan the shadow masks, step each expert once for the
+        batch, then mix (module doc) as (n, C) arrays."""
+        busy = ((~O) & self._nonpos).sum(1) > SHADOW_MAX_MISS
+        gmiss = (~O).astype(np.float64) @ self._member            # (n, shadow groups) channels missing
+        HO = O.copy()
+        for i, s in enumerate(states):
+            g = s._plan(bool(busy[i]), gmiss[i])
+            if g >= 0:
+                HO[i, self._cols[g]] = False
+        dfills = self.default.step_batch([s.ds for s in states], F, O)
+        hfills = self.hlm.step_batch([s.hs for s in states], F, HO)
+        tfills = self.default.step_batch([s.twin for s in states], F, HO)
+        Df, Dsd = np.stack([f.frame for f in dfills]), np.stack([f.std for f in dfills])
+        Hf, Hsd = np.stack([f.frame for f in hfills]), np.stack([f.std for f in hfills])
+        Tf = np.stack([f.frame for f in tfills])
+        hid = O & ~HO & self.ang
+        if hid.any():
+            eh = np.where(hid, wrap(Hf - F), 0.0)
+            e0 = np.where(hid, wrap(Tf - F), 0.0)
+            eh, e0 = (eh * eh).sum(1), (e0 * e0).sum(1)
+            for i, s in enumerate(states):
+                if s.sh >= 0:
+                    s.eh += float(eh[i])
+                    s.e0 += float(e0[i])
+                    s.sh_n += 1
+        K = np.where(O, 0, np.stack([s.k for s in states]) + 1)
+        logq = np.array([s.logq for s in states])
+        raw = np.where(self.ang, wrap(Hf - Df), Hf - Df)
+        off = np.where(K == 1, -raw, np.stack([s.o for s in states]))
+        diff = raw + (off * self.anchor ** np.maximum(K - 1, 0) if self.tau > 0 else 0.0)
+        tb = t_bin(K)
+        w = np.where(O, 0.0, self.W[self.group[None, :], tb, np.searchsorted(Q_EDGES, logq, side="right")[:, None]])
+        out = np.where(O, F, Df + w * diff)
+        var = (1 - w) * Dsd ** 2 + w * Hsd ** 2 + w * (1 - w) * diff ** 2
+        std = np.where(O, 0.0, self.S[self.group[None, :], tb] * np.sqrt(var))
+        fills = []
+        for i, s in enumerate(states):
+            s.k, s.o = K[i], off[i]
+            if s.collect:
+                j = np.flatnonzero(~O[i])
+                s.comp = None if not len(j) else {
+                    "idx": j, "k": K[i, j], "D": Df[i, j], "H": Df[i, j] + raw[i, j], "o": off[i, j], "sD": Dsd[i, j],
+                    "sH": Hsd[i, j], "logq": np.full(len(j), logq[i])}
+            fills.append(Fill(out[i], std[i], ~O[i], {**hfills[i].extras, "hlm_q": float(np.exp(logq[i]))}))
+        return fills
+
+    def info(self) -> dict[str, Any]:
+        return {**super().info(), "experts": [self.default.method, self.hlm.method]}
+
+    # ---- persistence: both experts' arrays in one file, prefixed d/ and h/ ------------------------
+    def save(self, path: str) -> None:
+        parts: dict[str, Any] = {}
+        arrays: dict[str, np.ndarray] = {"W": self.W, "S": self.S}
+        with tempfile.TemporaryDirectory() as tmp:
+            for key, m in (("d", self.default), ("h", self.hlm)):
+                p = str(Path(tmp) / f"{key}.npz")
+                m.save(p)
+                meta, arr = modelfile.load_arrays(p)
+                parts[key] = meta
+                arrays.update({f"{key}/{k}": v for k, v in arr.items()})
+        meta = {**self.meta, "method": METHOD, "channels": self.channels, "experts": parts, "tau": self.tau,
+                "bins": {"t_edges": T_EDGES.tolist(), "q_edges": Q_EDGES.tolist()}}
+        modelfile.save_arrays(path, meta, arrays)
+
+    @classmethod
+    def load(cls, path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> WithHLMModel:
+        parts = meta.get("experts")
+        if not isinstance(parts, dict) or set(parts) != {"d", "h"}:
+            raise modelfile.ModelFileError(f"{path}: {METHOD} model without its two experts' metadata")
+        if parts["d"].get("method") != "default" or parts["h"].get("method") != "hlm":
+            raise modelfile.ModelFileError(f"{path}: {METHOD} experts must be default and hlm "
+                                           f"(got {parts['d'].get('method')}, {parts['h'].get('method')})")
+        from blend.model import DefaultModel
+        from hlm.model import load as load_hlm
+
+        sub = {key: {k[2:]: v for k, v in arrays.items() if k.startswith(key + "/")} for key in ("d", "h")}
+        d = DefaultModel.load(path, parts["d"], sub["d"])
+        h = load_hlm(path, parts["h"], sub["h"])
+        G, TB, QB = len(GROUP_NAMES), len(T_EDGES) + 1, len(Q_EDGES) + 1
+        W = modelfile.require(path, arrays, "W", (G, TB, QB))
+        S = modelfile.require(path, arrays, "S", (G, TB))
+        if list(meta["channels"]) != list(d.channels):
+            raise modelfile.ModelFileError(f"{path}: channel list does not match its experts'")
+        tau = meta.get("tau", ANCHOR_TAU)
+        if not isinstance(tau, int | float) or tau < 0:
+            raise modelfile.ModelFileError(f"{path}: {METHOD} 'tau' must be a number >= 0 (got {tau!r})")
+        return cls(d, h, W, S, {k: v for k, v in meta.items() if k not in ("experts", "bins", "channels", "method", "tau")},
+                   float(tau))
+
+
+class WithHLMState(FillerState):
+    """One stream: each expert's own state, frames since onset, and the shadow check."""
+
+    def __init__(self, model: WithHLMModel):
+        self.m = model
+        C = model.n_channels
+        self.ds = model.default.stream()
+        self.twin = model.default.stream()   # default under the shadow mask (module doc)
+        self.hs = model.hlm.stream()
+        self.k = np.zeros(C, np.int64)
+        self.o = np.zeros(C)         # the HLM's anchoring offset (module doc)
+        self.logq_sum, self.logq_n = 0.0, 1.0   # one prior window at log q = 0
+        self.sh = -1                 # index into SHADOW_GROUPS of the hidden group, -1: none
+        self.sh_n = 0                # frames into the window (or, with sh = -1, the pause left)
+        self.sh_next = 0             # the next group to hide
+        self.eh = self.e0 = 0.0
+        self.collect = False         # bench/default_hlm_tune.py reads ``comp`` after each step
+        self.comp: dict[str, np.ndarray] | None = None
+
+    @property
+    def logq(self) -> float:
+        return self.logq_sum / self.logq_n
+
+    def _close(self) -> None:
+        if self.sh_n >= SHADOW_LEN // 3 and self.e0 > 0:
+            r = np.log(max(self.eh, 1e-9) / max(self.e0, 1e-9))
+            self.logq_sum = Q_DECAY * self.logq_sum + float(np.clip(r, -4.0, 4.0))
+            self.logq_n = Q_DECAY * self.logq_n + 1.0
+        self.sh, self.sh_n, self.eh, self.e0 = -1, SHADOW_PAUSE, 0.0, 0.0
+
+    def _plan(self, busy: bool, gmiss: np.ndarray) -> int:
+        """This frame's hidden group (index into SHADOW_GROUPS) or -1; opens and closes windows.
+        ``busy``: more than SHADOW_MAX_MISS channels really missing; ``gmiss``: each shadow group's
+        missing channels."""
+        if self.sh >= 0:
+            if busy or gmiss[self.sh] > 0 or self.sh_n >= SHADOW_LEN:
+                self._close()
+        elif self.sh_n > 0:
+            self.sh_n -= 1
+        elif not busy:
+            for i in range(len(SHADOW_GROUPS)):
+                g = (self.sh_next + i) % len(SHADOW_GROUPS)
+                if len(self.m._cols[g]) and gmiss[g] == 0:
+                    self.sh, self.sh_n, self.sh_next = g, 0, (g + 1) % len(SHADOW_GROUPS)
+                    break
+        return self.sh
+
+    def step(self, frame, observed=None) -> Fill:
+        f, obs = check_frame(frame, observed, self.m.n_channels)
+        return self.m._step([self], f[None], obs[None])[0]
+
+
+LOCOMOTION = ("walk", "turn", "run")
+
+
+def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | None = None,
+                **options: Any) -> WithHLMModel:
+    """``default`` on every take of ``training_set``; the HLM on its locomotion takes (labels walk,
+    turn, run; every take where it has no labels); W and S the shipped ones unless given."""
+    import time
+
+    from blend.train import train_model as train_default
+    from hlm.methods import train_model as train_hlm
+
+    t0 = time.perf_counter()
+    seqs, ch, names = training_set.sequences, training_set.channels, list(training_set.names)
+    labels = list(getattr(training_set, "labels", []) or [])
+    loco = [i for i, lab in enumerate(labels) if lab in LOCOMOTION] if labels else list(range(len(seqs)))
+    if not loco:
+        raise FillerError(f"{METHOD}: no locomotion take among the {len(seqs)} training takes to train the HLM on")
+    d = train_default(seqs, ch, names, fps=options.get("fps") or getattr(training_set, "fps", None))
+    hopts = {k: v for k, v in options.items() if k not in ("fps",)}
+    h = train_hlm([seqs[i] for i in loco], ch, [names[i] for i in loco], **hopts)
+    W0, S0, chosen = shipped()
+    tau = float(chosen.get("tau", ANCHOR_TAU))
+    meta = {"training": {"default": names, "hlm": [names[i] for i in loco],
+                         "seconds": round(time.perf_counter() - t0, 2)},
+            "weights": {"shipped": SHIPPED.name, **chosen} if W is None else {"given": True}}
+    return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau)

@@ -1,0 +1,55 @@
+"""`lacuna train default-hlm`: train ``default`` and the HLM on motion files, write one model file."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def add_commands(cli) -> None:
+    p = cli.train("default-hlm", help="train default and the HLM side by side (blend.withhlm): default on every "
+                                      "file, the HLM on the locomotion ones")
+    p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it, .bvh, .csv)")
+    p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    p.add_argument("--hlm-data", nargs="+", metavar="FILE", default=None,
+                   help="the locomotion files of DATA to train the HLM on (default: those the project's split "
+                        "names walk, turn or run; every file where it names none)")
+    p.add_argument("--fps", type=float, help="resample every file to this rate first")
+    p.add_argument("--quiet", "-q", action="store_true")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from blend.cli import _load
+    from blend.withhlm import LOCOMOTION, train_model
+    from lacuna.errors import LacunaError
+    from mocap import splits
+    from mocap.fk import skeleton_record
+    from mocap.protocols import TrainingSet
+
+    seqs, ch, rate, first = _load(args.data, args.fps)
+    stems = [os.path.splitext(os.path.basename(p))[0] for p in args.data]
+    if args.hlm_data:
+        given = {os.path.abspath(p) for p in args.hlm_data}
+        unknown = given - {os.path.abspath(p) for p in args.data}
+        if unknown:
+            raise LacunaError(f"{sorted(unknown)[0]}: --hlm-data files must be among DATA")
+        labels = ["walk" if os.path.abspath(p) in given else "other" for p in args.data]
+    else:
+        known = [splits.ACTIVITY.get(s) for s in stems]
+        labels = [a or "walk" for a in known] if all(a is None for a in known) else [a or "other" for a in known]
+    if not any(lab in LOCOMOTION for lab in labels):
+        raise LacunaError("no locomotion file among DATA to train the HLM on (name them with --hlm-data)")
+    ts = TrainingSet(seqs, list(ch), rate, [os.path.basename(p) for p in args.data], labels)
+    model = train_model(ts, fps=rate)
+    training = model.meta.setdefault("training", {})
+    training["fps"] = rate
+    rec = skeleton_record(first)
+    if rec:
+        training["skeleton"] = rec
+    model.save(args.output)
+    if not args.quiet:
+        n = sum(lab in LOCOMOTION for lab in labels)
+        print(f"default-hlm: default on {len(seqs)} files, the HLM on {n} locomotion files, "
+              f"{sum(s.shape[0] for s in seqs)} frames at {rate:g} fps; wrote {args.output}", file=sys.stderr)
+    return 0
