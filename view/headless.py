@@ -67,9 +67,9 @@ class Browser:
             os.closerange(5, os.sysconf("SC_OPEN_MAX"))
             if nice:
                 os.nice(nice)
-                # and no right to raise it again: as root Chromium would set its browser, GPU and
-                # compositor threads to nice -8 (an ordinary user's browser cannot)
-                ctypes.CDLL(None, use_errno=True).prctl(PR_CAPBSET_DROP, CAP_SYS_NICE, 0, 0, 0)
+            # no right to raise its priority: as root Chromium would set its browser, GPU and
+            # compositor threads to nice -8 (an ordinary user's browser cannot)
+            ctypes.CDLL(None, use_errno=True).prctl(PR_CAPBSET_DROP, CAP_SYS_NICE, 0, 0, 0)
 
         self.log_path = os.path.join(self.profile, "chromium.log")
         self._log = open(self.log_path, "wb")
