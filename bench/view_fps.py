@@ -85,13 +85,17 @@ def finish(p: subprocess.Popen, out: str) -> tuple[dict, np.ndarray]:
 
 
 def run(daemon: DaemonProcess, channels: list[str], model_file: str, n: int, cond: str, seconds: float, out: str,
-        shot: str | None, browser_nice: int, page_query: str) -> tuple[dict, np.ndarray]:
+        shot: str | None, browser_nice: int, page_query: str, view_args: tuple[str, ...] = (),
+        view_cwd: str | None = None, scale: float = 1.0) -> tuple[dict, np.ndarray]:
+    """One run; ``view_args`` more arguments of ``lacuna view``, ``view_cwd`` a directory with
+    another checkout's ``view`` package to run instead, ``scale`` the screen's devicePixelRatio."""
     if cond == "without":
         return finish(start_client(daemon, channels, n, seconds, out), out)
-    args = ["--connect", daemon.zmq_opts["pub"], "--skeleton-file", str(trial_path("07_01")), "--channels", model_file]
-    with ViewProcess(args) as view, contextlib.ExitStack() as stack:
-        b = stack.enter_context(Browser(width=1400, height=300 + 280 * ((n + 1) // 2), nice=browser_nice)) \
-            if cond == "page" else None
+    args = ["--connect", daemon.zmq_opts["pub"], "--skeleton-file", str(trial_path("07_01")), "--channels", model_file,
+            *view_args]
+    with ViewProcess(args, cwd=view_cwd) as view, contextlib.ExitStack() as stack:
+        b = stack.enter_context(Browser(width=1400, height=300 + 290 * ((n + 1) // 2), nice=browser_nice,
+                                        scale=scale)) if cond == "page" else None
         if b:
             b.goto(view.url + page_query)
             b.wait_for("window.lacunaView && lacunaView.state.connected", 30)
