@@ -203,7 +203,7 @@ class Browser:
             kind = "browser" if pid == self.proc.pid else "other"
             try:
                 with open(f"/proc/{pid}/cmdline", "rb") as fh:
-                    for a in fh.read().split(b"\0"):
+                    for a in fh.read().replace(b"\0", b" ").split():  # (its children rewrite argv as one string)
                         if a.startswith(b"--type="):
                             kind = a[len(b"--type="):].decode(errors="replace")
                             break
