@@ -219,6 +219,9 @@ def test_view_bad_input_is_one_line_error(tmp_path, capsys, data):
     assert main(["view", "--connect", "tcp://127.0.0.1:1", "--speed", "2",
                  "--skeleton-file", str(trial_path("07_01"))]) == 2
     assert "apply to --play" in capsys.readouterr().err
+    assert main(["view", "--connect", "tcp://127.0.0.1:1", "--fps", "0",
+                 "--skeleton-file", str(trial_path("07_01"))]) == 2
+    assert "--fps and --max-dpr must be > 0" in capsys.readouterr().err
 
 
 def test_view_plays_a_bvh_take_on_its_own_skeleton(data):
