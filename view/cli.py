@@ -44,8 +44,8 @@ def add_commands(cli: Any) -> None:
     p.add_argument("--nice", type=int, default=10, metavar="N",
                    help="lower the view's CPU priority by N (default 10), so it yields to the daemon and the "
                         "capture software on a shared machine; 0 keeps it. A browser on the capture box "
-                        "takes CPU from the daemon too: run the daemon real-time there (daemon.realtime_priority, "
-                        "docs/CLIENTS.md) and the browser ordinary")
+                        "takes CPU from the daemon too: run the daemon (daemon.realtime_priority) and the capture "
+                        "software real-time there and the browser ordinary (docs/CLIENTS.md)")
     p.add_argument("--seconds", type=float, metavar="S", help="exit after S seconds (default: until Ctrl-C)")
     p.set_defaults(func=run)
 
