@@ -152,25 +152,24 @@ def test_view_page_colours_the_joints_of_a_group_that_drops_out(daemon, chromium
             assert after[i]["fill"] == -1 and _close(after[i]["pixel"], observed_rgb), names[i]
         # every view canvas has a skeleton on it, and the latency plot was drawn from wall-clock
         # capture times (the client stamps t with time.time())
-        lit = b.evaluate("""Array.from(document.querySelectorAll('canvas.views')).flatMap(cv => [0, 1, 2].map(p => {
-            const w = Math.floor(cv.width / 3);
-            const d = cv.getContext('2d').getImageData(p * w, 0, w, cv.height).data; let n = 0;
+        lit = b.evaluate("""['performer-1', 'performer-2'].flatMap(id => ['front', 'side', 'top'].map(v => {
+            const [x, y, w, h] = lacunaView.region(id, v);
+            const d = document.getElementById('board').getContext('2d').getImageData(x, y, w, h).data; let n = 0;
             for (let i = 0; i < d.length; i += 4) if (d[i] > 100 || d[i+1] > 100) n++; return n; }))""")
         assert len(lit) == 6 and min(lit) > 50, lit
         # the HLM stream's style posterior and gait phase reached the page and were drawn
         last = b.evaluate("lacunaView.state.streams['performer-2'].last")
         assert len(last["style"]) == 2 and abs(sum(last["style"]) - 1) < 1e-3 and 0 <= last["phase"] < 1
         assert b.evaluate("lacunaView.state.streams['performer-1'].last.style") is None
-        bars = b.evaluate("""(() => { const cv = lacunaView.state.streams['performer-2'].styleCv;
-            const d = cv.getContext('2d').getImageData(0, 0, cv.width, 56).data; let n = 0;
+        bars = b.evaluate("""(() => { const [x, y, w] = lacunaView.region('performer-2', 'style');
+            const d = document.getElementById('board').getContext('2d').getImageData(x, y, w, 56).data; let n = 0;
             for (let i = 0; i < d.length; i += 4) if (d[i] === 0x4f && d[i+1] === 0xc3 && d[i+2] === 0xf7) n++;
             return n; })()""")
         assert bars > 20, bars  # the most probable style's bar, in its colour
         stats = b.wait_for(f"(lacunaView.state.streams[{json.dumps(sid)}] || {{}}).stats", PAGE_TIMEOUT_S)
         assert stats["proc_p50_ms"] >= 0 and stats["age_p50_ms"] > 0
         # the stream's text line catches up with the last frame (it is redrawn twice a second)
-        b.wait_for(f"document.querySelector('[data-stream=\"{sid}\"] .head').textContent.includes('seq {k - 1} ')",
-                   PAGE_TIMEOUT_S)
+        b.wait_for(f"lacunaView.text({json.dumps(sid)}).includes('seq {k - 1} ')", PAGE_TIMEOUT_S)
         assert b.console_errors() == []
     assert os.path.getsize(shot) > 10_000
     keep = os.environ.get("LACUNA_VIEW_SHOTS")
@@ -220,6 +219,9 @@ def test_view_bad_input_is_one_line_error(tmp_path, capsys, data):
     assert main(["view", "--connect", "tcp://127.0.0.1:1", "--speed", "2",
                  "--skeleton-file", str(trial_path("07_01"))]) == 2
     assert "apply to --play" in capsys.readouterr().err
+    assert main(["view", "--connect", "tcp://127.0.0.1:1", "--fps", "0",
+                 "--skeleton-file", str(trial_path("07_01"))]) == 2
+    assert "--fps and --max-dpr must be > 0" in capsys.readouterr().err
 
 
 def test_view_plays_a_bvh_take_on_its_own_skeleton(data):

@@ -5,3 +5,7 @@ keeps the newest frame of each stream, computes joint positions with ``mocap.fk`
 rate and sends them to the browser over Server-Sent Events.  The page (``view/static``) only
 draws.  Nothing is fetched from the network: the page, its script and its style ship here.
 """
+
+# the page draws at most PAGE_FPS frames a second (only when a new one came), on a canvas of at
+# most PAGE_MAX_DPR device pixels per CSS pixel (a 2x screen rasters 4x the pixels)
+PAGE_FPS, PAGE_MAX_DPR = 30.0, 1.0

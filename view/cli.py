@@ -9,6 +9,7 @@ import threading
 from typing import Any
 
 from lacuna.errors import LacunaError
+from view import PAGE_FPS, PAGE_MAX_DPR
 
 DEFAULT_LISTEN = "127.0.0.1:8765"
 
@@ -30,13 +31,21 @@ def add_commands(cli: Any) -> None:
     p.add_argument("--stream", action="append", metavar="ID", help="show only this stream (repeatable)")
     p.add_argument("--listen", default=DEFAULT_LISTEN, metavar="HOST:PORT",
                    help=f"where the page is served (default {DEFAULT_LISTEN}; port 0 picks a free one)")
-    p.add_argument("--rate", type=float, default=30.0, metavar="HZ",
-                   help="page updates a second, each with every stream's newest frame (default 30)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+                   help="page updates a second, each with every stream's newest frame (default: --fps)")
+    p.add_argument("--fps", type=float, default=PAGE_FPS, metavar="N",
+                   help=f"the page draws at most N frames a second, and only when a new one came (default "
+                        f"{PAGE_FPS:g}; 60 on a machine with CPU to spare); a page's ?fps=N overrides it")
+    p.add_argument("--max-dpr", type=float, default=PAGE_MAX_DPR, metavar="R",
+                   help=f"draw at most R device pixels per CSS pixel (default {PAGE_MAX_DPR:g}; 2 for sharp "
+                        "lines on a 2x screen, at 4x the raster cost); a page's ?dpr=R overrides it")
     p.add_argument("--std-max", type=float, default=20.0, metavar="DEG",
                    help="the std (degrees) at the top of the confidence colour scale (default 20)")
     p.add_argument("--nice", type=int, default=10, metavar="N",
                    help="lower the view's CPU priority by N (default 10), so it yields to the daemon and the "
-                        "capture software on a shared machine; 0 keeps it")
+                        "capture software on a shared machine; 0 keeps it. A browser on the capture box "
+                        "takes CPU from the daemon too: run the daemon (daemon.realtime_priority) and the capture "
+                        "software real-time there and the browser ordinary (docs/CLIENTS.md)")
     p.add_argument("--seconds", type=float, metavar="S", help="exit after S seconds (default: until Ctrl-C)")
     p.set_defaults(func=run)
 
@@ -112,6 +121,10 @@ def run(args: argparse.Namespace) -> int:
     from view.sources import Player, Subscriber
 
     host, port = _listen(args.listen)
+    if args.rate is None:
+        args.rate = args.fps
+    if args.fps <= 0 or args.max_dpr <= 0:
+        raise LacunaError(f"--fps and --max-dpr must be > 0 (got {args.fps:g}, {args.max_dpr:g})")
     if args.connect and (args.loop or args.speed != 1.0):
         raise LacunaError("--speed and --loop apply to --play")
     if args.nice:
@@ -139,13 +152,15 @@ def run(args: argparse.Namespace) -> int:
     channels = channel_names(args.channels) if args.channels else None
     source: Any
     if args.play:
-        feed = Feed(skeleton, channels, rate=args.rate, std_max=args.std_max, mode="play", source=args.play)
+        feed = Feed(skeleton, channels, rate=args.rate, std_max=args.std_max, mode="play", source=args.play,
+                    fps=args.fps, max_dpr=args.max_dpr)
         source = Player(args.play, feed, args.speed, args.loop, args.asf if args.play.lower().endswith(".amc") else None)
         if channels is None:
             feed.default_channels = source.channels
         what = f"playing {args.play} ({source.n_frames} frames at {source.fps:g} Hz x {args.speed:g})"
     else:
-        feed = Feed(skeleton, channels, rate=args.rate, std_max=args.std_max, mode="live", source=args.connect)
+        feed = Feed(skeleton, channels, rate=args.rate, std_max=args.std_max, mode="live", source=args.connect,
+                    fps=args.fps, max_dpr=args.max_dpr)
         endpoint = args.connect if "://" in args.connect else f"tcp://{args.connect}"
         source = Subscriber(endpoint, feed, args.stream)
         what = f"subscribed to {endpoint}"
@@ -164,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     if host not in ("127.0.0.1", "localhost", "::1"):
         print(f"lacuna view: warning: serving on {host} without authentication: anyone who can reach it "
               "sees the streams", file=sys.stderr, flush=True)
-    print(f"lacuna view: {server.url} ({what}, skeleton {skel_path}, {args.rate:g} updates/s)", flush=True)
+    print(f"lacuna view: {server.url} ({what}, skeleton {skel_path}, {args.rate:g} updates/s, drawn at most {args.fps:g} fps)", flush=True)
     try:
         stop.wait(args.seconds)
     finally:

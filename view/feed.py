@@ -32,6 +32,7 @@ import numpy as np
 
 from daemon import wire
 from mocap.motion import Motion
+from view import PAGE_FPS, PAGE_MAX_DPR
 
 AGE_WINDOW_S = 5.0  # a capture timestamp this close to the view's clock is taken as wall-clock time
 STATS_EVERY_S = 1.0
@@ -149,9 +150,13 @@ class Feed:
     """
 
     def __init__(self, skeleton: Skeleton | None, channels: list[str] | None = None, *, rate: float = 30.0,
-                 std_max: float = 20.0, mode: str = "live", source: str = ""):
+                 std_max: float = 20.0, mode: str = "live", source: str = "", fps: float = PAGE_FPS,
+                 max_dpr: float = PAGE_MAX_DPR):
         if rate <= 0:
             raise ValueError(f"--rate must be > 0 (got {rate})")
+        if fps <= 0 or max_dpr <= 0:
+            raise ValueError(f"--fps and --max-dpr must be > 0 (got {fps:g}, {max_dpr:g})")
+        self.fps, self.max_dpr = fps, max_dpr
         self.skeleton = skeleton
         self.default_channels = list(channels) if channels else None
         self.rate = rate
@@ -240,7 +245,7 @@ class Feed:
     def _meta(self) -> dict[str, Any]:
         sk = self.skeleton
         out: dict[str, Any] = {"version": self.meta_version, "mode": self.mode, "source": self.source,
-                               "rate": self.rate, "std_max": self.std_max, "error": self.error, "streams": []}
+                               "rate": self.rate, "fps": self.fps, "max_dpr": self.max_dpr, "std_max": self.std_max, "error": self.error, "streams": []}
         if sk is not None:
             out["skeleton"] = {"joints": sk.joints, "parents": sk.parents, "source": sk.source}
         for sid in sorted(self.streams):

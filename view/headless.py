@@ -47,10 +47,11 @@ def find_chromium() -> str | None:
 
 
 class Browser:
-    """One headless Chromium with one page of ``width`` x ``height`` CSS pixels, its CPU priority
-    lowered by ``nice``."""
+    """One headless Chromium with one page of ``width`` x ``height`` CSS pixels at ``scale``
+    device pixels each (the screen's devicePixelRatio), its CPU priority lowered by ``nice``."""
 
-    def __init__(self, executable: str | None = None, width: int = 1400, height: int = 900, nice: int = 0):
+    def __init__(self, executable: str | None = None, width: int = 1400, height: int = 900, nice: int = 0,
+                 scale: float = 1.0):
         exe = executable or find_chromium()
         if not exe:
             raise BrowserError("no Chromium found (apt-get install chromium, or set LACUNA_CHROMIUM)")
@@ -66,9 +67,9 @@ class Browser:
             os.closerange(5, os.sysconf("SC_OPEN_MAX"))
             if nice:
                 os.nice(nice)
-                # and no right to raise it again: as root Chromium would set its browser, GPU and
-                # compositor threads to nice -8 (an ordinary user's browser cannot)
-                ctypes.CDLL(None, use_errno=True).prctl(PR_CAPBSET_DROP, CAP_SYS_NICE, 0, 0, 0)
+            # no right to raise its priority: as root Chromium would set its browser, GPU and
+            # compositor threads to nice -8 (an ordinary user's browser cannot)
+            ctypes.CDLL(None, use_errno=True).prctl(PR_CAPBSET_DROP, CAP_SYS_NICE, 0, 0, 0)
 
         self.log_path = os.path.join(self.profile, "chromium.log")
         self._log = open(self.log_path, "wb")
@@ -86,15 +87,17 @@ class Browser:
         self._reader = threading.Thread(target=self._read, name="cdp-read", daemon=True)
         self._reader.start()
         self.session: str | None = None
+        self.target = ""
+        self._other = ""  # a second tab, in front of ours while the page is hidden
         try:
-            target = self.call("Target.createTarget", {"url": "about:blank"},
-                               session=False)["targetId"]
+            target = self.target = self.call("Target.createTarget", {"url": "about:blank"},
+                                             session=False)["targetId"]
             self.session = self.call("Target.attachToTarget", {"targetId": target, "flatten": True},
                                      session=False)["sessionId"]
             self.call("Page.enable")
             self.call("Runtime.enable")
             self.call("Emulation.setDeviceMetricsOverride",
-                      {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False})
+                      {"width": width, "height": height, "deviceScaleFactor": scale, "mobile": False})
         except BaseException:
             self.close()
             raise
@@ -172,10 +175,44 @@ class Browser:
             fh.write(base64.b64decode(data))
         return path
 
+    def hide(self) -> None:
+        """Put another tab in front of the page, as a user switching tabs does: the page's
+        ``document.hidden`` turns true and Chromium stops its animation frames."""
+        if not self._other:
+            self._other = self.call("Target.createTarget", {"url": "about:blank", "newWindow": False},
+                                    session=False)["targetId"]
+        self.call("Target.activateTarget", {"targetId": self._other}, session=False)
+
+    def show(self) -> None:
+        """Bring the page's tab to the front again."""
+        self.call("Target.activateTarget", {"targetId": self.target}, session=False)
+
     def cpu_seconds(self) -> float:
         """User + system CPU seconds of Chromium and every process it started (Linux /proc)."""
+        return sum(self.cpu_by_process().values())
+
+    def cpu_by_process(self) -> dict[str, float]:
+        """CPU seconds of Chromium's processes by kind: ``browser`` (the one started), and each
+        child's ``--type`` (``renderer``: the page's script, layout and canvas raster;
+        ``gpu-process``: compositing, in software here; ``utility``, ``zygote``...), summed over
+        processes of one kind (Linux /proc)."""
         from clients.harness import cpu_seconds
 
+        out: dict[str, float] = {}
+        for pid in self._tree():
+            kind = "browser" if pid == self.proc.pid else "other"
+            try:
+                with open(f"/proc/{pid}/cmdline", "rb") as fh:
+                    for a in fh.read().replace(b"\0", b" ").split():  # (its children rewrite argv as one string)
+                        if a.startswith(b"--type="):
+                            kind = a[len(b"--type="):].decode(errors="replace")
+                            break
+            except OSError:
+                continue
+            out[kind] = out.get(kind, 0.0) + (cpu_seconds(pid) or 0.0)
+        return out
+
+    def _tree(self) -> list[int]:
         kids: dict[int, list[int]] = {}
         for d in os.listdir("/proc"):
             if d.isdigit():
@@ -185,12 +222,12 @@ class Browser:
                 except (OSError, ValueError, IndexError):
                     continue
                 kids.setdefault(ppid, []).append(int(d))
-        total, todo = 0.0, [self.proc.pid]
+        out, todo = [], [self.proc.pid]
         while todo:
             pid = todo.pop()
-            total += cpu_seconds(pid) or 0.0
+            out.append(pid)
             todo += kids.get(pid, [])
-        return total
+        return out
 
     def console_errors(self) -> list[str]:
         with self._cond:

@@ -20,8 +20,9 @@ URL_RE = re.compile(r"lacuna view: (http://\S+)")
 class ViewProcess:
     """``lacuna view ARGS --listen 127.0.0.1:0``; :attr:`url` once it printed its address."""
 
-    def __init__(self, args: Sequence[str], env: dict[str, str] | None = None):
+    def __init__(self, args: Sequence[str], env: dict[str, str] | None = None, cwd: str | None = None):
         self.args = list(args)
+        self.cwd = cwd  # (a directory holding another checkout's view/ package, to run that one)
         self.env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
         self.proc: subprocess.Popen | None = None
         self.url = ""
@@ -30,7 +31,7 @@ class ViewProcess:
     def start(self, timeout_s: float = START_TIMEOUT_S) -> ViewProcess:
         self.proc = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "view", *self.args, "--listen", "127.0.0.1:0"],
                                      stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     env=self.env, start_new_session=True)
+                                     env=self.env, cwd=self.cwd, start_new_session=True)
         assert self.proc.stdout is not None
         deadline = time.monotonic() + timeout_s
         out = b""
