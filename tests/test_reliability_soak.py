@@ -22,7 +22,8 @@ No wall-clock figure is asserted here (a descheduled process on a shared machine
 budget): the daemon's processing time against its 4 ms budget, the p99 tail, and whether the
 last third of the soak is slower than the first (a queue) are measured and checked by
 bench/reliability_soak.py (`--check`), which runs this same soak; docs/RELIABILITY.md has the
-figures.
+figures.  The bench also runs it starved (``soak(..., starve_duty=...)``: the daemon stopped and
+continued during the load) and judges memory there (``rss_checks``).
 """
 from __future__ import annotations
 
