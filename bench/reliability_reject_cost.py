@@ -1,9 +1,9 @@
 """CPU cost of one rejected message in the daemon, with and without the rejection log limit.
 
 Feeds seeded malformed messages (tests/fuzzgen.py, the fuzz test's generator) through the real
-``Daemon._handle`` (decode -> reject -> count -> log -> error answer encoded), its transport
+``Daemon._handle`` (daemon/loop.py) (decode -> reject -> count -> log -> error answer encoded), its transport
 replaced by a list and its JSON log written to /dev/null as it would be to a pipe.  Compares
-the daemon as built (``server.REJECT_LOG_PER_S`` rejection lines a second, the rest counted)
+the daemon as built (``dispatch.REJECT_LOG_PER_S`` rejection lines a second, the rest counted)
 with the limit lifted (one JSON line per rejection, as before the limit).  Process CPU time per
 message, medians over repeats, both variants interleaved so machine load hits them alike.
 
@@ -20,17 +20,18 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon import config, server, wire
-from daemon.server import Daemon, Log
+from daemon import config, dispatch, wire
+from daemon.log import Log
+from daemon.loop import Daemon
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import fuzzgen  # noqa: E402
 
-LIMIT = server.REJECT_LOG_PER_S
+LIMIT = dispatch.REJECT_LOG_PER_S
 
 
 def measure(d: Daemon, msgs: list[tuple[bytes, tuple]], limited: bool) -> float:
-    server.REJECT_LOG_PER_S = LIMIT if limited else 1 << 62  # read on every rejection
+    dispatch.REJECT_LOG_PER_S = LIMIT if limited else 1 << 62  # read on every rejection
     c0 = time.process_time()
     for data, origin in msgs:
         d._handle(data, origin, time.perf_counter())

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from crbm.filler import CRBMModel
+from crbm.filler import CRBMModel, Knobs
 from crbm.model import CRBM
 from mocap.representation import Representation
 
@@ -67,16 +67,14 @@ class CRBMEnsemble(CRBMModel):
         return np.mean([mm._one_step_prediction(hist) for mm in self._members], 0)
 
     def _fill_rows(self, state: dict[str, np.ndarray], rows: np.ndarray, zc: np.ndarray,
-                   obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                   obs: np.ndarray, kn: Knobs) -> tuple[np.ndarray, np.ndarray]:
         """Every member fills from the shared history; mean of the members' chain means (equal
         S each, so the mean of all chains) and pooled variance (within + between members)."""
         means, variances = [], []
         for i, mm in enumerate(self._members):
-            # the knobs live on the ensemble (the daemon and generate() set them there)
-            mm.n_gibbs, mm.n_chains, mm.mode, mm.init_noise = self.n_gibbs, self.n_chains, self.mode, self.init_noise
-            mm.final_step = self.final_step
-            mm._seed = self._seed + _SEED_STRIDE * i
-            f, s = mm._fill_rows(state, rows, zc, obs)
+            # the step's knobs are the ensemble's, handed down; member i samples with its own
+            # seed (the members' own knobs are never read or written)
+            f, s = mm._fill_rows(state, rows, zc, obs, kn._replace(seed=kn.seed + _SEED_STRIDE * i))
             means.append(f)
             variances.append(s * s)
         M = np.stack(means)

@@ -21,13 +21,19 @@ iterations (so it is informative even for S = 1).  The completed (mean) frame be
 its std is the spread of E[v | h] under the factorial hidden posterior,
 sqrt(sum_j W_ij^2 p_j (1 - p_j)).
 
-Runtime knobs (not learned; the daemon turns them under load, see ``set_iterations``):
-``n_gibbs`` (K), ``n_chains`` (S).  Every fill reports ``extras["gibbs_iterations"]``.
+Runtime knobs (not learned): ``n_gibbs`` (K), ``n_chains`` (S), ``mode``, ``init_noise``,
+``final_step`` and the sampler's ``seed``, fixed when the model is made.  A step never changes
+the model: the kernels take the step's knobs as an argument (``Knobs``), so one model can be
+stepped from several threads at different levels at once.  The daemon degrades with
+``step_batch(..., level=k)`` (K = k for that call); ``variant(...)`` gives a model with other
+knobs sharing the trained arrays (``crbm.generate`` uses one).  Every fill reports
+``extras["gibbs_iterations"]``.
 """
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.special import expit
@@ -53,6 +59,39 @@ def _logistic32(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
     u = rng.random(shape, dtype=np.float32)
     np.maximum(u, _TINY32, out=u)
     return np.log(u / (np.float32(1.0) - u))
+
+
+class Knobs(NamedTuple):
+    """One step's runtime settings, handed down to the kernels (never stored on the model by a step)."""
+
+    n_gibbs: int       # K
+    n_chains: int      # S
+    mode: str          # MODES
+    init_noise: float
+    final_step: str    # FINAL_STEPS
+    seed: int          # the sampler's seed: frame t of a stream draws from default_rng([seed, t])
+
+
+def _check_iterations(k: Any) -> int:
+    if isinstance(k, bool) or int(k) != k or k < 1:
+        raise ValueError(f"Gibbs iterations must be an integer >= 1 (got {k!r})")
+    return int(k)
+
+
+def _check_chains(s: Any) -> int:
+    if isinstance(s, bool) or int(s) != s or s < 1:
+        raise ValueError(f"chains must be an integer >= 1 (got {s!r})")
+    return int(s)
+
+
+def _check_mode(mode: Any) -> str:
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES} (got {mode!r})")
+    return str(mode)
+
+
+def _seed_of(seed: int | None) -> int:
+    return int(np.random.SeedSequence().entropy) if seed is None else int(seed)  # type: ignore[arg-type]
 
 
 class CRBMModel(FeatureModel):
@@ -81,13 +120,16 @@ class CRBMModel(FeatureModel):
 
     Degrading under load
     --------------------
-    ``step_batch(..., level=k)`` steps with K = k for that call only, leaving the model as it
-    is: the daemon's scheduler degrades that way (``quality_levels()``: K, K/2, ..., 1).
-    ``set_iterations(k)`` changes K for every following step (k >= 1; cost is linear in k) and
-    ``set_chains(s)`` changes S; both take effect at the next frame, keep all stream state, and
-    the value used is returned in ``Fill.extras["gibbs_iterations"]`` / ``["chains"]``.  A daemon
-    that needs a cheaper fill calls ``set_iterations(5)`` (or ``mode="mean-field"`` via
-    ``set_mode``), marks its replies degraded, and restores the default when the load drops.
+    ``step_batch(..., level=k)`` steps with K = k for that call only (cost is linear in K): the
+    level goes down to the kernels as an argument and the model is not touched, so concurrent
+    steps at different levels do not see each other.  The daemon's scheduler degrades that way
+    (``quality_levels()``: K, K/2, ..., 1); the value used is in ``Fill.extras["gibbs_iterations"]``.
+    ``variant(n_gibbs=..., n_chains=..., mode=..., seed=...)`` is a new model with other knobs
+    over the same trained arrays (streams of it are its own).
+
+    ``set_iterations``, ``set_chains``, ``set_mode`` and ``reseed`` change this model's knobs for
+    the following steps.  They are for offline experiments on a model nobody else is stepping;
+    nothing on the serving path calls them.
     """
 
     method = "crbm"
@@ -140,42 +182,53 @@ class CRBMModel(FeatureModel):
             out.append(v)
         return out
 
+    def knobs(self, level: int | None = None) -> Knobs:
+        """This model's knobs, with K = ``level`` when given (checked: an integer >= 1)."""
+        k = self.n_gibbs if level is None else _check_iterations(level)
+        return Knobs(k, self.n_chains, self.mode, self.init_noise, self.final_step, self._seed)
+
     def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
                    level: int | None = None) -> list[Fill]:
-        """``level``: K Gibbs iterations for this step only (None: the model's ``n_gibbs``)."""
-        if level is None or level == self.n_gibbs:
-            return super().step_batch(states, frames, observed)
-        if isinstance(level, bool) or int(level) != level or level < 1:
-            raise ValueError(f"Gibbs iterations must be an integer >= 1 (got {level!r})")
-        # (the kernels read n_gibbs; it is put back before the call returns, whatever happens,
-        # so no caller ever sees the model changed)
-        k, self.n_gibbs = self.n_gibbs, int(level)
-        try:
-            return super().step_batch(states, frames, observed)
-        finally:
-            self.n_gibbs = k
+        """``level``: K Gibbs iterations for this step only (None: the model's ``n_gibbs``).  The
+        level reaches the kernels as an argument; the model is not changed."""
+        if level is not None:
+            level = _check_iterations(level)
+        return super().step_batch(states, frames, observed, level=None if level == self.n_gibbs else level)
 
-    # ---- runtime knobs ----------------------------------------------------------------------------
+    def variant(self, *, n_gibbs: int | None = None, n_chains: int | None = None, mode: str | None = None,
+                seed: int | None | str = "same") -> CRBMModel:
+        """A model over the same trained arrays with other knobs (``seed=None``: fresh entropy;
+        the default keeps this model's seed).  This model is left as it is; the new one has a
+        state pool of its own."""
+        new = copy.copy(self)
+        new.__dict__.pop("_pool", None)           # streams of the variant are its own
+        new._mask_cache = {}
+        if n_gibbs is not None:
+            new.n_gibbs = _check_iterations(n_gibbs)
+        if n_chains is not None:
+            new.n_chains = _check_chains(n_chains)
+        if mode is not None:
+            new.mode = _check_mode(mode)
+        if seed != "same":
+            new.reseed(seed)  # type: ignore[arg-type]
+        return new
+
+    # ---- knobs of this model (offline experiments only: a model being stepped elsewhere must not
+    # change under it; the serving path passes ``level`` instead) ----------------------------------
     def set_iterations(self, k: int) -> None:
         """K alternating Gibbs iterations per frame for the following steps (k >= 1)."""
-        if isinstance(k, bool) or int(k) != k or k < 1:
-            raise ValueError(f"Gibbs iterations must be an integer >= 1 (got {k!r})")
-        self.n_gibbs = int(k)
+        self.n_gibbs = _check_iterations(k)
 
     def set_chains(self, s: int) -> None:
         """S parallel chains per stream for the following steps (s >= 1)."""
-        if isinstance(s, bool) or int(s) != s or s < 1:
-            raise ValueError(f"chains must be an integer >= 1 (got {s!r})")
-        self.n_chains = int(s)
+        self.n_chains = _check_chains(s)
 
     def set_mode(self, mode: str) -> None:
-        if mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES} (got {mode!r})")
-        self.mode = mode
+        self.mode = _check_mode(mode)
 
     def reseed(self, seed: int | None) -> None:
-        self._seed = int(np.random.SeedSequence(seed).entropy if seed is None else seed)
-        self._rng = np.random.default_rng(self._seed)   # kept for callers that save/restore it
+        self._seed = _seed_of(seed)
+        self._rng = np.random.default_rng(self._seed)   # (for callers that draw from the model's generator)
 
     def info(self) -> dict[str, Any]:
         d = super().info()
@@ -192,7 +245,11 @@ class CRBMModel(FeatureModel):
             st["hhist"] = np.zeros((n, self.level2.order * self.crbm.n_hidden))
         return st
 
-    def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray) -> CoreOut:
+    def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
+                  rows: np.ndarray | None = None, level: int | None = None) -> CoreOut:
+        """``level``: K for this step (None: the model's); everything else from ``knobs``.
+        (``rows``: unused, this core has no ``core_sparse_keys``.)"""
+        kn = self.knobs(level)
         hist, F = state["hist"], self._F
         first = state["count"] == 0
         if first.any():
@@ -201,7 +258,6 @@ class CRBMModel(FeatureModel):
         out = np.where(zobs, z, 0.0)
         std = np.zeros_like(out)
         need = ~zobs.all(1)
-        k = self.n_gibbs
         r = self.bias_rate
         if r > 0.0:
             # the stream's residual against the one-step prediction from its history (eq. 2, 3
@@ -211,7 +267,7 @@ class CRBMModel(FeatureModel):
             np.copyto(bias, (1.0 - r) * bias + r * (out - pred), where=zobs & ~first[:, None])
         rows = np.flatnonzero(need)
         if rows.size:
-            fill, sd = self._fill_rows(state, rows, out[rows], zobs[rows])
+            fill, sd = self._fill_rows(state, rows, out[rows], zobs[rows], kn)
             if r > 0.0:
                 fill = fill + np.where(zobs[rows], 0.0, state["bias"][rows])
             out[rows], std[rows] = fill, sd
@@ -220,7 +276,7 @@ class CRBMModel(FeatureModel):
         hist[:, F:] = hist[:, :-F].copy()
         hist[:, :F] = out
         state["count"] += 1
-        info = {"gibbs_iterations": k if self.mode == "gibbs" else 0, "chains": self.n_chains}
+        info = {"gibbs_iterations": kn.n_gibbs if kn.mode == "gibbs" else 0, "chains": kn.n_chains}
         return CoreOut(out, std, [dict(info) for _ in range(z.shape[0])])
 
     def _one_step_prediction(self, hist: np.ndarray) -> np.ndarray:
@@ -231,11 +287,13 @@ class CRBMModel(FeatureModel):
         return dyn[:, :F] + expit(hist[:, :F] @ self._W + dyn[:, F:]) @ self._WT
 
     def _fill_rows(self, state: dict[str, np.ndarray], rows: np.ndarray, zc: np.ndarray,
-                   obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """zc (m, F): observed values, 0 elsewhere; obs (m, F).  Returns fill and std (m, F)."""
+                   obs: np.ndarray, kn: Knobs) -> tuple[np.ndarray, np.ndarray]:
+        """zc (m, F): observed values, 0 elsewhere; obs (m, F); ``kn``: this step's knobs.  Returns
+        fill and std (m, F).  Reads the trained arrays only: nothing on ``self`` is written."""
         hist = state["hist"][rows]
         m, F, H = zc.shape[0], self._F, self.crbm.n_hidden
-        S = self.n_chains if self.mode == "gibbs" else 1
+        gibbs = kn.mode == "gibbs"
+        S = kn.n_chains if gibbs else 1
         dyn = hist @ self._AB + self._cb                  # (m, F + H): c*, b*  (section 3)
         bv, bh = dyn[:, :F], dyn[:, F:]
         if self.level2 is not None:
@@ -259,22 +317,21 @@ class CRBMModel(FeatureModel):
             vb, bh, prev = (np.repeat(a, S, axis=0) for a in (vb, bh, prev))
             if bv2 is not None:
                 bv2, bh2 = np.repeat(bv2, S, axis=0), np.repeat(bh2, S, axis=0)
-        if self.mode == "gibbs":
-            noise, L, L2 = self._draws(state["count"][rows], S, H)
-            v = prev + self.init_noise * (noise[:, mi] if same else noise)
+        if gibbs:
+            noise, L, L2 = self._draws(state["count"][rows], S, H, kn)
+            v = prev + kn.init_noise * (noise[:, mi] if same else noise)
         else:
             v = prev.copy()
         if not same:
             obsS = np.repeat(obs, S, axis=0) if S > 1 else obs
             zS = np.repeat(zc, S, axis=0) if S > 1 else zc
             np.copyto(v, zS, where=obsS)
-        K = self.n_gibbs
+        K = kn.n_gibbs
         nr = v.shape[0]
         a = np.empty((nr, H))
         h = np.empty_like(a)
         half = K // 2
         keep = np.empty((K - half,) + v.shape)
-        gibbs = self.mode == "gibbs"
         for it in range(K):
             np.matmul(v, W, out=a)
             a += bh                                        # eq. 2 logits: b* + v W
@@ -299,7 +356,7 @@ class CRBMModel(FeatureModel):
         # final mean-field step (section 5; the released code): the hidden probabilities given
         # the visibles the K-th iteration left (eq. 2), then the missing visibles at their mean
         # c* + p W^T (eq. 3) instead of one more sample ("otherwise very noisy")
-        if self.final_step == "last":
+        if kn.final_step == "last":
             np.matmul(v, W, out=a)
             a += bh
             if self.level2 is not None:
@@ -324,16 +381,16 @@ class CRBMModel(FeatureModel):
             return fill, std
         return np.where(obs, zc, mean), np.where(obs, 0.0, sd)
 
-    def _draws(self, counts: np.ndarray, S: int, H: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def _draws(self, counts: np.ndarray, S: int, H: int, kn: Knobs) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """The frame's random numbers, per stream from a generator keyed by (seed, frame index):
         init noise (m*S, F) and logistic noise (K, m*S, H) [and (K, m*S, H2) for level 2].
         h ~ Bernoulli(logistic(a))  <=>  h = [a > L] with L ~ Logistic(0, 1), so drawing L up
         front spares a logistic function per iteration."""
-        K, F = self.n_gibbs, self._F
+        K, F = kn.n_gibbs, self._F
         H2 = self.level2.n_hidden if self.level2 is not None else 0
         noise, L, L2 = [], [], []
         for c in counts:
-            g = np.random.default_rng([self._seed, int(c)])
+            g = np.random.default_rng([kn.seed, int(c)])
             noise.append(g.standard_normal((S, F)))
             L.append(_logistic32(g, (K, S, H)))
             if H2:

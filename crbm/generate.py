@@ -15,7 +15,8 @@ def generate(model: CRBMModel, seed_frames: np.ndarray, n_frames: int, seed: int
     """seed_frames: (m, C) raw frames at the model's frame rate, m >= order + 1 recommended (the
     first frame carries no root motion).  Returns (m + n_frames, C) raw frames, seed included.
 
-    The model's runtime knobs (K, chains, mode, sampler) are restored afterwards.
+    The model is not changed: generation steps a ``variant`` of it (one chain, Gibbs sampling,
+    the given seed and K) over the same trained arrays.
     """
     seed_frames = np.asarray(seed_frames, dtype=np.float64)
     if seed_frames.ndim != 2 or seed_frames.shape[1] != model.n_channels:
@@ -26,17 +27,10 @@ def generate(model: CRBMModel, seed_frames: np.ndarray, n_frames: int, seed: int
         raise ValueError("seed frames contain NaN or infinity")
     if int(n_frames) != n_frames or n_frames < 0:
         raise ValueError(f"frames must be a non-negative integer (got {n_frames!r})")
-    saved = (model.n_gibbs, model.n_chains, model.mode, model._seed, model._rng)
-    try:
-        model.reseed(seed)
-        model.set_chains(1)          # one sample path: averaging chains would blur the motion
-        model.set_mode("gibbs")
-        if n_gibbs is not None:
-            model.set_iterations(n_gibbs)
-        st = model.stream()
-        out = [st.step(f).frame for f in seed_frames]
-        for _ in range(int(n_frames)):
-            out.append(st.predict().frame)
-    finally:
-        model.n_gibbs, model.n_chains, model.mode, model._seed, model._rng = saved
+    # one sample path (averaging chains would blur the motion)
+    gen = model.variant(n_chains=1, mode="gibbs", seed=seed, n_gibbs=n_gibbs)
+    st = gen.stream()
+    out = [st.step(f).frame for f in seed_frames]
+    for _ in range(int(n_frames)):
+        out.append(st.predict().frame)
     return np.vstack(out)

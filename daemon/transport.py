@@ -39,6 +39,12 @@ _NOBLOCK = int(zmq.NOBLOCK)
 _MORE_NOBLOCK = int(zmq.SNDMORE | zmq.NOBLOCK)
 FLUSH_MAX = 64  # held answers sent at once, at most (fewer when the hwm is small)
 ZMQ_MAXMSG_MARGIN = 64 << 10  # bytes a frame may exceed max_message_bytes and still be read (and answered too_large)
+# messages ZeroMQ queues per peer for the daemon to read on the ROUTER, at most (a full queue
+# pushes back on the DEALER, nothing is dropped).  More is a backlog only: a starved daemon
+# (every frame answered `overdue`) held zmq.hwm = 1000 frames per stream in libzmq (64 streams:
+# RSS 130 -> 354 MB, none of it Python's; bench/notebook/immut.md), all conflated when read.
+# PULL and SUB keep zmq.hwm (SUB drops at its mark; PULL is one peer for every pusher).
+RCVHWM_ROUTER = 100
 
 
 class Transports:
@@ -76,7 +82,7 @@ class Transports:
         s: Socket = self.ctx.socket(kind)
         s.setsockopt(zmq.LINGER, 0)
         s.setsockopt(zmq.SNDHWM, c.zmq_hwm)
-        s.setsockopt(zmq.RCVHWM, c.zmq_hwm)
+        s.setsockopt(zmq.RCVHWM, min(c.zmq_hwm, RCVHWM_ROUTER) if kind == zmq.ROUTER else c.zmq_hwm)
         # a frame beyond this makes ZeroMQ disconnect the peer without reading it into memory;
         # between max_message_bytes and this the daemon reads it and answers `too_large`.  It
         # is per frame: the frames of a message beyond its envelope are dropped uncopied

@@ -104,7 +104,9 @@ class FeatureModel(Model):
                   rows: np.ndarray | None = None) -> CoreOut:
         """``rows`` (n,) int: only for a core with ``core_sparse_keys``; the pool rows of the batch,
         which index the arrays named there (those are then the whole pool).  None: every array
-        of ``state`` is the batch's own (n, ...)."""
+        of ``state`` is the batch's own (n, ...).  A core with degradation levels
+        (``quality_levels``) also takes ``level=`` (passed only when not None), as an argument:
+        the model itself never changes for a step."""
         raise NotImplementedError
 
     # ---- seam -----------------------------------------------------------------------------------
@@ -123,16 +125,20 @@ class FeatureModel(Model):
         return FeatureStream(self)
 
     def step_arrays(self, repr_state: ReprState, core_state: dict[str, np.ndarray],
-                    frames: np.ndarray, observed: np.ndarray,
-                    rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
-        """One vectorised step over n streams.  frames, observed: (n, C).  Returns (completed, std, extras)."""
+                    frames: np.ndarray, observed: np.ndarray, rows: np.ndarray | None = None,
+                    level: int | None = None) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
+        """One vectorised step over n streams.  frames, observed: (n, C).  Returns (completed, std, extras).
+        ``level`` (not None: one of ``quality_levels()``) goes to ``core_step`` as an argument."""
         # the representation's compiled code (mocap.fastrepr), stream by stream, where it may run:
         # the same arithmetic as ReprState's numpy in two calls instead of about a hundred and fifty
         # (CMU ASF's root convention only: another skeleton's root frame is numpy's, mocap.rootframe)
         rep = self.representation
         compiled = jit.enabled() and (rep.root is None or rep.root_mode != "relative")
         z, zobs = fastrepr.encode(repr_state, frames, observed) if compiled else repr_state.encode(frames, observed)
-        out = self.core_step(core_state, z, zobs) if rows is None else self.core_step(core_state, z, zobs, rows=rows)
+        kw: dict[str, Any] = {} if rows is None else {"rows": rows}
+        if level is not None:
+            kw["level"] = level
+        out = self.core_step(core_state, z, zobs, **kw)
         if compiled:
             completed, std = fastrepr.finish(repr_state, out.z, out.z_std, frames, observed)
         else:
@@ -151,22 +157,24 @@ class FeatureModel(Model):
         this core has none here (``step_arrays`` serves)."""
         return None
 
-    def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray) -> list[Fill]:
+    def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
+                   level: int | None = None) -> list[Fill]:
+        """``level`` (None: full quality) is handed to ``core_step``; the model is not changed."""
         mine = [s for s in states if isinstance(s, FeatureStream) and s.model is self]
         if len(mine) != len(states):
-            return super().step_batch(states, frames, observed)
+            return super().step_batch(states, frames, observed, level)
         frames = np.asarray(frames, dtype=np.float64)
         observed = np.asarray(observed, dtype=bool)
         n = len(mine)
         if n == 1:
             # one stream (the usual live case): the core's whole-step call when it has one, else
             # its slot is its own contiguous block
-            one = self.step_one(mine[0].slot, frames[0], observed[0])
+            one = self.step_one(mine[0].slot, frames[0], observed[0]) if level is None else None
             if one is not None:
                 return [one]
             lo = mine[0].slot
             rs, cs = self._views(lo, lo + 1)
-            done, std, extras = self.step_arrays(rs, cs, np.where(observed, frames, np.nan), observed)
+            done, std, extras = self.step_arrays(rs, cs, np.where(observed, frames, np.nan), observed, level=level)
             return [Fill(done[0], std[0], ~observed[0], extras[0] if extras else {})]
         slots = np.fromiter((s.slot for s in mine), dtype=np.intp, count=n)
         order = np.argsort(slots, kind="stable")
@@ -179,12 +187,12 @@ class FeatureModel(Model):
         if n and srt[-1] - srt[0] == n - 1:
             # contiguous slots: step the pool in place through views, nothing copied
             rs, cs = self._views(int(srt[0]), int(srt[-1]) + 1)
-            done, std, extras = self.step_arrays(rs, cs, given, observed)
+            done, std, extras = self.step_arrays(rs, cs, given, observed, level=level)
         else:
             rs = ReprState.of(self.representation, *(pool.repr[a][srt] for a in REPR_ATTRS))
             sparse = set(self.core_sparse_keys)
             cs = {k: (v if k in sparse else v[srt]) for k, v in pool.core.items()}
-            done, std, extras = self.step_arrays(rs, cs, given, observed, rows=srt if sparse else None)
+            done, std, extras = self.step_arrays(rs, cs, given, observed, rows=srt if sparse else None, level=level)
             for a in REPR_ATTRS:
                 pool.repr[a][srt] = getattr(rs, a)
             for k, v in cs.items():
