@@ -120,8 +120,8 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
                 r += mu[mi]
                 c = ri[mi]
                 if new:
-                    voff[c] = vh[c] - (mean[c] + r)
-                Qb[c] = wq * (mean[c] + r + voff[c] * a ** kk - vh[c])
+                    voff[c] = _wrap(vh[c] - (mean[c] + r))
+                Qb[c] = wq * _wrap(mean[c] + r + voff[c] * a ** kk - vh[c])
         pp = 0.0
         pq = 0.0
         qq2 = 0.0
