@@ -32,7 +32,7 @@ from lacuna.registry import MethodSpec, register_method
 _OPTIONS = ("hidden", "members", "order", "epochs", "seed", "history_noise", "positive_hidden", "bias_init_std",
             "batches", "average_last", "levels",
             "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "bias_rate", "fps", "progress",
-            "progress_every", "root_mode", "final_step")
+            "progress_every", "root_mode", "unwrap", "dtype", "final_step")
 
 VARIANTS: dict[str, dict[str, Any]] = {
     # the released code's input (raw root channels, crbm.released.RELEASED_INPUT) and training
