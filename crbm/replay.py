@@ -16,7 +16,12 @@ points at a directory holding it.  Ours then runs on the recorded draws:
   and 30 ``rand(1, H)`` (the Gibbs iterations' hidden states); ours draws h = [a > L] with
   L = logit(u), which is h = [logistic(a) > u].
 
-Used by tests/test_crbm_faithful_replay.py and bench/notebook/crbmleg.md.
+* the whole run (``train_on_streams``): ``OCTAVE_STREAMS`` regenerates every number the released
+  training draws for a seed, without training; ours trains 2000 epochs on them and lands on the
+  released code's own model of that seed (bench/crbm_released_draws.py).
+
+Used by tests/test_crbm_faithful_replay.py, bench/crbm_released_draws.py and
+bench/notebook/crbmleg.md.
 """
 from __future__ import annotations
 
@@ -101,6 +106,80 @@ end
 F = V(1:st+nf-1, :);
 save('-v7', getenv('OUT'), 'F', 'STEPS', 'RECN', 'RECU', 'st', 'miss', 'keep');
 """
+
+# every random number train.m + mixgaussiancrbm.m draw for SEED over EPOCHS epochs, regenerated
+# without training (the old generators' rand and randn streams are separate and fill matrices in
+# order, so one long call equals the sequence of the released code's calls): the permutation of
+# the valid frames, the initial weights (vishid, visbiases, hidbiases, pastvis, pasthid, in that
+# order), then per mini-batch 3 x 100 x F normals and 100 x H uniforms, written as float32
+OCTAVE_STREAMS = """more off; s = str2double(getenv('SEED')); E = str2double(getenv('EPOCHS')); rand('seed', s); randn('seed', s);
+S = load([getenv('DATA') '/cmu35_taylor/cmu35WalkJog.mat']); sd = std(S.Y,1); F = sum(sd > 1e-6);
+H = str2double(getenv('NUMHID')); [~, seq] = max(S.lbls, [], 2); nt = 3; valid = [];
+for i = nt+1:size(S.Y,1)
+  if all(seq(i-nt:i-1) == seq(i)), valid(end+1) = i; end
+end
+valid = valid(randperm(numel(valid))); nb = floor(numel(valid)/100);
+MB = reshape(valid(1:nb*100), 100, nb)';
+init = randn(F*H + F + H + nt*F*F + nt*F*H, 1);
+save('-v7', [getenv('OUT') '.mat'], 'MB', 'init', 'F', 'H', 'nt', 'E');
+fn = fopen([getenv('OUT') '.normals.f32'], 'w'); fu = fopen([getenv('OUT') '.uniforms.f32'], 'w');
+for e = 1:E
+  fwrite(fn, single(randn(nt*100*F*nb, 1)), 'single'); fwrite(fu, single(rand(100*H*nb, 1)), 'single');
+end
+fclose(fn); fclose(fu);
+"""
+
+
+class _Streams:
+    """The regenerated streams of ``OCTAVE_STREAMS`` (memory-mapped), in our layout."""
+
+    def __init__(self, prefix: str | Path, F: int, H: int, n: int):
+        self._N = np.memmap(f"{prefix}.normals.f32", np.float32, "r")
+        self._U = np.memmap(f"{prefix}.uniforms.f32", np.float32, "r")
+        self._F, self._H, self._n, self._i, self._j = F, H, n, 0, 0
+
+    def standard_normal(self, shape: tuple[int, ...]) -> np.ndarray:
+        F, n, m = self._F, self._n, shape[0]
+        a = np.asarray(self._N[self._i : self._i + n * m * F], np.float64).reshape(n, F, m).transpose(0, 2, 1)
+        self._i += n * m * F
+        return np.concatenate(list(a[::-1]), axis=1)     # t-3, t-2, t-1 -> newest first
+
+    def random(self, shape: tuple[int, ...]) -> np.ndarray:
+        m, H = shape
+        a = np.asarray(self._U[self._j : self._j + m * H], np.float64).reshape(H, m).T
+        self._j += m * H
+        return a
+
+
+def train_on_streams(prefix: str | Path, sequences: list[np.ndarray], progress=None) -> CRBM:
+    """Our faithful training (crbm.released.RELEASED) on the released code's own random numbers
+    for its whole run (``OCTAVE_STREAMS``'s files at ``prefix``); float64 parameters, as ``fit``."""
+    meta = _load(f"{prefix}.mat")
+    F, H, n, E = (int(meta[k]) for k in ("F", "H", "nt", "E"))
+    init = np.asarray(meta["init"], np.float64).ravel()
+    ours = CRBM(n_hidden=H, order=n, progress=progress, **RELEASED)
+    ours._init(F)
+    at = 0
+
+    def take(rows: int, cols: int) -> np.ndarray:     # single(0.01 * randn(rows, cols)), column-major
+        nonlocal at
+        a = init[at : at + rows * cols]
+        at += rows * cols
+        return np.asarray(0.01 * a, np.float32).astype(np.float64).reshape(cols, rows).T
+
+    rev = _reverse_blocks(n, F)
+    ours.W_, ours.c_, ours.b_ = take(F, H), take(1, F).ravel(), take(1, H).ravel()
+    ours.A_, ours.B_ = take(n * F, F)[rev], take(n * F, H)[rev]
+    ours._as_dtype()
+    ours._inc = {k: np.zeros_like(getattr(ours, k)) for k in ours._inc}
+    _, idx = ours._stack(sequences)
+    ours._batches, ours._batch_cases = list(np.atleast_2d(np.asarray(meta["MB"])).astype(int) - 1), idx
+    ours._rng = _Streams(prefix, F, H, n)
+    for _ in range(E):
+        ours.partial_fit(sequences)
+    for k in ("W_", "A_", "B_", "c_", "b_"):
+        setattr(ours, k, getattr(ours, k).astype(np.float64))
+    return ours
 
 
 def released_dir() -> Path | None:
