@@ -167,3 +167,19 @@ def test_the_released_code_in_octave_and_ours_agree_on_its_draws(data, tmp_path)
     mine, octave_fill = replay.replay_fill(tmp_path / "train.mat", tmp_path / "fill.mat")
     assert mine.shape == (10, 7)
     np.testing.assert_allclose(mine, octave_fill, rtol=0, atol=1e-9)
+
+
+def test_single_precision_training_as_the_released_code_returns_double_parameters():
+    """mixgaussiancrbm.m trains in single; crbmfill.m fills with double(M.vishid): ours trains in
+    float32 under RELEASED and hands float64 to the filler; the same seed in float64 stays close."""
+    rng = np.random.default_rng(8)
+    seqs = [np.cumsum(rng.standard_normal((60, 4)), 0) * 0.2 for _ in range(3)]
+    seen = []
+    m32 = CRBM(n_hidden=6, order=3, n_epochs=4, batch_size=20, random_state=2, **RELEASED,
+               progress=lambda e, err: seen.append(m32.W_.dtype))
+    m32.fit(seqs)
+    assert RELEASED["dtype"] == "float32" and set(seen) == {np.dtype(np.float32)}
+    assert all(getattr(m32, k).dtype == np.float64 for k in ("W_", "A_", "B_", "c_", "b_"))
+    m64 = CRBM(n_hidden=6, order=3, n_epochs=4, batch_size=20, random_state=2, **{**RELEASED, "dtype": "float64"}).fit(seqs)
+    d = np.abs(m32.W_ - m64.W_).max()
+    assert 0 < d < 1e-5, d        # the same draws, single-precision rounding only
