@@ -113,7 +113,8 @@ def _run_train(args: argparse.Namespace) -> int:
                             average_last=args.average_last, levels=args.levels, members=args.members,
                             n_gibbs=args.gibbs, n_chains=args.chains, mode=args.mode, bias_rate=args.bias_rate,
                             names=names, fps=fps, skeleton=args.skeleton, root_mode=args.root_mode,
-                            progress=not args.quiet)
+                            # the raw root is the released code's input: angles as captured too
+                            unwrap=args.root_mode != RELEASED_INPUT["root_mode"], progress=not args.quiet)
     if not args.protocol:
         from mocap.fk import skeleton_record
 

@@ -2,8 +2,9 @@
 
 * ``crbm``         the paper, faithfully, trained as Taylor's released code trains (CD-1 of
                    section 3 with N(0, 1) noise on the conditioning history, hidden probabilities
-                   in the data term, biases from N(0, 0.01^2), fixed mini-batches) on its input
-                   (the raw root channels, not body-centred), fill by K = 30
+                   in the data term, biases from N(0, 0.01^2), fixed mini-batches, single
+                   precision) on its input (the raw channels z-scored: root not body-centred,
+                   angles as captured, not unwrapped), fill by K = 30
                    clamped Gibbs iterations plus a final mean-field step, one chain (section 5).
 * ``crbm-mf``      deterministic mean-field fill (hidden probabilities, no noise) of a CRBM
                    trained as the paper's text says (section 3: sampled hiddens in the data term,
@@ -32,7 +33,7 @@ from lacuna.registry import MethodSpec, register_method
 _OPTIONS = ("hidden", "members", "order", "epochs", "seed", "history_noise", "positive_hidden", "bias_init_std",
             "batches", "average_last", "levels",
             "level2_hidden", "level2_epochs", "n_gibbs", "n_chains", "mode", "bias_rate", "fps", "progress",
-            "progress_every", "root_mode", "final_step")
+            "progress_every", "root_mode", "unwrap", "dtype", "final_step")
 
 VARIANTS: dict[str, dict[str, Any]] = {
     # the released code's input (raw root channels, crbm.released.RELEASED_INPUT) and training

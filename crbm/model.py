@@ -55,7 +55,7 @@ _PARAM_RANGES: dict[str, tuple[type, float, float | None]] = {
 }
 
 _CHOICES: dict[str, tuple[str, ...]] = {"positive_hidden": ("sample", "prob"), "visible": ("gaussian", "binary"),
-                                        "batches": ("reshuffle", "fixed")}
+                                        "batches": ("reshuffle", "fixed"), "dtype": ("float64", "float32")}
 
 
 class CRBM:
@@ -88,6 +88,10 @@ class CRBM:
     average_last : ``fit`` returns the average of the parameters over this final fraction of
         its epochs (0 = the paper: the last iterate).  Averaging the iterates of momentum SGD
         removes much of the epoch-to-epoch jitter that a free-running fill amplifies.
+    dtype : the arithmetic of training: "float64", or "float32" as the released code trains
+        (``train.m``: ``batchdata = single(Z)``; ``mixgaussiancrbm.m``: every parameter, increment
+        and statistic ``single``, the draws double and cast on use).  ``fit`` returns float64
+        parameters either way (``crbmfill.m``: ``W = double(M.vishid)``).
     random_state : int seed; training is reproducible given it.
     verbose : print reconstruction error per epoch on stderr (or call ``progress``).
 
@@ -103,7 +107,7 @@ class CRBM:
                  momentum_after: int = 5, batch_size: int = 100, n_epochs: int = 2000,
                  init_std: float = 0.01, bias_init_std: float = 0.0, batches: str = "reshuffle",
                  positive_hidden: str = "sample", history_noise: float = 0.0, visible: str = "gaussian",
-                 average_last: float = 0.0, random_state: int | None = 0, verbose: bool = False,
+                 average_last: float = 0.0, dtype: str = "float64", random_state: int | None = 0, verbose: bool = False,
                  progress: Callable[[int, float], None] | None = None):
         self.n_hidden = n_hidden
         self.order = order
@@ -121,6 +125,7 @@ class CRBM:
         self.history_noise = history_noise
         self.visible = visible
         self.average_last = average_last
+        self.dtype = dtype
         self.random_state = random_state
         self.verbose = verbose
         self.progress = progress
@@ -185,10 +190,19 @@ class CRBM:
         sb = self.bias_init_std
         self.c_ = r.normal(0.0, sb, nV) if sb > 0 else np.zeros(nV)
         self.b_ = r.normal(0.0, sb, nH) if sb > 0 else np.zeros(nH)
+        self._as_dtype()      # released: single(0.01*randn(...)), drawn in double, then cast
         self._inc = {k: np.zeros_like(getattr(self, k)) for k in ("W_", "A_", "B_", "c_", "b_")}
         self.n_epochs_done_ = 0
         self.recon_errors_: list[float] = []
         self._batches: list[np.ndarray] | None = None   # "fixed": cut on the first epoch
+
+    def _as_dtype(self) -> None:
+        """Parameters (and increments, once they exist) in the training arithmetic ``dtype``."""
+        dt = np.dtype(self.dtype)
+        for k in ("W_", "A_", "B_", "c_", "b_"):
+            setattr(self, k, getattr(self, k).astype(dt, copy=False))
+        for k, v in getattr(self, "_inc", {}).items():
+            self._inc[k] = v.astype(dt, copy=False)
 
     def _epoch_batches(self, idx: np.ndarray) -> list[np.ndarray]:
         """The epoch's mini-batches of case indices (never crossing a sequence: ``idx`` holds only
@@ -261,7 +275,7 @@ class CRBM:
         if self.history_noise > 0:
             # the released code: past = data(t - q) + randn, for the dynamic biases and for the
             # A and B statistics alike
-            hist = hist + self.history_noise * rng.standard_normal(hist.shape)
+            hist = hist + (self.history_noise * rng.standard_normal(hist.shape)).astype(hist.dtype, copy=False)
         bv, bh = self.c_ + hist @ self.A_, self.b_ + hist @ self.B_
         ph = expit(v @ self.W_ + bh)                                   # eq. 2
         hs = (rng.random(ph.shape) < ph).astype(v.dtype)
@@ -292,6 +306,9 @@ class CRBM:
         X, idx = self._stack(sequences)
         if not hasattr(self, "W_"):
             self._init(X.shape[1])
+        if self.W_.dtype != np.dtype(self.dtype):
+            self._as_dtype()
+        X = X.astype(self.dtype, copy=False)
         t0 = time.perf_counter()
         batches = self._epoch_batches(idx)
         # released code: no momentum in epochs 1-5, 0.9 from the 6th on
@@ -332,6 +349,8 @@ class CRBM:
         if E > start:
             for k in keys:
                 setattr(self, k, acc[k] / (E - start))
+        for k in keys:
+            setattr(self, k, getattr(self, k).astype(np.float64))
         return self
 
     def reconstruction_error(self, sequences: Sequence[np.ndarray], rng: np.random.Generator | None = None) -> float:

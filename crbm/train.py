@@ -62,11 +62,11 @@ def member_map(mapper):
 def fit_member(Z: Sequence[np.ndarray], i: int, *, hidden: int, order: int, epochs: int, history_noise: float,
                positive_hidden: str, average_last: float, seed: int, members: int, progress: bool,
                progress_every: int, bias_init_std: float = RELEASED["bias_init_std"],
-               batches: str = RELEASED["batches"]) -> CRBM:
+               batches: str = RELEASED["batches"], dtype: str = RELEASED["dtype"]) -> CRBM:
     """CD-1 on the features Z for member i (seed ``seed + MEMBER_SEED_STRIDE * i``)."""
     what = "crbm" if members == 1 else f"crbm member {i + 1}/{members}"
     m = CRBM(n_hidden=hidden, order=order, n_epochs=epochs, history_noise=history_noise,
-             positive_hidden=positive_hidden, bias_init_std=bias_init_std, batches=batches,
+             positive_hidden=positive_hidden, bias_init_std=bias_init_std, batches=batches, dtype=dtype,
              average_last=average_last, random_state=seed + MEMBER_SEED_STRIDE * i,
              progress=_progress_printer(what, progress_every) if progress else None)
     return m.fit(Z)
@@ -75,12 +75,12 @@ def fit_member(Z: Sequence[np.ndarray], i: int, *, hidden: int, order: int, epoc
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hidden: int = 150, order: int = 3,
                 epochs: int | None = None, seed: int = 0, history_noise: float = RELEASED["history_noise"],
                 positive_hidden: str = RELEASED["positive_hidden"], bias_init_std: float = RELEASED["bias_init_std"],
-                batches: str = RELEASED["batches"],
+                batches: str = RELEASED["batches"], dtype: str = RELEASED["dtype"],
                 average_last: float = 0.0, levels: int = 1, level2_hidden: int | None = None,
                 level2_epochs: int | None = None, members: int = 1, n_gibbs: int = 30, n_chains: int = 1, mode: str = "gibbs",
                 bias_rate: float = 0.0, final_step: str = "last",
                 method: str | None = None, names: Sequence[str] = (), fps: float | None = None,
-                root_mode: str = "relative", progress: bool = False, progress_every: int = 100,
+                root_mode: str = "relative", unwrap: bool = True, progress: bool = False, progress_every: int = 100,
                 skeleton: str | None = None) -> CRBMModel:
     """sequences: raw (n_i, C) frames in ``channels``.  Returns a trained CRBMModel.
 
@@ -97,7 +97,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
     if levels not in (1, 2):
         raise ValueError(f"levels must be 1 or 2 (got {levels!r})")
     t0 = time.perf_counter()
-    rep = Representation.fit(sequences, channels, root_mode=root_mode, normalize=True, skeleton=skeleton)
+    rep = Representation.fit(sequences, channels, root_mode=root_mode, unwrap=unwrap, normalize=True, skeleton=skeleton)
     Z = [rep.transform(s) for s in sequences]
     n_cases = sum(max(0, z.shape[0] - order) for z in Z)
     ep = auto_epochs(n_cases) if epochs is None else int(epochs)
@@ -107,7 +107,7 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], *, hid
     # tried and was slower with numpy here (6.5 s against 3 x 1.2 s for 30 epochs); the mapper
     # set with ``member_map`` (archive/crbm_dist.py) trains them on Dask workers instead
     kw = dict(hidden=hidden, order=order, epochs=ep, history_noise=history_noise, positive_hidden=positive_hidden,
-              bias_init_std=bias_init_std, batches=batches, average_last=average_last, seed=seed,
+              bias_init_std=bias_init_std, batches=batches, dtype=dtype, average_last=average_last, seed=seed,
               members=int(members), progress=progress, progress_every=progress_every)
     mapper = _MEMBER_MAP.get()
     fitted = ([fit_member(Z, i, **kw) for i in range(int(members))] if mapper is None

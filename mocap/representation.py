@@ -79,12 +79,13 @@ class Representation:
     root: dict[str, Any] | None = None    # root spec (mocap.rootframe); None = CMU ASF's root.*
     root_tau: float = 0.0                 # frames; damping of root motion over a root gap (0 = none)
     root_power: float = 1.0               # shape of that damping (1 exponential, 2 Gaussian)
+    unwrap: bool = True                   # False: angles as captured (Taylor's released code's input)
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
     def fit(cls, sequences: Sequence[np.ndarray], channels: Sequence[str], root_mode: str = "relative",
             normalize: bool = True, drop_constant: bool = True, skeleton: Any = None,
-            root_tau: float = 0.0, root_power: float = 1.0) -> Representation:
+            root_tau: float = 0.0, root_power: float = 1.0, unwrap: bool = True) -> Representation:
         """sequences: list of (n_frames, n_channels) raw frames.  ``skeleton``: a skeleton map
         (name, file or ``mocap.skelmap.SkeletonMap``) naming the root; else recognised from the
         channel names."""
@@ -109,7 +110,7 @@ class Representation:
                 keep[channels.index(c)] = True
         center = np.where(ang, circular_mean_deg(allf), 0.0)
         rep = cls(channels, keep.tolist(), allf[0].tolist(), center.tolist(), root_mode, normalize, root=root,
-                  root_tau=float(root_tau), root_power=float(root_power))
+                  root_tau=float(root_tau), root_power=float(root_power), unwrap=bool(unwrap))
         rep.features = rep._feature_names()
         rep.mean = [0.0] * len(rep.features)
         rep.std = [1.0] * len(rep.features)
@@ -148,7 +149,7 @@ class Representation:
 
     def to_dict(self) -> dict[str, Any]:
         d = {k: getattr(self, k) for k in ("channels", "keep", "const_value", "center", "root_mode",
-                                            "normalize", "mean", "std", "features", "root_tau", "root_power")}
+                                            "normalize", "mean", "std", "features", "root_tau", "root_power", "unwrap")}
         if self.root is not None:
             d["root"] = dict(self.root)
         return d
@@ -157,7 +158,8 @@ class Representation:
     def from_dict(cls, d: dict[str, Any]) -> Representation:
         rep = cls(**{k: d[k] for k in ("channels", "keep", "const_value", "center", "root_mode", "normalize",
                                         "mean", "std", "features")}, root=d.get("root"),
-                  root_tau=float(d.get("root_tau", 0.0)), root_power=float(d.get("root_power", 1.0)))
+                  root_tau=float(d.get("root_tau", 0.0)), root_power=float(d.get("root_power", 1.0)),
+                  unwrap=bool(d.get("unwrap", True)))
         n, f = len(rep.channels), len(rep.features)
         for k, want in (("keep", n), ("const_value", n), ("center", n), ("mean", f), ("std", f)):
             if len(getattr(rep, k)) != want:
@@ -193,7 +195,8 @@ class Representation:
                 if f in pos and not (self.root_mode == "relative" and (f in ROOT_FEATURES or self._is_root(f))):
                     direct_raw.append(pos[f])
                     direct_feat.append(j)
-            angle = np.array([is_angle(c) for c in ch])
+            # unwrap False: no channel is treated as an angle on the way in or out
+            angle = np.array([is_angle(c) for c in ch]) & bool(self.unwrap)
             self._plan_cache = {
                 "direct_raw": np.array(direct_raw, int),
                 "direct_feat": np.array(direct_feat, int),
