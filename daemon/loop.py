@@ -183,7 +183,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
     def run(self) -> None:
         try:
             while True:
-                pending = bool(self.sessions.waiting)  # (cost: the streams with a frame, not the open ones)
+                pending = bool(self.sessions.waiting or self.sessions.blocks)  # (cost: the streams with a frame, not the open ones)
                 timeout = 0 if pending else IDLE_POLL_MS
                 wd = self.notify.watchdog_due(time.monotonic())
                 if wd is not None:
@@ -314,6 +314,11 @@ class Daemon(Dispatch, Tick, Control, Reloading):
     def _send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
         if self.net is not None:
             self.net.send(origin, msg, publish)
+
+    def _send_fills(self, origin: Origin, maps: list[dict[str, Any]]) -> None:
+        """A bundle's fills as maps (daemon/tickblock.py): what :meth:`_send` of each does."""
+        if self.net is not None:
+            self.net.send_fill_maps(origin, maps)
 
     # ---- housekeeping / shutdown --------------------------------------------------------------
     def _housekeeping(self, now: float) -> None:
