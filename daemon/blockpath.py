@@ -44,6 +44,7 @@ class BlockPlan:
     gen: int  # SessionTable.gen when checked
     sessions: list[Session]  # in the bundle's order
     perm: list[int]  # bundle rows in the table's order
+    ident: bool  # perm is 0..n-1 (the studio sends its streams in the order it opened them)
     table: list[Session]  # the sessions in the table's order
     model: Model
     width: int
@@ -87,7 +88,7 @@ def plan_for(table: Any, block: FrameBlock, who: Any) -> BlockPlan | None:
     if len(set(key)) != len(key) or any(s.model is not model for s in got):
         return None
     perm = sorted(range(len(got)), key=lambda i: got[i].order)
-    plan = BlockPlan(key, table.gen, got, perm, [got[i] for i in perm], model, width)
+    plan = BlockPlan(key, table.gen, got, perm, perm == list(range(len(got))), [got[i] for i in perm], model, width)
     if len(plans) >= PLANS_MAX:
         plans.clear()
     plans[key] = plan
@@ -106,51 +107,57 @@ def take(table: Any, block: FrameBlock, origin: Origin, arrived: float, who: Any
     lasts = [s.last_seq for s in S]
     if None in lasts or not all(map(_GT, block.seqs, lasts)):  # type: ignore[arg-type]
         return False  # a first frame, or a late or duplicate one: answered by the row path
-    bases = [s.t_base for s in S]
-    if None in bases:
+    got = [s.t_base for s in S]
+    if None in got:
         return False
+    bases: list[float] = got  # type: ignore[assignment]
     now = table.clock()
     mte = table.recent.move_to_end
-    for s in S:
+    for s, t, b in zip(S, block.stamps, bases):
         s.last_active = now
         mte(s.sid)
-    # did the frames wait on their way?  (SessionTable.frame, as arrays: the same float64 sums)
-    off = arrived - np.array(block.stamps)
-    b = np.array(bases)
-    w = off - b
-    new = np.where((off < b) | (w > WAIT_PLAUSIBLE_S), off, b + w * WAIT_FOLLOW)
-    waited = ~(off < b) & (w <= WAIT_PLAUSIBLE_S) & (w >= WAIT_REPORT_S)
-    for s, v in zip(S, new.tolist()):
-        s.t_base = v
         s.counts["frames_in"] += 1
-    if waited.any():
-        for i in np.flatnonzero(waited).tolist():
-            s = S[i]
+        # did the frame wait on its way?  (SessionTable.frame: plain floats, cheaper than
+        # numpy on 64 values and the same sums)
+        off = arrived - t
+        if off < b:
+            s.t_base = off
+            continue
+        w = off - b
+        if w > WAIT_PLAUSIBLE_S:
+            s.t_base = off
+            continue
+        s.t_base = b + w * WAIT_FOLLOW
+        if w >= WAIT_REPORT_S:
             s.counts["waited"] += 1
             table.count("frames_waited", s.sid)
-            s.max_wait_s = max(s.max_wait_s, float(w[i]))
+            s.max_wait_s = max(s.max_wait_s, w)
     table.blocks.append(BlockWait(plan, block, origin, arrived))
     return True
 
 
-def inputs(block: FrameBlock, rows: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """The block's rows (in ``rows`` order) as model inputs: (n, C) float64 frames, NaN where
-    missing, and (n, C) observed (also what the replies count as sent)."""
-    v = block.values[rows]
-    mo = np.isfinite(v) if block.mask is None else block.mask[rows]
+def inputs(block: FrameBlock, rows: list[int] | None) -> tuple[np.ndarray, np.ndarray]:
+    """The block's rows (in ``rows`` order; None: as they are) as model inputs: (n, C) float64
+    frames, NaN where missing, and (n, C) observed (also what the replies count as sent)."""
+    v = block.values if rows is None else block.values[rows]
+    m = block.mask
+    mo = np.isfinite(v) if m is None else (m if rows is None else m[rows])
     return np.where(mo, v.astype(np.float64), np.nan), mo
 
 
-def fill_maps(block: FrameBlock, rows: list[int], frames: np.ndarray, std: np.ndarray, filled: np.ndarray,
-              sent: np.ndarray) -> tuple[np.ndarray, list[bytes], list[bytes], list[bytes]]:
-    """The replies' arrays, encoded at once: (angles, angle bytes, filled bytes, std bytes) per
-    row, as :func:`daemon.encode.fill_messages` and :func:`daemon.pack.fill_map` give them."""
-    given = block.values[rows]
+def fill_maps(block: FrameBlock, rows: list[int] | None, frames: np.ndarray, std: np.ndarray | None,
+              filled: np.ndarray | None, sent: np.ndarray) -> tuple[list[bytes], list[bytes], list[bytes]]:
+    """The replies' arrays, encoded at once: (angle bytes, filled bytes, std bytes) per row, as
+    :func:`daemon.encode.fill_messages` and :func:`daemon.pack.fill_map` give them.  ``std``
+    and ``filled`` None: zero everywhere (a pass-through's), one bytes object for every row."""
+    given = block.values if rows is None else block.values[rows]
     angles = np.where(sent, given, frames.astype(np.float32, copy=False))  # observed values exactly as sent
-    filled = filled & ~sent
-    std32 = np.ascontiguousarray(std, dtype=np.float32)
     n, C = angles.shape
-    ab, fb, sb = angles.tobytes(), filled.tobytes(), std32.tobytes()
     k4 = 4 * C
-    return (angles, [ab[i * k4:(i + 1) * k4] for i in range(n)], [fb[i * C:(i + 1) * C] for i in range(n)],
-            [sb[i * k4:(i + 1) * k4] for i in range(n)])
+    ab = angles.tobytes()
+    if filled is None or std is None:
+        fbs, sbs = [bytes(C)] * n, [bytes(k4)] * n
+    else:
+        fb, sb = (filled & ~sent).tobytes(), np.ascontiguousarray(std, dtype=np.float32).tobytes()
+        fbs, sbs = [fb[i * C:(i + 1) * C] for i in range(n)], [sb[i * k4:(i + 1) * k4] for i in range(n)]
+    return [ab[i * k4:(i + 1) * k4] for i in range(n)], fbs, sbs

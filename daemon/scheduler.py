@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from daemon.encode import STACK_MIN, fill_message, fill_messages, model_inputs
-from daemon.session import Session
+from daemon.session import Session, stepped_rows
 from lacuna.filler import Fill, Model
 
 SAFETY = 1.25  # multiply cost estimates: better to degrade a little early than overrun
@@ -299,14 +299,16 @@ class Scheduler:
         """What :meth:`run_rows` does to the streams of a pass-through model (whose fill is the
         frame, NaN where missing: ``frames`` itself), without a fill object per stream."""
         t0 = self.clock()
-        gaps = self._restart_gaps(group, seqs)
-        for s, g in zip(group, gaps):
-            if g > 0:
-                s.count("predicted", g)
+        gaps = [0 if s.model_seq is None else q - s.model_seq - 1 for s, q in zip(group, seqs)]
+        if max(gaps, default=0) > 0:
+            if max(gaps) > self.max_gap:
+                gaps = self._restart_gaps(group, seqs)
+            for s, g in zip(group, gaps):
+                if g > 0:
+                    s.count("predicted", g)
         self.last_step[id(model)] = self.clock()
         self.cost(model, None).observe(len(group), (self.clock() - t0) / (1 + max(gaps, default=0)))
-        for i, s in enumerate(group):
-            s.stepped(frames[i], seqs[i])
+        stepped_rows(group, frames, seqs)
 
     def _restart_gaps(self, group: list[Session], seqs: list[int] | None) -> list[int]:
         """Restart the filters too far behind; each stream's gap to its frame."""

@@ -206,6 +206,26 @@ class Session:
         return d
 
 
+def stepped_rows(sessions: list[Session], frames: np.ndarray, seqs: list[int]) -> None:
+    """:meth:`Session.stepped` for each stream of a bundle served as arrays: ``frames`` (n, C)
+    float64, a row each (daemon/tickblock.py; one loop, not n calls)."""
+    for s, f, q in zip(sessions, frames, seqs):
+        s.model_seq = q
+        s.last_out = f
+        s.held_streak = 0
+
+
+def filled_rows(sessions: list[Session], seqs: list[int], degraded: list[bool] | None) -> None:
+    """:meth:`Session.filled_seq` for each stream of a bundle served as arrays (None: none degraded)."""
+    for i, (s, q) in enumerate(zip(sessions, seqs)):
+        s.last_seq = q
+        s.late_streak = 0
+        c = s.counts
+        c["frames_out"] += 1
+        if degraded is not None and degraded[i]:
+            c["degraded"] += 1
+
+
 def _order(s: Session) -> int:
     return s.order
 

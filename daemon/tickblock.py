@@ -20,7 +20,7 @@ import numpy as np
 from daemon import blockpath, wire
 from daemon.blockpath import BlockWait
 from daemon.parts import Parts
-from daemon.session import Pending, Session
+from daemon.session import Pending, Session, filled_rows
 
 _NONE: dict[str, Any] = {}
 
@@ -42,21 +42,22 @@ class BlockTick(Parts):
             return False  # some are overdue before the step: the row path picks which
         sessions.blocks.clear()
         sessions.block_served += 1
-        block, rows = bw.block, plan.perm
-        seqs_all = block.seqs
-        seqs = [seqs_all[i] for i in rows]
+        block = bw.block
+        rows = None if plan.ident else plan.perm  # (None: the bundle is in the table's order)
+        seqs = block.seqs if rows is None else [block.seqs[i] for i in rows]
         mf, mo = blockpath.inputs(block, rows)
-        sent = mo
         model = plan.model
+        statuses: list[str] | None = None
         styles: list[Any] | None = None
         phases: list[Any] | None = None
         held: list[bool] | None = None
+        std: np.ndarray | None = None
+        filled: np.ndarray | None = None
         if model.passthrough:
             sched.passthrough_rows(model, S, seqs, mf)
             # answered oldest first, then the streams dropped `overdue` most (Tick._serve's sort)
-            order = sorted(range(n), key=lambda k: -S[k].late_streak) if any(late) else list(range(n))
-            statuses = None
-            frames, std, filled = mf[order], np.zeros((n, mf.shape[1])), np.zeros((n, mf.shape[1]), bool)
+            order = sorted(range(n), key=lambda k: -S[k].late_streak) if any(late) else None
+            frames = mf if order is None else mf[order]
         else:
             got = sched.run_rows(model, S, seqs, arrived, mf, mo)
             if n > 1:
@@ -68,69 +69,72 @@ class BlockTick(Parts):
                 frames, std, filled = _stack(fills, n, mf.shape[1])
             except Exception:  # noqa: BLE001 - fills that do not stack: the row path's tail names the one
                 for k in order:
-                    S[k].pending = _pending(bw, rows[k])
+                    S[k].pending = _pending(bw, k if rows is None else rows[k])
                 self._answer([g[1] for g in got], t0)
                 return True
             exs = [f.extras or _NONE for f in fills]
             styles, phases, held = _styles([ex.get("style") for ex in exs], n), [ex.get("phase") for ex in exs], \
                 [f.degraded for f in fills]
-        so = [S[k] for k in order]
-        qo = [seqs[k] for k in order]
-        ro = [rows[k] for k in order]
+        if order is None:  # (answer order = table order)
+            so, qo, ro, sent = S, seqs, rows, mo
+        else:
+            so, qo, sent = [S[k] for k in order], [seqs[k] for k in order], mo[order]
+            ro = order if rows is None else [rows[k] for k in order]
         self.metrics.inc("ticks")
         self.metrics.step_time(self.clock() - t0)
         t1 = self.clock()
-        gaps = [0 if s.last_seq is None else max(0, q - s.last_seq - 1) for s, q in zip(so, qo)]
-        _, ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent[order])
+        # (last_seq is never None here: blockpath.take leaves a first frame to the row path)
+        gaps = [q - s.last_seq - 1 for s, q in zip(so, qo)]  # type: ignore[operator]
+        ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
         t1e = self.clock()
         now = self.clock()
-        budget, sent_at, drop = sched.budget_s, sched.sent_at, self._drop_overdue
+        budget, drop, origin = sched.budget_s, self._drop_overdue, bw.origin
+        # the step ran longer than planned: the first k0 fills would leave over budget (Tick._answer
+        # checks each: sent_at(now, n - k, n) - arrived > budget, true for a prefix of them)
+        k0 = 0
+        if drop:
+            enc, snd = sched.encode_cost, sched.send_cost
+            while k0 < n and now + (n - k0) * enc + n * snd - arrived > budget:
+                k0 += 1
+            if k0:
+                self.metrics.inc("overdue_after_step", k0)
+                for k in range(k0):
+                    self._conflated.extend(sessions.overdue_seq(so[k], qo[k], origin))
+        out = so[k0:] if k0 else so
+        degs = None if statuses is None else [st == "degraded" for st in statuses[k0:]]
+        filled_rows(out, qo[k0:] if k0 else qo, degs)
+        stamps = block.stamps if ro is None else [block.stamps[r] for r in ro]
         proc_us = int((now - arrived) * 1e6)
-        stamps = block.stamps
         name = S[0].model_name
-        origin = bw.origin
-        maps: list[dict[str, Any]] = []
-        out: list[Session] = []
-        degraded = last_r = 0
-        for k in range(n):
-            s, q = so[k], qo[k]
-            if drop and sent_at(now, n - k, n) - arrived > budget:
-                # the step ran longer than planned: this fill would leave over budget (Tick._answer)
-                self.metrics.inc("overdue_after_step")
-                self._conflated.extend(sessions.overdue_seq(s, q, origin))
-                continue
-            status = "passthrough" if statuses is None else statuses[k]
-            deg = status == "degraded"
-            s.filled_seq(q, deg)
-            m = {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": stamps[ro[k]], "angles": ab[k],
-                 "filled": fb[k], "std": sb[k], "status": status, "model": name, "proc_us": proc_us}
-            if styles is not None and styles[k] is not None:
-                m["style"] = styles[k]
-            if phases is not None and (ph := phases[k]) is not None and math.isfinite(ph):
-                m["phase"] = float(ph)
-            if gaps[k]:
-                m["gap"] = gaps[k]
-            if deg:
-                degraded += 1
-                self.metrics.inc("degraded_held" if held is not None and held[k] else "degraded_iterations")
-            maps.append(m)
-            out.append(s)
-            last_r = ro[k]
-        if degraded:
-            self.metrics.inc("degraded", degraded)
+        status = "passthrough"
+        maps: list[dict[str, Any]] = [
+            {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
+             "status": status if statuses is None else statuses[k], "model": name, "proc_us": proc_us}
+            for k, s, q, t, a, f, d in zip(range(k0, n), out, qo[k0:], stamps[k0:], ab[k0:], fb[k0:], sb[k0:])]
+        if styles is not None or any(gaps):
+            for k, m in zip(range(k0, n), maps):
+                if styles is not None and styles[k] is not None:
+                    m["style"] = styles[k]
+                if phases is not None and (ph := phases[k]) is not None and math.isfinite(ph):
+                    m["phase"] = float(ph)
+                if gaps[k] > 0:
+                    m["gap"] = gaps[k]
+        if degs is not None and True in degs:
+            self.metrics.inc("degraded", sum(degs))
+            for k, dg in zip(range(k0, n), degs):
+                if dg:
+                    self.metrics.inc("degraded_held" if held is not None and held[k] else "degraded_iterations")
         if out:
             self.metrics.inc("frames_out", len(out))
         self._send_fills(origin, maps)
         te = self.clock()
         self._send_held(len(out))
         if out and self.prewarm.on:
-            self.prewarm.served(out[-1], _frame(block, last_r), arrived, sched)
+            self.prewarm.served(out[-1], _frame(block, n - 1 if ro is None else ro[-1]), arrived, sched)
         t2 = self.clock()
         sched.observe_replies(n, te - t1e, t2 - t1)
-        lat = self.metrics.latency
         wait = t2 - arrived
-        for _ in out:
-            lat(wait)
+        self.metrics.latencies(wait, len(out))
         if out and wait > budget:
             for s in out:
                 s.count("over_budget")

@@ -168,3 +168,17 @@ def test_block_path_answers_and_state_equal_row_path(case, seed):
         ref.sent.clear()
     # the array path did serve (not only decline)
     assert fast.sessions.block_served > 0 and ref.sessions.block_served == 0
+
+
+@pytest.mark.parametrize("start,n", [(0, 5), (19990, 30), (5, 20000), (19999, 1)])
+def test_latencies_equal_latency_n_times(start, n):
+    from daemon.metrics import Metrics
+
+    a, b = Metrics(), Metrics()
+    for m in (a, b):
+        m._n = start
+        m._lat[:] = -1.0
+    a.latencies(0.25, n)
+    for _ in range(n):
+        b.latency(0.25)
+    assert a._n == b._n and a._lat.tobytes() == b._lat.tobytes()
