@@ -42,6 +42,7 @@ class BlockTick(Parts):
             return False  # some are overdue before the step: the row path picks which
         sessions.blocks.clear()
         sessions.block_served += 1
+        self.metrics.inc("bundles_as_arrays")  # (status: how many bundles took this path)
         block = bw.block
         rows = None if plan.ident else plan.perm  # (None: the bundle is in the table's order)
         seqs = block.seqs if rows is None else [block.seqs[i] for i in rows]
