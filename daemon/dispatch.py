@@ -13,8 +13,8 @@ from __future__ import annotations
 from collections.abc import Generator
 from typing import Any
 
+from daemon import blockpath, osc, wire
 from daemon import budget as budgets
-from daemon import osc, wire
 from daemon.parts import Parts
 from daemon.session import Origin, SessionError, principal
 
@@ -274,6 +274,10 @@ class Dispatch(Parts):
         who = principal(origin)
         if origin[0] == "router":
             origin = (*origin, "bundle")
+            # the usual bundle: its frames taken as one block, served as arrays (daemon/blockpath.py)
+            if msg.block is not None and blockpath.take(self.sessions, msg.block, origin, arrived, who):
+                self.metrics.inc("frames_in", len(msg.block))
+                return
         for f in msg.items:
             if isinstance(f, wire.WireError):
                 self._reject(origin, f.reason, f.detail, f.stream, f.seq)

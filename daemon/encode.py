@@ -115,7 +115,7 @@ def _identity_fills(items: list[tuple[Session, Fill, str]], C: int, now: float) 
     filled &= ~sent
     exs = [fl.extras or _NONE for _, fl, _ in items]
     styles: Any = [ex.get("style") for ex in exs]
-    if None not in styles:
+    if all(st is not None for st in styles):  # (not `None in`: == on an array is elementwise)
         try:  # every stream has a style posterior: one (n, K) float32 array, a row each
             styles = np.array(styles, dtype=np.float32).reshape(n, -1)
         except ValueError:  # posteriors of different lengths (two models' streams): one by one

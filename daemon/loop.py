@@ -9,7 +9,8 @@ metrics snapshot, signal flags).  Signal handlers only set flags.  A reload (dae
 loads and checks the new models on a helper thread and swaps them between two turns, so no
 frame is dropped or held up by the load; a file that fails keeps the old model and the log
 says why.  Control requests: daemon/control.py.  The data flow, file by file: transport.py ->
-dispatch.py (decode -> session.py) -> tick.py (scheduler.py -> wire.py's encode).
+dispatch.py (decode -> session.py) -> tick.py (scheduler.py -> wire.py's encode); a studio's
+regular bundle takes the same steps as arrays: blockpath.py (decode -> sessions) -> tickblock.py.
 """
 from __future__ import annotations
 
@@ -183,7 +184,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
     def run(self) -> None:
         try:
             while True:
-                pending = bool(self.sessions.waiting)  # (cost: the streams with a frame, not the open ones)
+                pending = bool(self.sessions.waiting or self.sessions.blocks)  # (cost: the streams with a frame, not the open ones)
                 timeout = 0 if pending else IDLE_POLL_MS
                 wd = self.notify.watchdog_due(time.monotonic())
                 if wd is not None:
@@ -314,6 +315,11 @@ class Daemon(Dispatch, Tick, Control, Reloading):
     def _send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None:
         if self.net is not None:
             self.net.send(origin, msg, publish)
+
+    def _send_fills(self, origin: Origin, maps: list[dict[str, Any]]) -> None:
+        """A bundle's fills as maps (daemon/tickblock.py): what :meth:`_send` of each does."""
+        if self.net is not None:
+            self.net.send_fill_maps(origin, maps)
 
     # ---- housekeeping / shutdown --------------------------------------------------------------
     def _housekeeping(self, now: float) -> None:

@@ -34,6 +34,13 @@ class Metrics:
         self._lat[self._n % WINDOW] = seconds
         self._n += 1
 
+    def latencies(self, seconds: float, n: int) -> None:
+        """:meth:`latency` ``n`` times (a bundle's frames, all received and sent together)."""
+        a, b = self._n % WINDOW, self._n % WINDOW + min(n, WINDOW)
+        self._lat[a:min(b, WINDOW)] = seconds
+        self._lat[: max(0, b - WINDOW)] = seconds
+        self._n += n
+
     def step_time(self, seconds: float) -> None:
         self._step[self._ns % WINDOW] = seconds
         self._ns += 1

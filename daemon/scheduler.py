@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from daemon.encode import STACK_MIN, fill_message, fill_messages, model_inputs
-from daemon.session import Session
+from daemon.session import Session, stepped_rows
 from lacuna.filler import Fill, Model
 
 SAFETY = 1.25  # multiply cost estimates: better to degrade a little early than overrun
@@ -97,6 +97,9 @@ def _step_batch(model: Model, states: list[Any], frames: np.ndarray, observed: n
     if level is None:
         return model.step_batch(states, frames, observed)
     return model.step_batch(states, frames, observed, level=level)
+
+
+Rows = tuple[list[int], np.ndarray, np.ndarray]  # (seqs, (n, C) frames, (n, C) observed) of a bundle's streams
 
 
 class Scheduler:
@@ -173,20 +176,29 @@ class Scheduler:
         return out
 
     # ---- planning ---------------------------------------------------------------------------
-    def _gap(self, s: Session) -> int:
-        p = s.pending
-        assert p is not None
+    def _gap(self, s: Session, seq: int | None = None) -> int:
+        """Frames the filter of ``s`` missed before its waiting frame (or frame ``seq``)."""
         if s.model_seq is None:
             return 0
-        return p.frame.seq - s.model_seq - 1
+        if seq is None:
+            p = s.pending
+            assert p is not None
+            seq = p.frame.seq
+        return seq - s.model_seq - 1
 
-    def plan(self, model: Model, group: list[Session], now: float) -> StepPlan:
-        """Decide level and which streams step (the rest hold).  Pure apart from reading costs."""
+    def plan(self, model: Model, group: list[Session], now: float, arrived: float | None = None,
+             seqs: list[int] | None = None) -> StepPlan:
+        """Decide level and which streams step (the rest hold).  Pure apart from reading costs.
+        (``arrived``, ``seqs``: the oldest receipt and each stream's frame, for a bundle served
+        as arrays, whose frames are in no pending slot.)"""
         if model.passthrough:
             return StepPlan(group, [], None, False)
-        deadline = min(s.pending.arrived for s in group) + self.budget_s  # type: ignore[union-attr]
+        if arrived is None:
+            arrived = min(s.pending.arrived for s in group)  # type: ignore[union-attr]
+        deadline = arrived + self.budget_s
         avail = deadline - now - self.reply_cost * len(group)
-        rounds = 1 + max(min(self._gap(s), self.max_gap) for s in group)
+        gaps = [self._gap(s) for s in group] if seqs is None else [self._gap(s, q) for s, q in zip(group, seqs)]
+        rounds = 1 + max(min(g, self.max_gap) for g in gaps)
         levels = levels_of(model)
         # a model about as cheap as holding gains nothing from degrading: frames already late
         # (queued while the daemon was busy) are better served in full
@@ -241,11 +253,17 @@ class Scheduler:
         last = s.last_out if s.last_out is not None else np.full(frame.shape, np.nan)
         return self._held(s, *_hold_rows(frame, obs, last))
 
-    def _hold_many(self, group: list[Session]) -> list[tuple[Session, Fill, str]]:
+    def _hold_many(self, group: list[Session], rows: Rows | None = None) -> list[tuple[Session, Fill, str]]:
         """:meth:`_hold` for every stream of a group, as (n, C) arrays when there are enough
         streams of one width to pay for the stacking (holding is what the daemon does when it
-        is short of time: per stream it must cost a few microseconds, not a few dozen)."""
+        is short of time: per stream it must cost a few microseconds, not a few dozen).
+        ``rows``: (seqs, frames, observed) of a bundle served as arrays."""
         C = group[0].mapping.n_model
+        if rows is not None:
+            seqs, frames, obs = rows
+            last = np.array([np.full(C, np.nan) if s.last_out is None else s.last_out for s in group])
+            out, std, filled = _hold_rows(frames, obs, last)
+            return [self._held(s, out[i], std[i], filled[i], seqs[i]) for i, s in enumerate(group)]
         if len(group) < STACK_MIN or any(s.last_out is None or s.last_out.shape != (C,) for s in group):
             return [self._hold(s) for s in group]
         frames, obs = model_inputs(group, C)
@@ -253,16 +271,63 @@ class Scheduler:
         return [self._held(s, out[i], std[i], filled[i]) for i, s in enumerate(group)]
 
     @staticmethod
-    def _held(s: Session, out: np.ndarray, std: np.ndarray, filled: np.ndarray) -> tuple[Session, Fill, str]:
-        s.held(out)
+    def _held(s: Session, out: np.ndarray, std: np.ndarray, filled: np.ndarray,
+              seq: int | None = None) -> tuple[Session, Fill, str]:
+        s.held(out, seq)
         return s, Fill(out, std, filled, {}, True), "degraded"
 
-    def _step(self, model: Model, plan: StepPlan) -> list[tuple[Session, Fill, str]]:
-        group = plan.step
-        for s in group:
-            if s.model_seq is not None and self._gap(s) > self.max_gap:
+    def run_rows(self, model: Model, group: list[Session], seqs: list[int], arrived: float, frames: np.ndarray,
+                 observed: np.ndarray) -> list[tuple[int, tuple[Session, Fill, str]]]:
+        """:meth:`run` for one group (at most max_batch streams) of a bundle served as arrays
+        (daemon/blockpath.py): the streams' frames are ``seqs`` and the (n, C) model inputs;
+        returns (row, (session, fill, status)) in the order :meth:`run` gives them."""
+        plan = self.plan(model, group, self.clock(), arrived, seqs)
+        out: list[tuple[int, tuple[Session, Fill, str]]] = []
+        pos = {id(s): i for i, s in enumerate(group)} if plan.hold else None
+        if plan.hold:
+            idx = [pos[id(s)] for s in plan.hold]  # type: ignore[index]
+            t0 = self.clock()
+            out.extend(zip(idx, self._hold_many(plan.hold, ([seqs[i] for i in idx], frames[idx], observed[idx]))))
+            self.hold_cost.observe(len(plan.hold), self.clock() - t0)
+        if plan.step:
+            idx = list(range(len(group))) if pos is None else [pos[id(s)] for s in plan.step]
+            rows = ([seqs[i] for i in idx], frames[idx], observed[idx]) if pos is not None else (seqs, frames, observed)
+            out.extend(zip(idx, self._step(model, plan, rows)))
+        return out
+
+    def passthrough_rows(self, model: Model, group: list[Session], seqs: list[int], frames: np.ndarray) -> None:
+        """What :meth:`run_rows` does to the streams of a pass-through model (whose fill is the
+        frame, NaN where missing: ``frames`` itself), without a fill object per stream."""
+        t0 = self.clock()
+        gaps = [0 if s.model_seq is None else q - s.model_seq - 1 for s, q in zip(group, seqs)]
+        if max(gaps, default=0) > 0:
+            if max(gaps) > self.max_gap:
+                gaps = self._restart_gaps(group, seqs)
+            for s, g in zip(group, gaps):
+                if g > 0:
+                    s.count("predicted", g)
+        self.last_step[id(model)] = self.clock()
+        self.cost(model, None).observe(len(group), (self.clock() - t0) / (1 + max(gaps, default=0)))
+        stepped_rows(group, frames, seqs)
+
+    def _restart_gaps(self, group: list[Session], seqs: list[int] | None) -> list[int]:
+        """Restart the filters too far behind; each stream's gap to its frame."""
+        if seqs is None:
+            for s in group:
+                if s.model_seq is not None and self._gap(s) > self.max_gap:
+                    s.gap_restart()
+            return [self._gap(s) for s in group]
+        for s, q in zip(group, seqs):
+            if s.model_seq is not None and self._gap(s, q) > self.max_gap:
                 s.gap_restart()
-        gaps = [self._gap(s) for s in group]
+        return [self._gap(s, q) for s, q in zip(group, seqs)]
+
+    def _step(self, model: Model, plan: StepPlan, rows: Rows | None = None) -> list[tuple[Session, Fill, str]]:
+        """Step ``plan.step``: their waiting frames, or ``rows`` (seqs, frames, observed) of a
+        bundle served as arrays."""
+        group = plan.step
+        seqs = rows[0] if rows is not None else None
+        gaps = self._restart_gaps(group, seqs)
         C = group[0].mapping.n_model
         levels = levels_of(model)
         level = plan.iterations if plan.iterations != levels[0] else None  # (None: full quality)
@@ -275,14 +340,14 @@ class Scheduler:
                             level)
                 for s in who:
                     s.count("predicted")
-            mf, mo = model_inputs(group, C)
+            mf, mo = model_inputs(group, C) if rows is None else rows[1:]
             fills = _step_batch(model, [s.state for s in group], mf, mo, level)
         except Exception as e:  # noqa: BLE001 - a model bug must not stop the daemon: pass the frames through
             self.step_errors += 1
             self.last_error = f"{type(e).__name__}: {e}"[:300]
             out = []
-            for s in group:
-                f, _ = s.to_model(s.pending.frame)  # type: ignore[union-attr]
+            for i, s in enumerate(group):
+                f = s.to_model(s.pending.frame)[0] if rows is None else np.array(rows[1][i])  # type: ignore[union-attr]
                 s.restart()
                 out.append((s, Fill(f, np.zeros(C), np.zeros(C, bool)), "passthrough"))
             return out
@@ -291,8 +356,8 @@ class Scheduler:
         self.cost(model, plan.iterations).observe(len(group), dt / (1 + max(gaps, default=0)))
         status = "passthrough" if model.passthrough else ("degraded" if plan.degraded else "ok")
         out = []
-        for s, fill in zip(group, fills):
-            s.stepped(fill.frame)
+        for i, (s, fill) in enumerate(zip(group, fills)):
+            s.stepped(fill.frame, None if seqs is None else seqs[i])
             out.append((s, fill, status))
         return out
 

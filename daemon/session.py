@@ -142,32 +142,44 @@ class Session:
     def filled(self, degraded: bool) -> Pending:
         """The waiting frame's fill goes out (``degraded``: held or at a cheaper level)."""
         p = self.answered()
+        self.filled_seq(p.frame.seq, degraded)
+        return p
+
+    def filled_seq(self, seq: int, degraded: bool) -> None:
+        """:meth:`filled` for frame ``seq`` of a bundle served as arrays (daemon/blockpath.py),
+        which never sat in the pending slot."""
+        self.last_seq = seq
         self.late_streak = 0
         self.counts["frames_out"] += 1
         if degraded:
             self.counts["degraded"] += 1
-        return p
 
     def gap_restart(self) -> None:
         """Too many frames missed for the filter to predict through: start it afresh."""
         self.restart()
         self.counts["restarts"] += 1
 
-    def stepped(self, frame: np.ndarray) -> None:
-        """The filter took the waiting frame and completed it to ``frame`` (model space)."""
-        assert self.pending is not None
-        self.model_seq = self.pending.frame.seq
+    def stepped(self, frame: np.ndarray, seq: int | None = None) -> None:
+        """The filter took the waiting frame (or frame ``seq`` of a bundle served as arrays)
+        and completed it to ``frame`` (model space)."""
+        if seq is None:
+            assert self.pending is not None
+            seq = self.pending.frame.seq
+        self.model_seq = seq
         self.last_out = np.asarray(frame, dtype=np.float64)
         self.held_streak = 0
 
-    def held(self, out: np.ndarray) -> None:
-        """The waiting frame is answered by hold-last-value (``out``); the filter skips it
-        rather than predicting it later (replaying held frames when the stream steps again
-        would cost the time the daemon is short of: a death spiral)."""
-        assert self.pending is not None
+    def held(self, out: np.ndarray, seq: int | None = None) -> None:
+        """The waiting frame (or frame ``seq`` of a bundle served as arrays) is answered by
+        hold-last-value (``out``); the filter skips it rather than predicting it later
+        (replaying held frames when the stream steps again would cost the time the daemon is
+        short of: a death spiral)."""
+        if seq is None:
+            assert self.pending is not None
+            seq = self.pending.frame.seq
         self.last_out = out
         if self.model_seq is not None:
-            self.model_seq = self.pending.frame.seq
+            self.model_seq = seq
         self.held_streak += 1
         self.counts["held"] += 1
 
@@ -192,6 +204,26 @@ class Session:
                  idle_s=round(time.perf_counter() - self.last_active, 3), max_wait_ms=round(self.max_wait_s * 1e3, 1))
         d["dropped"] = sum(v for k, v in self.counts.items() if k.startswith("dropped_"))
         return d
+
+
+def stepped_rows(sessions: list[Session], frames: np.ndarray, seqs: list[int]) -> None:
+    """:meth:`Session.stepped` for each stream of a bundle served as arrays: ``frames`` (n, C)
+    float64, a row each (daemon/tickblock.py; one loop, not n calls)."""
+    for s, f, q in zip(sessions, frames, seqs):
+        s.model_seq = q
+        s.last_out = f
+        s.held_streak = 0
+
+
+def filled_rows(sessions: list[Session], seqs: list[int], degraded: list[bool] | None) -> None:
+    """:meth:`Session.filled_seq` for each stream of a bundle served as arrays (None: none degraded)."""
+    for i, (s, q) in enumerate(zip(sessions, seqs)):
+        s.last_seq = q
+        s.late_streak = 0
+        c = s.counts
+        c["frames_out"] += 1
+        if degraded is not None and degraded[i]:
+            c["degraded"] += 1
 
 
 def _order(s: Session) -> int:

@@ -45,6 +45,23 @@ class SessionTable:
         self.expired = 0
         self.idle_s = float("inf")  # an owner silent this long gives its stream up (the daemon sets idle_timeout_s)
         self.takeovers = 0  # streams taken over by a claim token or from a silent owner
+        # a regular bundle's frames waiting as one block (daemon/blockpath.py), and the checks of
+        # its streams, valid while `gen` (bumped by every change of a session's identity, owner,
+        # model or mapping) is unchanged
+        self.blocks: list[Any] = []
+        self.block_plans: dict[tuple[str, ...], Any] = {}
+        self.gen = 0
+        self.block_path = True  # (False: every bundle frame by frame; tests compare the two)
+        self.block_served = 0  # bundles served as arrays
+
+    def materialize(self) -> None:
+        """The blocks waiting become the pending slots they stand for (before anything that
+        reads or changes a session's pending slot: then the row path goes on as if it had
+        taken those frames one by one)."""
+        if self.blocks:
+            blocks, self.blocks = self.blocks, []
+            for bw in blocks:
+                bw.to_pending(self.waiting)
 
     # ---- ownership --------------------------------------------------------------------------
     def _owned(self, s: Session, who: Any, claim: str | None = None) -> bool:
@@ -71,6 +88,8 @@ class SessionTable:
             raise SessionError("unknown_model", str(e.args[0])) from None
 
     def _new(self, sid: str, studio: list[str] | None, model_req: str | None, width: int = 0) -> Session:
+        self.materialize()
+        self.gen += 1
         if sid not in self.sessions and len(self.sessions) >= self.max_streams:
             raise SessionError("too_many_streams", f"{len(self.sessions)} streams are open, the limit is {self.max_streams}")
         name, model = self._resolve(model_req, sid)
@@ -97,6 +116,7 @@ class SessionTable:
 
     def hello(self, msg: wire.Hello, who: Any = None) -> tuple[wire.HelloAck, Out]:
         """(ack, answers for a frame that was waiting under the old handshake)."""
+        self.materialize()
         old = self.sessions.get(msg.stream)
         if old is not None and not self._owned(old, who, msg.claim):
             raise self._foreign(msg.stream, "hello")
@@ -117,6 +137,8 @@ class SessionTable:
 
     def reset(self, sid: str, who: Any = None, operator: bool = False) -> tuple[bool, Out]:
         """End stream ``sid``: its owner may, an operator may end anyone's."""
+        self.materialize()
+        self.gen += 1
         old = self.sessions.get(sid)
         if old is not None and not operator and not self._owned(old, who):
             raise self._foreign(sid, "reset")
@@ -127,6 +149,7 @@ class SessionTable:
     def release(self, sid: str, who: Any = None) -> bool:
         """The owner gives its stream up (a client closing): state and counters stay, and the
         next principal to send a frame or hello for it owns it."""
+        self.gen += 1
         s = self.sessions.get(sid)
         if s is None:
             return False
@@ -147,6 +170,7 @@ class SessionTable:
     def expire(self, now: float, idle_s: float) -> list[str]:
         """End the streams idle for more than ``idle_s``: from the least recently active, up to
         the first that is not (cost: the streams expired, not the streams open)."""
+        self.materialize()
         gone = []
         for sid in self.recent:
             s = self.sessions[sid]
@@ -154,6 +178,8 @@ class SessionTable:
                 break
             if s.pending is None:
                 gone.append(sid)
+        if gone:
+            self.gen += 1
         for sid in gone:
             del self.sessions[sid]
             del self.recent[sid]
@@ -170,6 +196,8 @@ class SessionTable:
         Sequence numbers and counters stay; the filter state restarts (a new model's state is
         not the old one's).  A stream whose channels no longer overlap keeps the old model.
         """
+        self.materialize()
+        self.gen += 1
         n = 0
         for s in self.sessions.values():
             if s.model_name != name:
@@ -204,17 +232,23 @@ class SessionTable:
         of, making the next frame overdue too."""
         p, s.pending = s.pending, None
         assert p is not None
-        s.last_seq = p.frame.seq
+        return self.overdue_seq(s, p.frame.seq, p.origin)
+
+    def overdue_seq(self, s: Session, seq: int, origin: Origin) -> Out:
+        """:meth:`overdue` for frame ``seq`` of a bundle served as arrays (daemon/blockpath.py)."""
+        s.last_seq = seq
         s.late_streak += 1
-        if s.model_seq is not None and s.model_seq < p.frame.seq:
-            s.model_seq = p.frame.seq
+        if s.model_seq is not None and s.model_seq < seq:
+            s.model_seq = seq
         s.counts["dropped_overdue"] += 1
         self.count("dropped_overdue", s.sid)
-        return [(p.origin, wire.Drop(s.sid, p.frame.seq, "overdue"))]
+        return [(origin, wire.Drop(s.sid, seq, "overdue"))]
 
     # ---- frames -----------------------------------------------------------------------------
     def frame(self, f: wire.Frame, origin: Origin, arrived: float, who: Any = None) -> Out:
         """Take a frame into its session's pending slot; returns the immediate answers."""
+        if self.blocks:
+            self.materialize()
         s = self.sessions.get(f.stream)
         out: Out = []
         if s is not None and s.owner != who and who is not None:
@@ -225,9 +259,11 @@ class SessionTable:
                 s = None
             else:  # released (or opened in-process): the sender adopts it
                 s.owner = who
+                self.gen += 1
         if s is None:
             s = self._new(f.stream, None, None, f.angles.shape[0])
             s.owner = who
+            self.gen += 1
         if f.angles.shape[0] != s.mapping.n_in:
             raise SessionError("width", f"stream {f.stream!r} has {s.mapping.n_in} channels, the frame has "
                                         f"{f.angles.shape[0]} (send a hello to change the channel list)")
@@ -296,6 +332,7 @@ class SessionTable:
     def abandon(self) -> list[tuple[Origin, str, int]]:
         """Empty every pending slot (after a failed tick); returns what each held, to be
         answered with an error: (origin, stream id, seq)."""
+        self.materialize()
         owed = []
         for s in self.sessions.values():
             p, s.pending = s.pending, None
@@ -306,6 +343,7 @@ class SessionTable:
     def take_waiting(self) -> list[Session]:
         """The sessions with a frame waiting, in the table's order (as a walk over every open
         session would give them); empties the list."""
+        self.materialize()
         w, self.waiting = self.waiting, {}
         live = self.sessions
         out = [s for s in w.values() if s.pending is not None and live.get(s.sid) is s]

@@ -10,14 +10,17 @@ from typing import Any
 
 from daemon import wire
 from daemon.encode import fill_messages
-from daemon.parts import Parts
+from daemon.tickblock import BlockTick
 
 
-class Tick(Parts):
+class Tick(BlockTick):
     """The serving half of the daemon (mixed into :class:`daemon.loop.Daemon`)."""
 
     def _serve(self) -> None:
-        pend = self.sessions.take_waiting()
+        blocks = self.sessions.blocks
+        if blocks and len(blocks) == 1 and not self.sessions.waiting and self._serve_block(blocks[0]):
+            return
+        pend = self.sessions.take_waiting()  # (blocks the array path declined become pending slots)
         if not pend:
             return
         t0 = self.clock()
@@ -42,6 +45,10 @@ class Tick(Parts):
             # answered oldest first: the frame that arrived first is the nearest its budget
             # (earliest deadline first), and each reply is a few dozen microseconds of the tick
             results.sort(key=_arrival)
+        self._answer(results, t0)
+
+    def _answer(self, results: list[Any], t0: float) -> None:
+        """Encode and send a tick's fills (``results`` from the scheduler, in answer order)."""
         self.metrics.inc("ticks")  # frames_out / ticks = the mean batch the scheduler stepped
         self.metrics.step_time(self.clock() - t0)
         t1 = self.clock()

@@ -199,8 +199,9 @@ class FeatureModel(Model):
                 if k not in sparse:
                     pool.core[k][srt] = v
         fills: list[Fill] = [None] * n  # type: ignore[list-item]
-        for j, i in enumerate(order):
-            fills[i] = Fill(done[j], std[j], ~observed[j], extras[j] if extras else {})
+        missing = ~observed  # (one array op, a row view each: not one per stream)
+        for j, i in enumerate(order.tolist()):
+            fills[i] = Fill(done[j], std[j], missing[j], extras[j] if extras else {})
         return fills
 
 

@@ -1,0 +1,176 @@
+"""Scheduler -> encode for a bundle waiting as one block (daemon/blockpath.py): the tick of
+daemon/tick.py for the usual case of a studio's bundle, as arrays.
+
+The frames are answered exactly as the row path answers them (the same fills, drops, order,
+counters and session states; tests/test_daemon_blockpath.py compares the two on fuzzed bundles):
+the streams in the table's order, the model stepped on the block's (n, C) rows, the replies'
+angles, masks and deviations built as (n, C) arrays and encoded at once, one map per frame
+straight from them (no fill message object), the bundle's replies packed in one pass and sent
+as one message.  A tick the array path does not cover (frames already overdue when the tick
+begins, more streams than ``max_batch``, a model's fills that do not stack) declines before it
+changes anything, or hands its results to the row path's tail.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from daemon import blockpath, wire
+from daemon.blockpath import BlockWait
+from daemon.parts import Parts
+from daemon.session import Pending, Session, filled_rows
+
+_NONE: dict[str, Any] = {}
+
+
+class BlockTick(Parts):
+    """The serving half of the daemon for a block (mixed into daemon.tick.Tick)."""
+
+    def _serve_block(self, bw: BlockWait) -> bool:
+        """Serve the one block waiting; False (nothing changed): the row path serves it."""
+        plan, sessions, sched = bw.plan, self.sessions, self.sched
+        S = plan.table
+        n = len(S)
+        if plan.gen != sessions.gen or n > sched.max_batch:
+            return False
+        t0 = self.clock()
+        arrived = bw.arrived
+        late = [s.late_streak for s in S]
+        if self._drop_overdue and True in sched.overdue([arrived] * n, t0, late):
+            return False  # some are overdue before the step: the row path picks which
+        sessions.blocks.clear()
+        sessions.block_served += 1
+        self.metrics.inc("bundles_as_arrays")  # (status: how many bundles took this path)
+        block = bw.block
+        rows = None if plan.ident else plan.perm  # (None: the bundle is in the table's order)
+        seqs = block.seqs if rows is None else [block.seqs[i] for i in rows]
+        mf, mo = blockpath.inputs(block, rows)
+        model = plan.model
+        statuses: list[str] | None = None
+        styles: list[Any] | None = None
+        phases: list[Any] | None = None
+        held: list[bool] | None = None
+        std: np.ndarray | None = None
+        filled: np.ndarray | None = None
+        if model.passthrough:
+            sched.passthrough_rows(model, S, seqs, mf)
+            # answered oldest first, then the streams dropped `overdue` most (Tick._serve's sort)
+            order = sorted(range(n), key=lambda k: -S[k].late_streak) if any(late) else None
+            frames = mf if order is None else mf[order]
+        else:
+            got = sched.run_rows(model, S, seqs, arrived, mf, mo)
+            if n > 1:
+                got.sort(key=_late)
+            order = [g[0] for g in got]
+            fills = [g[1][1] for g in got]
+            statuses = [g[1][2] for g in got]
+            try:
+                frames, std, filled = _stack(fills, n, mf.shape[1])
+            except Exception:  # noqa: BLE001 - fills that do not stack: the row path's tail names the one
+                for k in order:
+                    S[k].pending = _pending(bw, k if rows is None else rows[k])
+                self._answer([g[1] for g in got], t0)
+                return True
+            exs = [f.extras or _NONE for f in fills]
+            styles, phases, held = _styles([ex.get("style") for ex in exs], n), [ex.get("phase") for ex in exs], \
+                [f.degraded for f in fills]
+        if order is None:  # (answer order = table order)
+            so, qo, ro, sent = S, seqs, rows, mo
+        else:
+            so, qo, sent = [S[k] for k in order], [seqs[k] for k in order], mo[order]
+            ro = order if rows is None else [rows[k] for k in order]
+        self.metrics.inc("ticks")
+        self.metrics.step_time(self.clock() - t0)
+        t1 = self.clock()
+        # (last_seq is never None here: blockpath.take leaves a first frame to the row path)
+        gaps = [q - s.last_seq - 1 for s, q in zip(so, qo)]  # type: ignore[operator]
+        ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
+        t1e = self.clock()
+        now = self.clock()
+        budget, drop, origin = sched.budget_s, self._drop_overdue, bw.origin
+        # the step ran longer than planned: the first k0 fills would leave over budget (Tick._answer
+        # checks each: sent_at(now, n - k, n) - arrived > budget, true for a prefix of them)
+        k0 = 0
+        if drop:
+            enc, snd = sched.encode_cost, sched.send_cost
+            while k0 < n and now + (n - k0) * enc + n * snd - arrived > budget:
+                k0 += 1
+            if k0:
+                self.metrics.inc("overdue_after_step", k0)
+                for k in range(k0):
+                    self._conflated.extend(sessions.overdue_seq(so[k], qo[k], origin))
+        out = so[k0:] if k0 else so
+        degs = None if statuses is None else [st == "degraded" for st in statuses[k0:]]
+        filled_rows(out, qo[k0:] if k0 else qo, degs)
+        stamps = block.stamps if ro is None else [block.stamps[r] for r in ro]
+        proc_us = int((now - arrived) * 1e6)
+        name = S[0].model_name
+        status = "passthrough"
+        maps: list[dict[str, Any]] = [
+            {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
+             "status": status if statuses is None else statuses[k], "model": name, "proc_us": proc_us}
+            for k, s, q, t, a, f, d in zip(range(k0, n), out, qo[k0:], stamps[k0:], ab[k0:], fb[k0:], sb[k0:])]
+        if styles is not None or any(gaps):
+            for k, m in zip(range(k0, n), maps):
+                if styles is not None and styles[k] is not None:
+                    m["style"] = styles[k]
+                if phases is not None and (ph := phases[k]) is not None and math.isfinite(ph):
+                    m["phase"] = float(ph)
+                if gaps[k] > 0:
+                    m["gap"] = gaps[k]
+        if degs is not None and True in degs:
+            self.metrics.inc("degraded", sum(degs))
+            for k, dg in zip(range(k0, n), degs):
+                if dg:
+                    self.metrics.inc("degraded_held" if held is not None and held[k] else "degraded_iterations")
+        if out:
+            self.metrics.inc("frames_out", len(out))
+        self._send_fills(origin, maps)
+        te = self.clock()
+        self._send_held(len(out))
+        if out and self.prewarm.on:
+            self.prewarm.served(out[-1], _frame(block, n - 1 if ro is None else ro[-1]), arrived, sched)
+        t2 = self.clock()
+        sched.observe_replies(n, te - t1e, t2 - t1)
+        wait = t2 - arrived
+        self.metrics.latencies(wait, len(out))
+        if out and wait > budget:
+            for s in out:
+                s.count("over_budget")
+            self.metrics.inc("over_budget", len(out))
+        return True
+
+
+def _late(g: tuple[int, tuple[Session, Any, str]]) -> int:
+    return -g[1][0].late_streak
+
+
+def _stack(fills: list[Any], n: int, C: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    frames = np.array([f.frame for f in fills], dtype=np.float32)
+    std = np.array([f.std for f in fills], dtype=np.float32)
+    filled = np.array([f.filled for f in fills], dtype=bool)
+    if not (frames.shape == std.shape == filled.shape == (n, C)):
+        raise ValueError(f"fills do not stack to ({n}, {C})")
+    return frames, std, filled
+
+
+def _styles(styles: list[Any], n: int) -> list[Any]:
+    """Each row's style posterior as the bytes daemon/pack.py writes (None: none)."""
+    if all(st is not None for st in styles):  # (not `None in`: == on an array is elementwise)
+        try:  # every stream has one: an (n, K) float32 array, a row each
+            a = np.array(styles, dtype=np.float32).reshape(n, -1)
+            return [a[i].tobytes() for i in range(n)]
+        except ValueError:
+            pass
+    return [None if st is None else np.asarray(st, np.float32).ravel().tobytes() for st in styles]
+
+
+def _frame(block: Any, r: int) -> wire.Frame:
+    return wire.Frame(block.sids[r], block.seqs[r], block.stamps[r], block.values[r],
+                      None if block.mask is None else block.mask[r])
+
+
+def _pending(bw: BlockWait, r: int) -> Pending:
+    return Pending(_frame(bw.block, r), bw.origin, bw.arrived)

@@ -1,0 +1,234 @@
+"""A bundle served as arrays (daemon/blockpath.py, daemon/tickblock.py) against the row path:
+two daemons, one with the array path and one without, get the same fuzzed turns (bundles in
+and out of order, gaps, duplicates and late frames, single frames superseding bundled ones in
+the same turn, two bundles a turn, malformed elements, re-handshakes, frames that waited, masks,
+frames overdue after the step, streams held by the scheduler) and must send the same bytes in
+the same order and end in the same state: every session's sequence numbers, streaks, counters,
+last frame and filter state, the global counters, the latency window and the scheduler's cost
+estimates.  One fake clock, so no answer depends on how fast the machine is."""
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+
+from daemon import config, server, wire
+from daemon.models import Loaded, load_all
+from daemon.pack import fill_map, to_map
+from lacuna.filler import Fill
+from mocap.baselines import HoldModel
+
+C = 6
+PEER = ("router", [b"studio"])
+
+
+class FakeClock:
+    def __init__(self, t: float = 1000.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class StyledHold(HoldModel):
+    """A hold model whose fills carry a style posterior and a phase (as the HLM's do), with
+    three quality levels (as the CRBM's): what the array path must carry through unchanged."""
+
+    method = "styled-hold"
+
+    def quality_levels(self):
+        return [4, 2, 1]
+
+    def step_batch(self, states, frames, observed, level=None):
+        fills = super().step_batch(states, frames, observed)
+        out = []
+        for f in fills:
+            v = float(np.nansum(f.frame))
+            phase = None if v > 3 else (float("nan") if v < -3 else (v % 1.0))
+            out.append(Fill(f.frame, f.std, f.filled, {"style": np.array([abs(v) % 1, 1 - abs(v) % 1]), "phase": phase}))
+        return out
+
+
+class Recording(server.Daemon):
+    def _send(self, origin, msg, publish=False):
+        m = fill_map(msg) if type(msg) is wire.FillMsg else to_map(msg)
+        self.sent.append((repr(origin), msgpack.packb(m, use_bin_type=True)))
+
+    def _send_fills(self, origin, maps):
+        for m in maps:
+            self.sent.append((repr(origin), msgpack.packb(m, use_bin_type=True)))
+
+
+def _daemon(clock, arrays: bool, overdue: str, model):
+    cfg = config.from_dict({"daemon": {"budget_ms": 4.0, "max_streams": 64, "log_level": "error", "overdue": overdue,
+                                       "max_batch": 64},
+                            "models": {"pt": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
+    d = Recording(cfg, server.Log("error"), clock=clock)
+    d.sent = []
+    table, errors = load_all(cfg)
+    assert not errors
+    if model is not None:
+        table["st"] = Loaded("st", model, table["pt"].spec, None, "now")
+    d._install(table)
+    if not arrays:
+        d.sessions.block_path = False
+    return d
+
+
+def _frame_map(rng, sid, seq, t, masked):
+    a = rng.normal(scale=2, size=C).astype(np.float32)
+    obs = rng.random(C) > 0.3
+    d = {"stream": sid, "seq": seq, "t": t}
+    if masked:
+        a[~obs] = rng.choice([np.nan, 5.0])
+        d.update(angles=a.tobytes(), observed=obs.astype(np.uint8).tobytes())
+    else:
+        a[~obs] = np.nan
+        d.update(angles=a.tobytes())
+    return d
+
+
+def _turns(rng, sids, model_name, n_turns, clock):
+    """(advance the clock by, items) per turn: the studio's bundles and the odd other message."""
+    seqs = dict.fromkeys(sids, 0)
+    for k in range(n_turns):
+        items = []
+        now = clock.t + 1 / 120
+        masked = bool(rng.random() < 0.3)
+        # the capture stamp: usually on time, now and then a frame that waited on its way
+        t = now - 0.001 - (0.2 if rng.random() < 0.1 else 0.0)
+        # received up to the budget ago: some are answered overdue before the step, some after it
+        arrived = now - (float(rng.uniform(0.0030, 0.0040)) if rng.random() < 0.3 else 0.0)
+        r = rng.random()
+        if k == 0 or r < 0.05:  # a (re-)handshake of one stream or all
+            for sid in (sids if k == 0 else [str(rng.choice(sids))]):
+                items.append((wire.encode(wire.Hello(sid, [f"c{i}" for i in range(C)], model_name)), PEER, arrived))
+        if rng.random() < 0.1:  # a single frame ahead of the bundle (the bundle's frame supersedes it)
+            sid = str(rng.choice(sids))
+            items.append((msgpack.packb({"v": 1, "type": "frame", **_frame_map(rng, sid, seqs[sid] + 1, t, False)},
+                                        use_bin_type=True), PEER, arrived))
+        for _b in range(2 if rng.random() < 0.1 else 1):
+            order = list(sids)
+            if rng.random() < 0.2:
+                rng.shuffle(order)
+            if rng.random() < 0.1:
+                order = order[: int(rng.integers(1, len(order) + 1))]
+            els = []
+            for sid in order:
+                seqs[sid] += int(rng.choice([1] * 80 + [2, 4, 0, -1]))
+                els.append(_frame_map(rng, sid, max(seqs[sid], 0), t, masked))
+            if rng.random() < 0.05:
+                els[0]["angles"] = b"\0" * (4 * C + 4)  # a malformed element: not a regular bundle
+            items.append((msgpack.packb({"v": 1, "type": "frames", "frames": els}, use_bin_type=True), PEER, arrived))
+        if rng.random() < 0.1:  # a single frame after it: it supersedes the bundle's (or is late)
+            sid = str(rng.choice(sids))
+            seqs[sid] += 1
+            items.append((msgpack.packb({"v": 1, "type": "frame", **_frame_map(rng, sid, seqs[sid], t, False)},
+                                        use_bin_type=True), PEER, arrived))
+        yield 1 / 120, items
+
+
+def _state(d):
+    out = {}
+    for sid, s in sorted(d.sessions.sessions.items()):
+        st = s.state
+        out[sid] = (s.last_seq, s.model_seq, s.held_streak, s.late_streak, dict(s.counts), s.t_base, s.max_wait_s,
+                    s.pending, s.owner, None if s.last_out is None else s.last_out.tobytes(),
+                    getattr(st, "last", np.zeros(0)).tobytes())
+    sched = d.sched
+    costs = {(k[1]): list(v.s) for k, v in sched.costs.items()}
+    counters = {k: v for k, v in d.metrics.counters.items() if k != "bundles_as_arrays"}  # (the one allowed difference)
+    return (out, counters, d.metrics._n, d.metrics._lat[: d.metrics._n].tobytes(), costs,
+            sched.reply_cost, sched.encode_cost, sched.send_cost, sched.probes, list(sched.hold_cost.s))
+
+
+@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("case", ["pt-drop", "pt-serve", "styled-drop", "styled-held"])
+def test_block_path_answers_and_state_equal_row_path(case, seed):
+    rng = np.random.default_rng(seed)
+    clock = FakeClock()
+    model_name, overdue = case.split("-")
+    model = StyledHold([f"c{i}" for i in range(C)], np.zeros(C), np.ones(C)) if model_name == "styled" else None
+    name = "st" if model is not None else "pt"
+    fast, ref = (_daemon(clock, arrays, "serve" if overdue == "serve" else "drop", model) for arrays in (True, False))
+    n = int(rng.integers(1, 12))
+    sids = [f"p{i}" for i in range(n)]
+    for step, items in _turns(rng, sids, name, 60, clock):
+        clock.t += step
+        for d in (fast, ref):
+            # fixed reply costs (a fake clock would let them decay to nothing): frames received
+            # received 3-4 ms ago are then answered overdue from some place in the tick on
+            d.sched.encode_cost, d.sched.send_cost = 20e-6, 40e-6
+            if overdue == "held":  # the model costs more than the budget: the scheduler holds
+                for lv in (4, 2, 1):
+                    d.sched.cost(model, lv).s = [1.0, 1.0, 1.0, 0.01, 0.01]
+            d.turn(clock(), items=list(items))
+        assert fast.sent == ref.sent
+        assert _state(fast) == _state(ref)
+        fast.sent.clear()
+        ref.sent.clear()
+    # the array path did serve (not only decline)
+    assert fast.sessions.block_served > 0 and ref.sessions.block_served == 0
+
+
+@pytest.mark.parametrize("start,n", [(0, 5), (19990, 30), (5, 20000), (19999, 1)])
+def test_latencies_equal_latency_n_times(start, n):
+    from daemon.metrics import Metrics
+
+    a, b = Metrics(), Metrics()
+    for m in (a, b):
+        m._n = start
+        m._lat[:] = -1.0
+    a.latencies(0.25, n)
+    for _ in range(n):
+        b.latency(0.25)
+    assert a._n == b._n and a._lat.tobytes() == b._lat.tobytes()
+
+
+def test_real_cmu_bundles_over_a_real_daemon_take_the_array_path(data, tmp_path):
+    """A studio's bundles of real CMU 35_08 frames (left arm lost) to a real daemon over ZeroMQ:
+    from the second bundle on (the first opens the streams' numbering: the row path) they are
+    served as arrays (status counter ``bundles_as_arrays``), and every fill gives the frame's
+    observed values exactly as sent, NaN and ``filled`` nowhere (pass-through), in one
+    ``replies`` a bundle, the same fields as the row path's first."""
+    import zmq
+
+    from clients.control import control
+    from clients.harness import DaemonProcess
+    from mocap.datasets import load_trial
+
+    take = load_trial("35_08")
+    ch = list(take.channels)
+    rows = take.frames[:40].astype(np.float32)
+    rows[:, [c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand") for c in ch]] = np.nan
+    n = 8
+    with DaemonProcess({"floor": {"builtin": "passthrough", "channels": ch}}, workdir=tmp_path,
+                       daemon={"budget_ms": 250.0, "log_level": "warning"}) as d:
+        ctx = zmq.Context()
+        s = ctx.socket(zmq.DEALER)
+        s.setsockopt(zmq.LINGER, 0)
+        s.connect(d.endpoint)
+        try:
+            for i in range(n):
+                s.send(wire.encode(wire.Hello(f"actor{i}", ch)))
+                assert s.poll(10000) and isinstance(wire.decode(s.recv()), wire.HelloAck)
+            fields = []
+            for k in range(len(rows) - n):
+                b = wire.Bundle([wire.Frame(f"actor{i}", k, k / 120, rows[k + i]) for i in range(n)])
+                s.send(wire.encode(b))
+                assert s.poll(10000)
+                rep = wire.decode(s.recv(), 64 << 20)
+                assert isinstance(rep, wire.Replies) and len(rep.items) == n
+                for i, f in enumerate(rep.items):
+                    assert isinstance(f, wire.FillMsg) and (f.stream, f.seq, f.status) == (f"actor{i}", k, "passthrough")
+                    sent = rows[k + i]
+                    assert f.angles.tobytes() == np.where(np.isfinite(sent), sent, np.float32(np.nan)).tobytes()
+                    assert not f.filled.any() and not f.std.any()
+                fields.append(sorted(wire.to_map(rep.items[0])))
+            assert all(f == fields[0] for f in fields)
+            st = control(d.endpoint, "status", timeout_s=10.0).result
+            assert st["counters"]["bundles_as_arrays"] == len(rows) - n - 1
+            assert st["counters"]["frames_out"] == n * (len(rows) - n)
+        finally:
+            s.close(0)
+            ctx.term()
