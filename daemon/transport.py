@@ -4,8 +4,7 @@
 messages (ZeroMQ, then OSC datagrams), each socket's in arrival order, to
 ``on_batch([(bytes, origin, arrival time), ...])`` (by default ``on_message`` for each);
 ``send(origin, message, publish)`` answers on the transport the message came from and, for
-filled frames, also publishes on PUB.  Between
-``hold()`` and ``flush()`` ZeroMQ answers are queued and then sent together; answers to the
+filled frames, also publishes on PUB.  Between ``hold()`` and ``flush()`` ZeroMQ answers are queued and then sent together; answers to the
 frames of a ``frames`` bundle (origin ``("router", envelope, "bundle")``) are joined, per peer,
 into one ``replies`` message at the flush.  Sends never block: a peer over its high-water mark
 loses that answer and the loss is counted.
@@ -39,11 +38,8 @@ _NOBLOCK = int(zmq.NOBLOCK)
 _MORE_NOBLOCK = int(zmq.SNDMORE | zmq.NOBLOCK)
 FLUSH_MAX = 64  # held answers sent at once, at most (fewer when the hwm is small)
 ZMQ_MAXMSG_MARGIN = 64 << 10  # bytes a frame may exceed max_message_bytes and still be read (and answered too_large)
-# messages ZeroMQ queues per peer for the daemon to read on the ROUTER, at most (a full queue
-# pushes back on the DEALER, nothing is dropped).  More is a backlog only: a starved daemon
-# (every frame answered `overdue`) held zmq.hwm = 1000 frames per stream in libzmq (64 streams:
-# RSS 130 -> 354 MB, none of it Python's; bench/notebook/immut.md), all conflated when read.
-# PULL and SUB keep zmq.hwm (SUB drops at its mark; PULL is one peer for every pusher).
+# the ROUTER's receive queue per peer, at most (full: the DEALER waits, nothing dropped); a starved
+# daemon held zmq.hwm frames a stream in libzmq, all conflated when read (bench/notebook/immut.md)
 RCVHWM_ROUTER = 100
 
 
