@@ -33,9 +33,175 @@ def _knot(W, g, t, knots):
 
 
 @jit
+def _features_all(x, ri, mean, mu, Ls, hist, pos, zf):
+    """Every regression feature of frame x (blend.state.DefaultState._features with back 0)."""
+    n = hist.shape[0]
+    Rn = ri.shape[0]
+    for o in range(zf.shape[0]):
+        b = o // Rn
+        c = ri[o % Rn]
+        if b == 0:
+            v = x[c] - mean[c]
+        else:
+            v = x[c] - hist[(pos - Ls[b - 1] + 1 + n) % n, c]
+        zf[o] = _wrap(v) - mu[o]
+
+
+@jit
+def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
+                  h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
+                  ER, EH, gate_rho, gate_weak, Lm, gbuf, gbin):
+    """blend.guard.guard_update, channel by channel (``gbuf``: the state's scratch, 2 C + len(mu))."""
+    G = GS.shape[0]
+    B = GS.shape[1]
+    for g in range(G):
+        for b in range(B):
+            for q in range(6):
+                GS[g, b, q] *= gpar[0]
+    cnt = int(sv[5])
+    sv[5] += 1
+    if cnt <= Lm or sv[2] == 0.0:
+        return
+    Kmax = gz[B - 1]
+    C = f.shape[0]
+    x = gbuf[:C]  # scratch of the state: no allocation per step
+    zf = gbuf[C:C + mu.shape[0]]
+    Qb = gbuf[C + mu.shape[0]:]
+    for j in range(C):
+        x[j] = f[j] if obs[j] else last[j]
+    have_z = False
+    for g in range(G):
+        c0 = gptr[g]
+        c1 = gptr[g + 1]
+        if c1 == c0:
+            continue
+        ok = True
+        for q in range(c0, c1):
+            j = gcols[q]
+            if not obs[j]:
+                ok = False
+        if not ok:
+            vk[g] = -12 - (1 + (cnt * 7919 + g * 104729) % 61)  # blend.guard.SETTLE + wait
+            continue
+        if vk[g] >= Kmax:
+            vk[g] = -(1 + (cnt * 7919 + g * 104729) % 61)
+        if vk[g] < 0:
+            vk[g] += 1
+            continue
+        new = vk[g] == 0
+        if new:
+            for q in range(c0, c1):
+                j = gcols[q]
+                vh[j] = h[j]
+                vv[j] = min(max(vel[j] * vgain[j], -vcap[j]), vcap[j])
+        vk[g] += 1
+        kk = vk[g]
+        b0 = gbin[kk]
+        if b0 < 0:
+            continue
+        t = kk / fps
+        cv = _knot(wv, g, t, knots) * (d * (1.0 - d ** kk) / (1.0 - d)) + _knot(wl, g, t, knots) * (d2 * (1.0 - d2 ** kk) / (1.0 - d2))
+        for q in range(c0, c1):
+            Qb[gcols[q]] = 0.0
+        si = gsh[g]
+        if si >= 0:
+            if not have_z:
+                _features_all(x, ri, mean, mu, Ls, hist, pos, zf)
+                have_z = True
+            rho = (ER[g] + 1e-9) / (EH[g] + 1e-9)
+            gate = 1.0 / (1.0 + (rho / gate_rho) ** 2)
+            weak = 1.0 / (1.0 + (rho / gate_weak) ** 2)
+            wq = _knot(wr, g, t, knots) * weak + _knot(wg, g, t, knots) * gate
+            for i in range(sh_nm[si]):
+                mi = sh_m[si, i]
+                r = 0.0
+                for qq in range(sh_nO[si]):
+                    r += sh_B[si, i, qq] * zf[sh_O[si, qq]]
+                r += mu[mi]
+                c = ri[mi]
+                if new:
+                    voff[c] = vh[c] - (mean[c] + r)
+                Qb[c] = wq * (mean[c] + r + voff[c] * a ** kk - vh[c])
+        pp = 0.0
+        pq = 0.0
+        qq2 = 0.0
+        yp = 0.0
+        yq = 0.0
+        for q in range(c0, c1):
+            j = gcols[q]
+            y = f[j] - vh[j]
+            if ang[j]:
+                y = _wrap(y)
+            P = vv[j] * cv
+            Qj = Qb[j]
+            pp += P * P
+            pq += P * Qj
+            qq2 += Qj * Qj
+            yp += y * P
+            yq += y * Qj
+        GS[g, b0, 0] += pp
+        GS[g, b0, 1] += pq
+        GS[g, b0, 2] += qq2
+        GS[g, b0, 3] += yp
+        GS[g, b0, 4] += yq
+        GS[g, b0, 5] += 1.0
+
+
+@jit
+def _guard_solve(GS, n0, mx, L):
+    """blend.guard.solve into L (G, B, 2)."""
+    for g in range(GS.shape[0]):
+        for b in range(GS.shape[1]):
+            pp = GS[g, b, 0]
+            pq = GS[g, b, 1]
+            qq = GS[g, b, 2]
+            yp = GS[g, b, 3]
+            yq = GS[g, b, 4]
+            n = GS[g, b, 5]
+            kap = n0 / n if n > 0 else 0.0
+            a11 = pp * (1 + kap) + 1e-12
+            a22 = qq * (1 + kap) + 1e-12
+            b1 = yp + kap * pp
+            b2 = yq + kap * qq
+            det = a11 * a22 - pq * pq
+            if pp > 1e-9 and qq > 1e-9 and det > 1e-12 * a11 * a22:
+                lv = (b1 * a22 - b2 * pq) / det
+                lr = (a11 * b2 - pq * b1) / det
+            else:
+                lv = b1 / a11
+                lr = b2 / a22
+            if not (n > 0 and pp > 1e-9):
+                lv = 1.0
+            if not (n > 0 and qq > 1e-9):
+                lr = 1.0
+            L[g, b, 0] = min(max(lv, 0.0), mx)
+            L[g, b, 1] = min(max(lr, 0.0), mx)
+
+
+@jit
+def _guard_lambda(L, g, kk, gzf, which):
+    """blend.guard.guard_lambda for one channel: part ``which`` (0 velocity, 1 regression)."""
+    B = gzf.shape[0]
+    if B == 1:
+        return L[g, 0, which]
+    if kk <= gzf[0]:
+        p = 0.0
+    elif kk >= gzf[B - 1]:
+        p = B - 1.0
+    else:
+        s = 0
+        while gzf[s + 1] <= kk:
+            s += 1
+        p = (kk - gzf[s]) * (1.0 / (gzf[s + 1] - gzf[s])) + s
+    i = min(int(p), B - 2)
+    fr = p - i
+    return L[g, i, which] * (1.0 - fr) + L[g, i + 1, which] * fr
+
+
+@jit
 def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
                 last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
-                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH):
+                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, GL, gbuf, gbin):
     _beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
                                                                  par[6], par[7], par[8])
     gate_rho, gate_decay, gate_weak = par[9], par[10], par[11]
@@ -93,6 +259,11 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
             g = sh_g[q]
             ER[g] = gate_decay * ER[g] + eR
             EH[g] = gate_decay * EH[g] + eH
+    guard_on = gpar[3] > 0.0
+    if guard_on:
+        _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
+                      h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
+                      ER, EH, gate_rho, gate_weak, Lm, gbuf, gbin)
     anyobs = False
     anymiss = False
     for j in range(C):
@@ -176,6 +347,9 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 val = mean[c] + r + off[c]
                 R[c] = val
                 Rv[c] = val
+        L = GL
+        if guard_on:
+            _guard_solve(GS, gpar[1], gpar[2], L)
         scale = 1.0
         if sv[1] != 0.0:
             scale = min(max(np.sqrt((cal_prior + sv[0]) / (cal_prior + sv[1])), 0.33), 3.0)
@@ -192,7 +366,12 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
             gate = 1.0 / (1.0 + (rho / gate_rho) ** 2)
             weak = 1.0 / (1.0 + (rho / gate_weak) ** 2)
             wrj = _knot(wr, g, t, knots) * weak + _knot(wg, g, t, knots) * gate
-            out[j] = H + _knot(wv, g, t, knots) * (V - H) + _knot(wl, g, t, knots) * (W - H) + wrj * (Rv[j] - H)
+            lv = 1.0
+            lr = 1.0
+            if guard_on:
+                lv = _guard_lambda(L, g, float(kk), gzf, 0)
+                lr = _guard_lambda(L, g, float(kk), gzf, 1)
+            out[j] = H + lv * (_knot(wv, g, t, knots) * (V - H) + _knot(wl, g, t, knots) * (W - H)) + lr * wrj * (Rv[j] - H)
             amp = np.sqrt(avar[j] + (amp_floor * std0[j]) ** 2)
             std[j] = _knot(sc, g, t, knots) * amp * scale
     else:

@@ -105,7 +105,7 @@ def occlusion(name: str, T: int, channels: Sequence[str], fps: float, seed: int,
 
 def collect(model: DefaultModel, takes: Sequence[tuple[str, np.ndarray, str]], seeds: Sequence[int]) -> dict[str, np.ndarray]:
     """Run the stream over (name, frames, activity) with occlusions; one row per erased value."""
-    rows: dict[str, list] = {k: [] for k in ("k", "g", "H", "V", "W", "R", "amp", "gate", "weak", "y", "act", "ch", "take")}
+    rows: dict[str, list] = {k: [] for k in ("k", "g", "H", "V", "W", "R", "amp", "gate", "weak", "lam", "lamr", "y", "act", "ch", "take")}
     acts = sorted({a for _, _, a in takes})
     for seed in seeds:
         for ti, (name, frames, act) in enumerate(takes):
@@ -122,6 +122,8 @@ def collect(model: DefaultModel, takes: Sequence[tuple[str, np.ndarray, str]], s
                 y = np.where(model.ang[c.idx], H + wrap(truth - H), truth)  # truth unwrapped near H
                 rows["k"].append(c.k); rows["g"].append(model.group[c.idx]); rows["H"].append(H)
                 rows["V"].append(c.V); rows["W"].append(c.W); rows["R"].append(c.R); rows["amp"].append(c.amp); rows["gate"].append(c.gate); rows["weak"].append(c.weak); rows["y"].append(y)
+                rows["lam"].append(np.ones(len(c.idx)) if c.lam is None else c.lam)
+                rows["lamr"].append(np.ones(len(c.idx)) if c.lamr is None else c.lamr)
                 rows["act"].append(np.full(len(c.idx), acts.index(act))); rows["ch"].append(c.idx)
                 rows["take"].append(np.full(len(c.idx), ti))
     out = {k: np.concatenate(v) if v else np.zeros(0) for k, v in rows.items()}
@@ -162,6 +164,8 @@ def fit_weights(model: DefaultModel, data: dict[str, np.ndarray], ridge: float =
     Phi = _hat(model, t)
     H = data["H"]
     dV, dW, dR, y = data["V"] - H, data["W"] - H, data["R"] - H, data["y"] - H
+    if "lam" in data:  # the guard's scales of the velocity and regression parts, as the stream had them
+        dV, dW, dR = dV * data["lam"], dW * data["lam"], dR * data["lamr"]
     dG = dR * data["gate"]
     dR = dR * data["weak"]
     sw = np.zeros(len(y))

@@ -28,6 +28,10 @@ longest lag)^2, decayed, and gamma_g = 1 / (1 + (rho_g / gate_rho)^2) weighs the
 w_g of the regression (gamma'_g, the same with ``gate_rho_weak``, its other part), so a stream whose body does not move the way the training takes did
 falls back on hold and velocity.
 
+The guard (blend.guard) scales the velocity part (w_v, w_l terms) and the regression part of every
+fill by per-stream factors lambda_v(g, t), lambda_r(g, t) in [0, 1], learnt online from virtual
+gaps on the groups the stream still observes (``guard_s`` = 0: off, both 1).
+
 The std of a filled value is c(g, t) * a_j * s, with a_j the channel's own recent spread (an
 exponentially weighted std over ``amp_s`` seconds while it was observed) so that a still
 performer gets a tight band and a basketball player a wide one; c is fitted on validation
@@ -44,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from blend import guard
 from lacuna import modelfile
 from lacuna.filler import Model
 from mocap.representation import is_angle
@@ -101,6 +106,9 @@ class Settings:
     vcap_mult: float = 1e9    # onset velocity capped at this many training RMS changes per frame (1e9: no cap)
     vel_gain: float = 0.0     # 1: each channel's onset velocity scaled by its training gain (vgain); 0: not
     knots: tuple = KNOTS
+    guard_s: float = 0.0      # the guard (blend.guard): decay time constant of its evidence, seconds (0: off)
+    guard_n0: float = 120.0   # ... its ridge toward lambda = 1: guard_n0 / n times the diagonal (n: virtual gaps seen)
+    guard_max: float = 1.0    # ... the largest lambda (1: the guard only shrinks toward hold)
 
     def per_frame(self) -> dict[str, float]:
         f = self.fps
@@ -167,6 +175,23 @@ class DefaultModel(Model):
         self._none_i = np.zeros(0, np.int64)
         self._none_B = np.zeros((0, 0))
         self._shadow()
+        self.guard_on = settings.guard_s > 0
+        self.guard_h = guard.horizons(settings.fps)
+        self.guard_hf = self.guard_h.astype(float)
+        self.guard_bin = np.full(int(self.guard_h[-1]) + 1, -1, np.int64)  # frames since onset -> horizon index
+        self.guard_bin[self.guard_h] = np.arange(len(self.guard_h))
+        Gn = int(self.group.max()) + 1 if C else 0
+        self.guard_cols = [np.flatnonzero(self.group == g) for g in range(Gn)]
+        self.guard_cols_flat = np.concatenate(self.guard_cols + [np.zeros(0, np.int64)]).astype(np.int64)
+        self.guard_cols_ptr = np.cumsum([0] + [len(c) for c in self.guard_cols]).astype(np.int64)
+        self.guard_pos = np.zeros(C, np.int64)
+        for cols in self.guard_cols:
+            self.guard_pos[cols] = np.arange(len(cols))
+        self.guard_sh = np.full(Gn, -1, np.int64)
+        for i, g in enumerate(self.sh_g):
+            self.guard_sh[g] = i
+        self.guard_par = np.array([float(np.exp(-1.0 / max(settings.guard_s * settings.fps, 1e-9))) if self.guard_on else 1.0,
+                                   settings.guard_n0, settings.guard_max, 1.0 if self.guard_on else 0.0])
         from lacuna import jit
 
         self.compiled = jit.enabled()

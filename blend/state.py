@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from blend.guard import NS, guard_lambda, guard_update
 from lacuna.filler import Fill, FillerState, check_frame
 from mocap.rootrot import wrap180 as wrap  # (blend.model's wrap, the same arithmetic)
 
@@ -27,6 +28,8 @@ class Components:
     amp: np.ndarray
     gate: np.ndarray
     weak: np.ndarray
+    lam: np.ndarray | None = None   # the guard's scale of the velocity part (None: 1) ...
+    lamr: np.ndarray | None = None  # ... and of the regression part
     extra: dict = field(default_factory=dict)
 
 
@@ -45,7 +48,17 @@ class DefaultState(FillerState):
         self.avar = (model.std_ * 0.5) ** 2
         self.lstd = np.zeros(C)             # the std given with the last output
         # scalars: online calibration's decayed sum of z^2 at gap ends and their count; seen; ring position
-        self.sv = np.zeros(5)  # + the frame counter of the shadow check
+        self.sv = np.zeros(6)  # + the frame counter of the shadow check, the guard's ring position
+        # the guard (blend.guard): per group the frames into its virtual gap (0: none), per channel the
+        # virtual gap's hold value, onset velocity and regression offset; per group x horizon its sums
+        G = len(model.guard_cols)
+        self.vk = np.zeros(G, np.int64)
+        self.vh = np.zeros(C)
+        self.vv = np.zeros(C)
+        self.voff = np.zeros(C)
+        self.GS = np.zeros((G, len(model.guard_h), NS))
+        self.GL = np.ones((G, len(model.guard_h), 2))      # the compiled step's scales and scratch
+        self.gbuf = np.zeros(2 * C + len(model.mu_))
         G = int(model.group.max()) + 1
         self.ER = np.zeros(G)               # shadow check: decayed squared error of the regression ...
         self.EH = np.zeros(G)               # ... and of the group's own change over the longest lag
@@ -91,7 +104,9 @@ class DefaultState(FillerState):
         step_kernel(f, obs, m.ang, m.group, m.mean_, m.std_, m.reg_idx, m.mu_, m.knots, m.weights.wv, m.weights.wl,
                     m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, has, changed, self.last, self.h, self.vel,
                     self.v0, self.k, self.R, self.off, self.amean, self.avar, self.lstd, self.hist, self.sv, out, std,
-                    self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH)
+                    self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH,
+                    m.guard_h, m.guard_hf, m.guard_par, m.guard_cols_flat, m.guard_cols_ptr, m.guard_sh, m.guard_pos,
+                    self.vk, self.vh, self.vv, self.voff, self.GS, self.GL, self.gbuf, m.guard_bin)
         return Fill(out, std, ~obs)
 
     def _shadow(self, f: np.ndarray, obs: np.ndarray) -> None:
@@ -135,6 +150,8 @@ class DefaultState(FillerState):
             self.hist[:] = np.where(obs, f, self.hist[0])
         self._shadow(f, obs)
         prev = self.hist[int(self.sv[3])]
+        if m.guard_on:
+            guard_update(self, f, obs)
         if obs.any():
             # observed channels: velocity (only across consecutive observations), spread, anchors
             was = (self.k == 0) & obs & (self.sv[2] > 0)
@@ -175,13 +192,14 @@ class DefaultState(FillerState):
             gate = self.gate(g)
             weak = self.gate(g, weak=True)
             wr = m.knot_weights(m.weights.wr, g, t) * weak + m.knot_weights(m.weights.wg, g, t) * gate
-            out[idx] = H + wv * (V - H) + wl * (W - H) + wr * (Rv - H)
+            lv, lr = guard_lambda(self, g, kk) if m.guard_on else (np.ones(len(idx)), np.ones(len(idx)))
+            out[idx] = H + lv * (wv * (V - H) + wl * (W - H)) + lr * wr * (Rv - H)
             amp = np.sqrt(self.avar[idx] + (m.settings.amp_floor * m.std_[idx]) ** 2)
             P = m.settings.cal_prior
             scale = min(max(np.sqrt((P + self.sv[0]) / (P + self.sv[1])), 0.33), 3.0) if self.sv[1] else 1.0
             std[idx] = m.knot_weights(m.weights.sc, g, t) * amp * scale
             if self.collect:
-                self.comp = Components(idx, kk, H, V, W, Rv, amp, gate, weak)
+                self.comp = Components(idx, kk, H, V, W, Rv, amp, gate, weak, lv, lr)
         else:
             self.k[:] = 0
             self.miss_key = None

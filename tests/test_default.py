@@ -109,8 +109,9 @@ def test_fit_keeps_the_root_angles_within_hold_in_every_activity_and_bin(small):
     w = fit_weights(model, data)
     t = data["k"] / model.settings.fps
     Phi, g, H = _hat(model, t), data["g"], data["H"]
-    fill = H + np.sum(Phi * (w.wv[g] * (data["V"] - H)[:, None] + w.wl[g] * (data["W"] - H)[:, None]
-                             + (w.wr[g] * data["weak"][:, None] + w.wg[g] * data["gate"][:, None]) * (data["R"] - H)[:, None]), 1)
+    lv, lr = data["lam"][:, None], data["lamr"][:, None]  # the guard's scales, as the stream had them
+    fill = H + np.sum(Phi * (lv * (w.wv[g] * (data["V"] - H)[:, None] + w.wl[g] * (data["W"] - H)[:, None])
+                             + lr * (w.wr[g] * data["weak"][:, None] + w.wg[g] * data["gate"][:, None]) * (data["R"] - H)[:, None]), 1)
     e2, h2 = (data["y"] - fill) ** 2, (data["y"] - H) ** 2
     bins = np.searchsorted(CELL_EDGES, t, side="right")
     checked = 0
@@ -243,3 +244,122 @@ def test_daemon_serves_default_over_a_real_socket(small, tmp_path):
         s.close(0)
         ctx.term()
         d.stop()
+
+
+def _with(model, **over):
+    from blend.model import DefaultModel, Settings
+
+    s = Settings(**{**model.settings.__dict__, **over})
+    return DefaultModel(model.channels, model.mean_, model.std_, model.reg_idx, model.mu_, model.cov_, s, model.weights,
+                        model.meta, model.vrms_, model.vgain_)
+
+
+def test_guard_brings_a_stream_whose_extrapolation_misleads_back_to_hold(small):
+    """A constructed stream: a validation walk (walking_20) whose left leg stands still with a 3 deg,
+    6 Hz tremor (no training take moves so: the onset velocity says nothing of where the leg goes),
+    the leg dropping out for 0.25 s at random onsets every 0.5-1 s.  Without the guard the fill is
+    worse than hold there (1.37x from the 4th gap); with it the fill is back near hold within four
+    gaps (the take has seven)."""
+    model, _ = small
+    assert model.settings.guard_s > 0  # shipped on
+    truth = splits.load_take("walking_20").frames.copy()
+    T = truth.shape[0]
+    cols = np.array([c.split(".")[0] in ("lfemur", "ltibia", "lfoot", "ltoes") for c in model.channels])
+    truth[:, cols] = truth[0, cols] + 3.0 * np.sin(2 * np.pi * 6.0 * np.arange(T) / 120.0)[:, None]
+    obs = np.ones(truth.shape, bool)
+    starts = [s for s in np.cumsum(np.random.default_rng(0).integers(60, 120, 40)) + 30 if s < T - 40]
+    for s in starts:
+        obs[s:s + 30, cols] = False
+    given = np.where(obs, truth, np.nan)
+    held = np.where(obs, truth, np.nan)
+    for t in range(1, T):
+        held[t] = np.where(obs[t], truth[t], held[t - 1])
+    fills = {"off": _with(model, guard_s=0.0).fill_offline(given, obs)[0], "on": model.fill_offline(given, obs)[0], "hold": held}
+
+    def rms(name, first_gap):
+        late = np.zeros(truth.shape, bool)
+        late[starts[first_gap]:] = ~obs[starts[first_gap]:]
+        return float(np.sqrt(np.mean(wrap(fills[name] - truth)[late] ** 2)))
+
+    r = {n: rms(n, 3) for n in fills}
+    assert r["off"] > 1.15 * r["hold"], r  # the construct does mislead the unguarded fill
+    # from the 4th gap on the guard has removed >= 75% of the unguarded fill's excess over hold ...
+    assert r["on"] - r["hold"] <= 0.25 * (r["off"] - r["hold"]), r
+    # ... and from the 5th it is within 5% of hold (measured: 3.3%; 3 deg of tremor is all hold misses)
+    assert rms("on", 4) <= 1.05 * rms("hold", 4), (rms("on", 4), rms("hold", 4))
+
+
+def test_guard_off_is_the_fill_of_before_and_old_model_files_load_without_it(small, tmp_path):
+    """guard_s = 0 (a model file saved before the guard existed has no guard_* settings): the
+    fill is exactly the unguarded one; the shipped guard changes fills on real gaps."""
+    model, _ = small
+    off = _with(model, guard_s=0.0)
+    p = tmp_path / "old.npz"
+    off.save(str(p))
+    meta, arrays = modelfile.load_arrays(str(p))
+    for k in ("guard_s", "guard_n0", "guard_max"):
+        meta["settings"].pop(k)
+    old = type(model).load(str(p), meta, arrays)
+    assert not old.guard_on
+    truth = splits.load_take("walking_27").frames
+    obs, _ = occlusion("walking_27", truth.shape[0], model.channels, 120.0, seed=1)
+    given = np.where(obs, truth, np.nan)
+    f_off, _ = off.fill_offline(given, obs)
+    f_on, _ = model.fill_offline(given, obs)
+    assert not np.allclose(f_on[~obs], f_off[~obs])
+    np.testing.assert_array_equal(old.fill_offline(given, obs)[0], f_off)
+
+
+def _gaps_figures(model, seeds):
+    """lacuna eval's gaps protocol on the TEST takes: {activity: {metric: (default, hold)}}."""
+    from mocap import metrics
+    from mocap.protocols import GAP_GROUPS, Gaps
+
+    vals: dict = {}
+    hold = HoldModel.fit([splits.load_take(splits.TRAIN[0]).frames], model.channels)
+    for seed in seeds:
+        for case in Gaps(seed, "test").cases():
+            given = np.where(case.observed, case.truth, np.nan)
+            f, s = model.fill_offline(given, case.observed)
+            h, _ = hold.fill_offline(given, case.observed)
+            a = splits.ACTIVITY[case.test]
+            groups = case.info.get("groups", GAP_GROUPS)
+            vals.setdefault(a, ([], []))
+            vals[a][0].append(metrics.values(case, f, s, groups))
+            vals[a][1].append(metrics.values(case, h, None, groups))
+    out = {}
+    for a, (vd, vh) in vals.items():
+        d = {m: (v, n) for m, v, n in metrics.summarise(metrics.Values.concat(vd), by_group_bins=False)}
+        h = {m: v for m, v, _ in metrics.summarise(metrics.Values.concat(vh), by_group_bins=False)}
+        out[a] = {m: (v, h.get(m), n) for m, (v, n) in d.items()}
+    return out
+
+
+@pytest.fixture(scope="module")
+def test_figures(small):
+    return _gaps_figures(small[0], (0, 1))
+
+
+@pytest.mark.parametrize("activity", ["walk", "turn", "nonloco",
+                                      pytest.param("run", marks=pytest.mark.xfail(strict=True, reason=(
+                                          "issue 17, not met: one 1.4 s take (35_25), gaps 1-2 s and 0.5-1 s after "
+                                          "onset (right arm) above hold; too short for the guard to learn")))])
+def test_never_worse_than_hold_at_any_gap_length_on_test_takes(test_figures, activity):
+    """The gaps protocol on the 12 TEST takes (seeds 0-1): at every gap length with at least 500
+    erased values, default's RMS <= 1.02 x hold's (2%: between seeds 0-1 and 0-4 these cells move
+    by up to ~2%, bench/notebook/guard.md); and over all gaps below hold."""
+    fig = test_figures[activity]
+    checked = 0
+    for m, (v, h, n) in fig.items():
+        if m.startswith("rms_deg[len") and v is not None and h is not None and n >= 500:
+            assert v <= 1.02 * h, (activity, m, v, h)
+            checked += 1
+    assert checked >= 3
+    assert fig["rms_deg"][0] < fig["rms_deg"][1]
+    assert fig["rms_deg[first 0.1s]"][0] <= fig["hold_rms_deg[first 0.1s]"][0]
+
+
+@pytest.mark.parametrize("activity", ["walk", "turn", "run", "nonloco"])
+def test_two_std_band_holds_90_to_98_percent_on_test_takes(test_figures, activity):
+    share = test_figures[activity]["within_2std"][0]
+    assert 0.90 <= share <= 0.98, (activity, share)
