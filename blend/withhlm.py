@@ -28,7 +28,7 @@ main ``default`` stream never sees the shadow mask.
 
 W is fitted on VALIDATION only (bench/default_hlm_tune.py: the gaps protocol's bursts with seeds
 100-102 and pan2009's pattern, on the experts trained on TRAIN): per cell the least-squares
-weight of (H - D) against (truth - D), clipped to [0, 1], in two folds by take, and the smaller
+weight of (H - D) against (truth - D), clipped to [0, W_MAX], in two folds by take, and the smaller
 of the two kept (a cell the two halves disagree on leans to ``default``).  Root translation
 (``root-pos``) is never taken from the HLM: its root position drifts over long gaps (1.1-1.4 m
 with the root erased), so W[root-pos] = 0 and the fill there is ``default``'s hold/velocity.
@@ -62,9 +62,10 @@ ROOT_POS = 8
 T_EDGES = np.array([1.5, 6, 12, 30, 60, 120, 240])   # frames since onset (at 120 Hz: 1, 50, 100, 250 ms, 0.5, 1, 2 s)
 Q_EDGES = np.log(np.array([0.4, 0.7, 1.1]))           # log q bins (chosen on VALIDATION among 4 sets)
 SHADOW_LEN = 60
-SHADOW_PAUSE = 30
+SHADOW_PAUSE = 120    # frames of rest between windows (chosen on VALIDATION among 30, 120, 240: bench/notebook/switch.md)
 SHADOW_MAX_MISS = 12
 Q_DECAY = 0.85
+W_MAX = 0.95   # the HLM's share at most: its std is 0 on channels its training held still; default's keeps std > 0
 ANCHOR_TAU = 30.0   # frames; replaced by the shipped choice (withhlm.json)
 
 
@@ -113,7 +114,7 @@ class WithHLMModel(Model):
         self.channels = list(default.channels)
         self.group = group_index(self.channels)
         self.ang = np.array([is_angle(c) for c in self.channels])
-        W = np.clip(np.asarray(W, float), 0.0, 1.0).copy()
+        W = np.clip(np.asarray(W, float), 0.0, W_MAX).copy()
         W[ROOT_POS] = 0.0    # root translation: hold/velocity only (module doc)
         W[:, :, -1] = 0.0    # q > 1.1: the HLM predicts what is observed worse than default does; it yields
         self.W, self.S = np.ascontiguousarray(W), np.ascontiguousarray(S, dtype=float)
