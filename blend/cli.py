@@ -1,5 +1,4 @@
-"""`lacuna train default-blend`: fit the stacked blend (``default``'s first expert) on motion files
-and write a model file (kind "default", as before the switch)."""
+"""`lacuna train default`: fit the recommended filler on motion files and write a model file."""
 from __future__ import annotations
 
 import argparse
@@ -8,8 +7,8 @@ import sys
 
 
 def add_commands(cli) -> None:
-    p = cli.train("default-blend", help="train the stacked blend of hold, damped velocity and a regression on the "
-                                        "observed channels (default's first expert) on motion files")
+    p = cli.train("default", help="train the recommended causal filler (blend of hold, damped velocity and a "
+                                  "regression on the observed channels) on motion files")
     p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it, .bvh, .csv)")
     p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     p.add_argument("--calibrate", nargs="+", metavar="FILE", default=None,
@@ -77,7 +76,7 @@ def _run(args: argparse.Namespace) -> int:
               "holds the last value of every missing channel (use `lacuna train hlm` for this skeleton)",
               file=sys.stderr)
     if not args.quiet:
-        print(f"default-blend: {len(seqs)} takes, {sum(s.shape[0] for s in seqs)} frames at {rate:g} fps, "
+        print(f"default: {len(seqs)} takes, {sum(s.shape[0] for s in seqs)} frames at {rate:g} fps, "
               f"{len(model.reg_idx)} regression channels, weights "
               f"{'fitted on ' + str(len(cal)) + ' takes' if cal else 'shipped (validation split)'}; wrote {args.output}",
               file=sys.stderr)
