@@ -76,6 +76,35 @@ def _f(v) -> str:
     return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.2f}"
 
 
+def plot(table, names, acts, out: Path, title: str) -> None:
+    """RMS / hold by time since onset, one panel per activity, one line per variant (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bins = ["since first", "since 0-0.05s", "since 0.05-0.1s", "since 0.1-0.25s", "since 0.25-0.5s", "since 0.5-1s",
+            "since 1-2s"]
+    fig, axes = plt.subplots(1, len(acts), figsize=(4 * len(acts), 3.4), sharey=True)
+    for ax, a in zip(np.atleast_1d(axes), acts):
+        h = table[f"hold|{a}"]
+        for n in names[1:]:
+            d = table[f"{n}|{a}"]
+            y = [d.get(f"rms_deg[{b}]") / h[f"rms_deg[{b}]"] if d.get(f"rms_deg[{b}]") and h.get(f"rms_deg[{b}]")
+                 else np.nan for b in bins]
+            ax.plot(range(len(bins)), y, marker="o", label=n)
+        ax.axhline(1.0, color="k", lw=0.8)
+        ax.set_xticks(range(len(bins)), [b[6:] for b in bins], rotation=45, fontsize=7)
+        ax.set_title(a)
+    np.atleast_1d(axes)[0].set_ylabel("RMS / hold")
+    np.atleast_1d(axes)[-1].legend(fontsize=7)
+    fig.suptitle(f"default vs hold by time since onset: {title}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    print(f"wrote {out}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--split", default="validation", choices=("validation", "test"))
@@ -126,6 +155,7 @@ def main() -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"split": args.split, "seeds": seeds, "variants": variants, "folds": args.folds,
                                                "takes": list(splits.SPLITS[args.split]), "figures": table}, indent=1) + "\n")
+        plot(table, names, acts, Path(args.json).with_suffix(".png"), f"{args.split}{' (2 folds)' if args.folds else ''}, seeds {args.seeds}")
     return 0
 
 

@@ -48,8 +48,8 @@ class DefaultState(FillerState):
         self.avar = (model.std_ * 0.5) ** 2
         self.lstd = np.zeros(C)             # the std given with the last output
         # scalars: online calibration's decayed sum of z^2 at gap ends and their count; seen; ring position
-        self.sv = np.zeros(6)  # + the frame counter of the shadow check, the guard's ring position
-        # the guard (blend.guard): per group the frames into its virtual gap (0: none), per channel the
+        self.sv = np.zeros(6)  # + the frame counter of the shadow check, and the guard's
+        # the guard (blend.guard): per group the frames into its virtual gap (0: none, < 0: pausing), per channel the
         # virtual gap's hold value, onset velocity and regression offset; per group x horizon its sums
         G = len(model.guard_cols)
         self.vk = np.zeros(G, np.int64)
