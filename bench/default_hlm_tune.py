@@ -101,7 +101,7 @@ def _ls(r, dd, sel, fold, act):
             m = sel & (act == a)
             if m.sum() >= MIN_VALUES:
                 ws.append(float(np.sum(r[m] * dd[m]) / max(np.sum(dd[m] ** 2), 1e-9)))
-    return float(np.clip(min(ws), 0.0, 1.0))
+    return float(np.clip(min(ws), 0.0, withhlm.W_MAX))
 
 
 def fit(data: dict[str, np.ndarray], tau: float) -> tuple[np.ndarray, np.ndarray]:

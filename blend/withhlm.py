@@ -17,8 +17,9 @@ first filled frame is off by a median 2.85 deg) and comes to its own cycle over 
 still observed (a *shadow check*): while at most ``SHADOW_MAX_MISS`` channels are really missing,
 one observed limb group at a time is hidden from the HLM (never from ``default``, never from the
 output: the caller gets the observed values) for ``SHADOW_LEN`` frames, then ``SHADOW_PAUSE``
-frames rest, groups in turn.  A second ``default`` stream (the *twin*, cheap: a step of default
-costs a fraction of the HLM's) sees the same hidden group, so over a window the HLM's squared error
+frames rest, groups in turn.  A second ``default`` stream (the *twin*: at each window's opening a
+copy of the stream's own ``default`` state, stepped only while the window lasts) sees the same
+hidden group, so over a window the HLM's squared error
 on the hidden group is compared with ``default``'s own: r = e_HLM / e_default, and log q = the
 decayed mean of log r over windows (``Q_DECAY`` per window, one prior window of log q = 0).  A walk
 the HLM knows gives q well below 1; referee signals give q above 1, where the fitted W is about 0
@@ -27,7 +28,7 @@ main ``default`` stream never sees the shadow mask.
 
 W is fitted on VALIDATION only (bench/default_hlm_tune.py: the gaps protocol's bursts with seeds
 100-102 and pan2009's pattern, on the experts trained on TRAIN): per cell the least-squares
-weight of (H - D) against (truth - D), clipped to [0, 1], in two folds by take, and the smaller
+weight of (H - D) against (truth - D), clipped to [0, W_MAX], in two folds by take, and the smaller
 of the two kept (a cell the two halves disagree on leans to ``default``).  Root translation
 (``root-pos``) is never taken from the HLM: its root position drifts over long gaps (1.1-1.4 m
 with the root erased), so W[root-pos] = 0 and the fill there is ``default``'s hold/velocity.
@@ -39,13 +40,16 @@ activity that needs the widest band (walk, turn, run, non-locomotion: each then 
 from __future__ import annotations
 
 import json
+import math
 import tempfile
+from bisect import bisect_right
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lacuna import modelfile
+from blend.withhlm_fast import mix_row, shadow_counts
+from lacuna import jit, modelfile
 from lacuna.filler import Fill, FillerError, FillerState, Model, check_frame
 from mocap.representation import is_angle
 from mocap.rootrot import wrap180 as wrap
@@ -58,9 +62,10 @@ ROOT_POS = 8
 T_EDGES = np.array([1.5, 6, 12, 30, 60, 120, 240])   # frames since onset (at 120 Hz: 1, 50, 100, 250 ms, 0.5, 1, 2 s)
 Q_EDGES = np.log(np.array([0.4, 0.7, 1.1]))           # log q bins (chosen on VALIDATION among 4 sets)
 SHADOW_LEN = 60
-SHADOW_PAUSE = 30
+SHADOW_PAUSE = 120    # frames of rest between windows (chosen on VALIDATION among 30, 120, 240: bench/notebook/switch.md)
 SHADOW_MAX_MISS = 12
 Q_DECAY = 0.85
+W_MAX = 0.95   # the HLM's share at most: its std is 0 on channels its training held still; default's keeps std > 0
 ANCHOR_TAU = 30.0   # frames; replaced by the shipped choice (withhlm.json)
 
 
@@ -109,16 +114,22 @@ class WithHLMModel(Model):
         self.channels = list(default.channels)
         self.group = group_index(self.channels)
         self.ang = np.array([is_angle(c) for c in self.channels])
-        W = np.clip(np.asarray(W, float), 0.0, 1.0).copy()
+        W = np.clip(np.asarray(W, float), 0.0, W_MAX).copy()
         W[ROOT_POS] = 0.0    # root translation: hold/velocity only (module doc)
         W[:, :, -1] = 0.0    # q > 1.1: the HLM predicts what is observed worse than default does; it yields
-        self.W, self.S = W, np.asarray(S, float)
+        self.W, self.S = np.ascontiguousarray(W), np.ascontiguousarray(S, dtype=float)
         self.tau = float(tau)
         self.anchor = float(np.exp(-1.0 / self.tau)) if self.tau > 0 else 0.0
+        self._anc = self.anchor if self.tau > 0 else 0.0   # the compiled mixing's: 0 = no anchoring
         self.meta = dict(meta or {})
         self._cols = [np.flatnonzero(self.group == g) for g in SHADOW_GROUPS]
         self._member = np.stack([self.group == g for g in SHADOW_GROUPS], 1).astype(np.float64)   # (C, groups)
         self._nonpos = self.group != ROOT_POS
+        self._sgroup = np.full(len(self.channels), -1, np.int64)   # each channel's index into SHADOW_GROUPS
+        for i, g in enumerate(SHADOW_GROUPS):
+            self._sgroup[self.group == g] = i
+        self._qe = Q_EDGES.tolist()
+        self.compiled = jit.enabled()   # the compiled mixing (blend/withhlm_fast.py); else _mix_numpy
 
     def stream(self) -> WithHLMState:
         return WithHLMState(self)
@@ -139,30 +150,81 @@ class WithHLMModel(Model):
 
     def _step(self, states: list[WithHLMState], F: np.ndarray, O: np.ndarray) -> list[Fill]:
         """Every stream of the batch at once: plan the shadow masks, step each expert once for the
-        batch, then mix (module doc) as (n, C) arrays."""
-        busy = ((~O) & self._nonpos).sum(1) > SHADOW_MAX_MISS
-        gmiss = (~O).astype(np.float64) @ self._member            # (n, shadow groups) channels missing
-        HO = O.copy()
-        for i, s in enumerate(states):
-            g = s._plan(bool(busy[i]), gmiss[i])
-            if g >= 0:
-                HO[i, self._cols[g]] = False
-        dfills = self.default.step_batch([s.ds for s in states], F, O)
-        hfills = self.hlm.step_batch([s.hs for s in states], F, HO)
-        tfills = self.default.step_batch([s.twin for s in states], F, HO)
-        Df, Dsd = np.stack([f.frame for f in dfills]), np.stack([f.std for f in dfills])
-        Hf, Hsd = np.stack([f.frame for f in hfills]), np.stack([f.std for f in hfills])
-        Tf = np.stack([f.frame for f in tfills])
-        hid = O & ~HO & self.ang
-        if hid.any():
-            eh = np.where(hid, wrap(Hf - F), 0.0)
-            e0 = np.where(hid, wrap(Tf - F), 0.0)
-            eh, e0 = (eh * eh).sum(1), (e0 * e0).sum(1)
+        batch (the twins of the streams in a shadow window beside ``default``'s own streams, in one
+        call), then mix (module doc): compiled per stream where numba runs, else as (n, C) arrays."""
+        n = len(states)
+        win: list[int] = []
+        fast = self.compiled
+        for s in states:
+            fast = fast and not s.collect
+        HO = O
+        if fast:
             for i, s in enumerate(states):
-                if s.sh >= 0:
-                    s.eh += float(eh[i])
-                    s.e0 += float(e0[i])
-                    s.sh_n += 1
+                nm = shadow_counts(O[i], self._nonpos, self._sgroup, s.gm)
+                g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
+                if g >= 0:
+                    HO = O.copy() if HO is O else HO
+                    self._open(s, g, i, HO, win)
+        else:
+            busy = ((~O) & self._nonpos).sum(1) > SHADOW_MAX_MISS
+            gmiss = (~O).astype(np.float64) @ self._member            # (n, shadow groups) channels missing
+            HO = O.copy()
+            for i, s in enumerate(states):
+                self._open(s, s._plan(bool(busy[i]), gmiss[i]), i, HO, win)
+        if win:
+            dst = [s.ds for s in states] + [states[i].twin for i in win]
+            dfills = self.default.step_batch(dst, np.concatenate([F, F[win]]), np.concatenate([O, HO[win]]))
+            twin = {i: dfills[n + r].frame for r, i in enumerate(win)}
+        else:
+            dfills = self.default.step_batch([s.ds for s in states], F, O)
+            twin = {}
+        hfills = self.hlm.step_batch([s.hs for s in states], F, HO)
+        if fast:
+            return self._mix_fast(states, F, O, HO, dfills, hfills, twin)
+        return self._mix_numpy(states, F, O, HO, dfills, hfills, twin)
+
+    def _open(self, s: WithHLMState, g: int, i: int, HO: np.ndarray, win: list[int]) -> None:
+        """Hide shadow group g of stream i from the HLM and the twin; a window's twin starts as a
+        copy of the stream's own ``default`` state (the same history, the group hidden from now on)."""
+        if g < 0:
+            return
+        HO[i, self._cols[g]] = False
+        if s.twin is None:
+            s.twin = _copy_state(s.ds)
+        win.append(i)
+
+    def _mix_fast(self, states, F, O, HO, dfills, hfills, twin) -> list[Fill]:
+        fills = []
+        C = self.n_channels
+        for i, s in enumerate(states):
+            d, h = dfills[i], hfills[i]
+            logq = s.logq
+            T = twin.get(i)
+            out, std = np.empty(C), np.empty(C)
+            eh, e0, nh = mix_row(F[i], O[i], HO[i], d.frame, d.std, h.frame, h.std, d.frame if T is None else T,
+                                 T is not None, self.ang, self.group, self.W, self.S, T_EDGES, bisect_right(self._qe, logq),
+                                 self._anc, s.k, s.o, out, std)
+            if T is not None and nh:
+                s.eh += eh
+                s.e0 += e0
+                s.sh_n += 1
+            fills.append(Fill(out, std, d.filled, {**h.extras, "hlm_q": math.exp(logq)}))   # d.filled: ~O[i]
+        return fills
+
+    def _mix_numpy(self, states, F, O, HO, dfills, hfills, twin) -> list[Fill]:
+        """The reference mixing, as (n, C) arrays (tests/test_default_hlm_fast.py checks the compiled
+        one against it); the tuning's ``collect`` reads its parts."""
+        n = len(states)
+        Df, Dsd = np.stack([f.frame for f in dfills[:n]]), np.stack([f.std for f in dfills[:n]])
+        Hf, Hsd = np.stack([f.frame for f in hfills]), np.stack([f.std for f in hfills])
+        for i, T in twin.items():
+            s = states[i]
+            hid = O[i] & ~HO[i] & self.ang
+            if hid.any():
+                eh, e0 = wrap(Hf[i, hid] - F[i, hid]), wrap(T[hid] - F[i, hid])
+                s.eh += float((eh * eh).sum())
+                s.e0 += float((e0 * e0).sum())
+                s.sh_n += 1
         K = np.where(O, 0, np.stack([s.k for s in states]) + 1)
         logq = np.array([s.logq for s in states])
         raw = np.where(self.ang, wrap(Hf - Df), Hf - Df)
@@ -175,7 +237,7 @@ class WithHLMModel(Model):
         std = np.where(O, 0.0, self.S[self.group[None, :], tb] * np.sqrt(var))
         fills = []
         for i, s in enumerate(states):
-            s.k, s.o = K[i], off[i]
+            s.k, s.o = K[i].copy(), off[i].copy()
             if s.collect:
                 j = np.flatnonzero(~O[i])
                 s.comp = None if not len(j) else {
@@ -235,7 +297,8 @@ class WithHLMState(FillerState):
         self.m = model
         C = model.n_channels
         self.ds = model.default.stream()
-        self.twin = model.default.stream()   # default under the shadow mask (module doc)
+        self.twin: FillerState | None = None   # default under the shadow mask, for one window (module doc)
+        self.gm = np.zeros(len(SHADOW_GROUPS))   # scratch: each shadow group's missing channels
         self.hs = model.hlm.stream()
         self.k = np.zeros(C, np.int64)
         self.o = np.zeros(C)         # the HLM's anchoring offset (module doc)
@@ -256,7 +319,7 @@ class WithHLMState(FillerState):
             r = np.log(max(self.eh, 1e-9) / max(self.e0, 1e-9))
             self.logq_sum = Q_DECAY * self.logq_sum + float(np.clip(r, -4.0, 4.0))
             self.logq_n = Q_DECAY * self.logq_n + 1.0
-        self.sh, self.sh_n, self.eh, self.e0 = -1, SHADOW_PAUSE, 0.0, 0.0
+        self.sh, self.sh_n, self.eh, self.e0, self.twin = -1, SHADOW_PAUSE, 0.0, 0.0, None
 
     def _plan(self, busy: bool, gmiss: np.ndarray) -> int:
         """This frame's hidden group (index into SHADOW_GROUPS) or -1; opens and closes windows.
@@ -278,6 +341,13 @@ class WithHLMState(FillerState):
     def step(self, frame, observed=None) -> Fill:
         f, obs = check_frame(frame, observed, self.m.n_channels)
         return self.m._step([self], f[None], obs[None])[0]
+
+
+def _copy_state(s: FillerState) -> FillerState:
+    """A stream's state with its own copies of every array (the model it refers to is shared)."""
+    c = object.__new__(type(s))
+    c.__dict__.update({k: v.copy() if isinstance(v, np.ndarray) else v for k, v in vars(s).items()})
+    return c
 
 
 LOCOMOTION = ("walk", "turn", "run")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from blend.withhlm import ROOT_POS, WithHLMModel, train_model
-from lacuna import modelfile
+from lacuna import jit, modelfile
 from lacuna.cli import main as cli_main
 from mocap import protocols, splits
 from mocap.representation import is_angle
@@ -133,3 +133,28 @@ def test_train_without_a_locomotion_file_is_a_clear_error(data, tmp_path, capsys
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith("lacuna: error:") and "locomotion" in err
     assert not (tmp_path / "dh.npz").exists()
+
+
+@pytest.mark.skipif(not jit.enabled(), reason="numba cannot run in this process: only the numpy mixing serves")
+def test_compiled_mixing_equals_the_numpy_mixing(model):
+    """TEST take 35_30 with the gaps protocol's bursts (seed 0): one stream mixed by the compiled
+    kernel (blend/withhlm_fast.py), one by the numpy reference, frame by frame; fills and stds agree
+    to 1e-9 through real gaps and through shadow windows (their twin and q included)."""
+    c = [c for c in protocols.Gaps(seed=0, split="test").cases() if c.test == "35_30"][0]
+    T = len(c.truth)
+    a, b = model.stream(), model.stream()
+    windows = gaps = 0
+    try:
+        for t in range(T):
+            model.compiled = True
+            fa = a.step(c.truth[t], c.observed[t])
+            model.compiled = False
+            fb = b.step(c.truth[t], c.observed[t])
+            np.testing.assert_allclose(fa.frame, fb.frame, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(fa.std, fb.std, rtol=0, atol=1e-9)
+            windows += a.sh >= 0
+            gaps += fa.filled.any()
+    finally:
+        model.compiled = jit.enabled()
+    assert windows > 60 and gaps > 60            # both paths were exercised
+    assert a.logq != 0.0 and abs(a.logq - b.logq) < 1e-9 and (a.k == b.k).all()
