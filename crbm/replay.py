@@ -268,7 +268,7 @@ def replay_fill(model_dump: str | Path, fill_dump: str | Path, test: str = "35_2
     K = model.n_gibbs
     frame = iter(range(len(RN)))
 
-    def draws(counts: np.ndarray, S: int, H: int) -> tuple[np.ndarray, np.ndarray, None]:
+    def draws(counts: np.ndarray, S: int, H: int, kn: object = None) -> tuple[np.ndarray, np.ndarray, None]:
         i = next(frame)
         u = np.stack([np.asarray(RU[i * K + k], np.float64).reshape(1, -1) for k in range(K)])
         return np.asarray(RN[i], np.float64).reshape(1, -1), np.log(u) - np.log1p(-u), None

@@ -117,7 +117,7 @@ def test_our_fill_is_the_released_fill_loop_on_the_same_draws():
     model = anchor.filler(c)
     frames = iter(range(nf))
 
-    def draws(counts, S, H_):
+    def draws(counts, S, H_, kn=None):
         i = next(frames)
         u = np.stack([uniforms[i * 30 + k].reshape(1, -1) for k in range(30)])
         return normals[i].reshape(1, -1), np.log(u) - np.log1p(-u), None

@@ -111,7 +111,7 @@ def _by_hand(model, hist, z, obs, count, final="released"):
     2026-12-01 (probabilities from the K-th iteration's input)."""
     c = model.crbm
     F = c.n_visible_
-    noise, L, _ = model._draws(np.array([count]), 1, c.n_hidden)
+    noise, L, _ = model._draws(np.array([count]), 1, c.n_hidden, model.knobs())
     bv, bh = c.c_ + hist @ c.A_, c.b_ + hist @ c.B_
     v = np.where(obs, z, hist[:F] + model.init_noise * noise[0])
     for it in range(model.n_gibbs):
