@@ -1,4 +1,5 @@
-"""`lacuna train default`: fit the recommended filler on motion files and write a model file."""
+"""`lacuna train default-blend`: fit the stacked blend (``default``'s first expert) on motion files
+and write a model file (kind "default", as before the switch)."""
 from __future__ import annotations
 
 import argparse
@@ -7,8 +8,8 @@ import sys
 
 
 def add_commands(cli) -> None:
-    p = cli.train("default", help="train the recommended causal filler (blend of hold, damped velocity and a "
-                                  "regression on the observed channels) on motion files")
+    p = cli.train("default-blend", help="train the stacked blend of hold, damped velocity and a regression on the "
+                                        "observed channels (default's first expert) on motion files")
     p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it, .bvh, .csv)")
     p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     p.add_argument("--calibrate", nargs="+", metavar="FILE", default=None,
@@ -85,7 +86,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"lacuna: warning: {args.data[0]}: {why}; default will hold the last value of every missing channel",
               file=sys.stderr)
     if not args.quiet:
-        print(f"default: {len(seqs)} takes ({skel or 'no known skeleton'}), {sum(s.shape[0] for s in seqs)} frames at {rate:g} fps, "
+        print(f"default-blend: {len(seqs)} takes ({skel or 'no known skeleton'}), {sum(s.shape[0] for s in seqs)} frames at {rate:g} fps, "
               f"{len(model.reg_idx)} regression channels, weights "
               f"{'fitted on ' + str(len(cal)) + ' takes' if cal else 'shipped (validation split)'}; wrote {args.output}",
               file=sys.stderr)

@@ -1,4 +1,8 @@
-"""Registers ``default`` with ``lacuna.registry`` and the model-file loader."""
+"""Registers ``default`` (the stacked blend and the HLM mixed online: blend.withhlm),
+``default-blend`` (the stacked blend alone: blend.model) and ``default-hlm`` (default's earlier
+name) with ``lacuna.registry``, and their model-file loaders.  Model files keep their kind: "default"
+is the stacked blend's (files written before the switch load and fill as they did), "default-hlm"
+the mixed filler's."""
 from __future__ import annotations
 
 from typing import Any
@@ -16,11 +20,11 @@ def _train(training_set: Any, **options: Any) -> DefaultModel:
                        skeleton=getattr(training_set, "skeleton", None))
 
 
-register_method(MethodSpec("default", _train,
-                           "the recommended causal filler: hold, damped velocity and a regression on the observed "
-                           "channels, anchored at the last value and stacked by weights chosen on validation (blend)",
+register_method(MethodSpec("default-blend", _train,
+                           "hold, damped velocity and a regression on the observed channels, anchored at the last "
+                           "value and stacked by weights chosen on validation (blend; default's first expert)",
                            None, True))
-register_loader("default", DefaultModel.load)
+register_loader("default", DefaultModel.load)   # the stacked blend's files (kind "default", before and after the switch)
 
 
 def _train_with_hlm(training_set: Any, **options: Any):
@@ -35,8 +39,10 @@ def _load_with_hlm(path: str, meta: dict[str, Any], arrays: dict[str, Any]):
     return WithHLMModel.load(path, meta, arrays)
 
 
-register_method(MethodSpec("default-hlm", _train_with_hlm,
-                           "default and the HLM's online filter (trained on the locomotion takes) side by side, "
-                           "weighed per joint group by how well the HLM predicts what is still observed (blend.withhlm)",
+register_method(MethodSpec("default", _train_with_hlm,
+                           "the recommended causal filler: default-blend and the HLM's online filter (trained on the "
+                           "locomotion takes) side by side, weighed per joint group by how well the HLM predicts what "
+                           "is still observed (blend.withhlm)", None, True))
+register_method(MethodSpec("default-hlm", _train_with_hlm, "the same as default (its name before it became default)",
                            None, True))
 register_loader("default-hlm", _load_with_hlm)

@@ -1,4 +1,5 @@
-"""`lacuna train default-hlm`: train ``default`` and the HLM on motion files, write one model file."""
+"""`lacuna train default` (and its earlier name ``default-hlm``): train the stacked blend and the HLM
+on motion files, write one model file (kind "default-hlm")."""
 from __future__ import annotations
 
 import argparse
@@ -7,8 +8,13 @@ import sys
 
 
 def add_commands(cli) -> None:
-    p = cli.train("default-hlm", help="train default and the HLM side by side (blend.withhlm): default on every "
-                                      "file, the HLM on the locomotion ones")
+    for name, say in (("default", "train the recommended causal filler: the stacked blend (default-blend) on every "
+                                  "file and the HLM on the locomotion ones, mixed online (blend.withhlm)"),
+                      ("default-hlm", "the same as `lacuna train default` (its name before it became default)")):
+        _add(cli.train(name, help=say))
+
+
+def _add(p) -> None:
     p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it, .bvh, .csv)")
     p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     p.add_argument("--hlm-data", nargs="+", metavar="FILE", default=None,
@@ -50,6 +56,6 @@ def _run(args: argparse.Namespace) -> int:
     model.save(args.output)
     if not args.quiet:
         n = sum(lab in LOCOMOTION for lab in labels)
-        print(f"default-hlm: default on {len(seqs)} files, the HLM on {n} locomotion files, "
+        print(f"default: the stacked blend on {len(seqs)} files, the HLM on {n} locomotion files, "
               f"{sum(s.shape[0] for s in seqs)} frames at {rate:g} fps; wrote {args.output}", file=sys.stderr)
     return 0

@@ -52,6 +52,7 @@ OFFLINE = "interp"  # in-process: needs the future
 # (lacuna.registry.MethodSpec).
 SMALL = {
     "hlm": {"n_iter": 10, "styles": 2, "restarts": 1, "progress": False},
+    "default": {"n_iter": 10, "styles": 2, "restarts": 1, "progress": False},   # its HLM expert's
     "crbm": {"hidden": 100, "epochs": 400, "order": 3, "progress": False},
 }
 TRAIN_OPTIONS = {"fps": 120.0, "cycle_frames": 140}

@@ -198,9 +198,9 @@ def test_registered_and_trainable_from_the_command_line(data, tmp_path, capsys):
     assert "default" in registry.methods() and registry.get_method("default").causal
     files = [str(splits.take_path(t)) for t in ("07_02", "walking_13")]
     out = tmp_path / "d.npz"
-    assert cli_main(["train", "default", *files, "-o", str(out)]) == 0
+    assert cli_main(["train", "default-blend", *files, "-o", str(out)]) == 0
     assert modelfile.load_model(str(out)).meta["training"]["data"] == ["07_02.amc", "walking_13.amc"]
-    assert cli_main(["train", "default", str(tmp_path / "missing.amc"), "-o", str(out)]) == 2
+    assert cli_main(["train", "default-blend", str(tmp_path / "missing.amc"), "-o", str(out)]) == 2
     assert "lacuna: error:" in capsys.readouterr().err
 
 
