@@ -368,8 +368,9 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
     loco = [i for i, lab in enumerate(labels) if lab in LOCOMOTION] if labels else list(range(len(seqs)))
     if not loco:
         raise FillerError(f"{METHOD}: no locomotion take among the {len(seqs)} training takes to train the HLM on")
-    d = train_default(seqs, ch, names, fps=options.get("fps") or getattr(training_set, "fps", None))
-    hopts = {k: v for k, v in options.items() if k not in ("fps",)}
+    d = train_default(seqs, ch, names, fps=options.get("fps") or getattr(training_set, "fps", None),
+                      skeleton=options.get("skeleton") or getattr(training_set, "skeleton", None))
+    hopts = {k: v for k, v in options.items() if k not in ("fps", "skeleton")}
     h = train_hlm([seqs[i] for i in loco], ch, [names[i] for i in loco], **hopts)
     W0, S0, chosen = shipped()
     tau = float(chosen.get("tau", ANCHOR_TAU))

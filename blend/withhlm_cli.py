@@ -22,6 +22,9 @@ def _add(p) -> None:
                         "names walk, turn or run; every file where it names none)")
     p.add_argument("--fps", type=float, help="resample every file to this rate first")
     p.add_argument("--quiet", "-q", action="store_true")
+    from mocap import skelmap
+
+    skelmap.add_argument(p)
     p.set_defaults(func=_run)
 
 
@@ -47,15 +50,26 @@ def _run(args: argparse.Namespace) -> int:
     if not any(lab in LOCOMOTION for lab in labels):
         raise LacunaError("no locomotion file among DATA to train the HLM on (name them with --hlm-data)")
     ts = TrainingSet(seqs, list(ch), rate, [os.path.basename(p) for p in args.data], labels)
-    model = train_model(ts, fps=rate)
+    model = train_model(ts, fps=rate, skeleton=args.skeleton)
     training = model.meta.setdefault("training", {})
     training["fps"] = rate
     rec = skeleton_record(first)
     if rec:
         training["skeleton"] = rec
     model.save(args.output)
+    from blend.cli import _maps
+    from blend.groups import limb_channels
+
+    skel = model.default.meta.get("skeleton_map") or ""
+    if not limb_channels(model.default.group):
+        # as `lacuna train default-blend` warns: no channel in a body part, every missing one only held
+        why = (f"its bones match no known skeleton ({', '.join(_maps())}): pass --skeleton NAME|FILE"
+               if not skel else f"no channel falls in a body part of skeleton {skel}")
+        print(f"lacuna: warning: {args.data[0]}: {why}; default's blend will hold the last value of every "
+              "missing channel", file=sys.stderr)
     if not args.quiet:
         n = sum(lab in LOCOMOTION for lab in labels)
-        print(f"default: the stacked blend on {len(seqs)} files, the HLM on {n} locomotion files, "
+        print(f"default: the stacked blend on {len(seqs)} files ({skel or 'no known skeleton'}), the HLM on {n} "
+              "locomotion files, "
               f"{sum(s.shape[0] for s in seqs)} frames at {rate:g} fps; wrote {args.output}", file=sys.stderr)
     return 0

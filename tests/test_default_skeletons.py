@@ -129,7 +129,7 @@ def test_default_trains_and_fills_by_body_part_on_each_bvh_naming(naming, data, 
     b = skelmap.Binding.of(test.channels)
     assert b.map.name == naming  # recognised from the bone names alone
     out = tmp_path / "m.npz"
-    assert main(["train", "default", str(tmp_path / "train.bvh"), "-o", str(out)]) == 0
+    assert main(["train", "default-blend", str(tmp_path / "train.bvh"), "-o", str(out)]) == 0
     err = capsys.readouterr().err
     assert f"({naming})" in err and "warning" not in err
     model = modelfile.load_model(str(out))
@@ -140,7 +140,7 @@ def test_default_trains_and_fills_by_body_part_on_each_bvh_naming(naming, data, 
         want = (0 if is_angle(c) else ROOT_POS) if p == "root" else GROUP_NAMES.index(p)
         assert g == want, (c, GROUP_NAMES[g], p)
     assert OTHER not in model.group
-    # each joint group drops out of this naming's take, and default fills it (not only holds)
+    # each joint group drops out of this naming's take, and the blend fills it (not only holds)
     for g in skelmap.GROUPS:
         obs, bursts = drop_mask(f"gaps:{g}", test, seed=1, require_erased=False)
         cols = b.mask(g)
@@ -156,7 +156,7 @@ def test_default_trains_and_fills_by_body_part_on_each_bvh_naming(naming, data, 
 def test_default_on_cmu_asf_keeps_its_groups_and_old_files_load_as_they_were(data, tmp_path, capsys):
     amc = data / "cmu" / "07" / "07_02.amc"
     out = tmp_path / "asf.npz"
-    assert main(["train", "default", str(amc), "-o", str(out), "-q"]) == 0
+    assert main(["train", "default-blend", str(amc), "-o", str(out), "-q"]) == 0
     model = modelfile.load_model(str(out))
     assert model.meta["skeleton_map"] == "cmu-asf"
     np.testing.assert_array_equal(model.group, legacy_groups(model.channels))  # the table it always had
@@ -172,7 +172,7 @@ def test_default_on_cmu_asf_keeps_its_groups_and_old_files_load_as_they_were(dat
     for trained in (out, tmp_path / "bvh.npz"):
         if trained.name == "bvh.npz":
             converted(data, "08_02", "cmu-bvh", tmp_path / "t.bvh")
-            assert main(["train", "default", str(tmp_path / "t.bvh"), "-o", str(trained), "-q"]) == 0
+            assert main(["train", "default-blend", str(tmp_path / "t.bvh"), "-o", str(trained), "-q"]) == 0
         meta, arrays = modelfile.load_arrays(str(trained))
         old = tmp_path / f"old-{trained.name}"
         modelfile.save_arrays(str(old), {k: v for k, v in meta.items() if k != "skeleton_map"},
@@ -224,7 +224,7 @@ def test_patterns_that_would_erase_nothing_name_the_skeleton_and_groups(data, tm
     assert main(["train", "default", take, "-o", str(tmp_path / "m.npz"), "-q"]) == 0
     capsys.readouterr()
     cases = [["replay", take, "--serve", str(tmp_path / "m.npz"), "--drop", "gaps:left-arm,right-arm", "-q"],
-             ["train", "default", take, "-o", str(tmp_path / "c.npz"), "--calibrate", take, "--skeleton",
+             ["train", "default-blend", take, "-o", str(tmp_path / "c.npz"), "--calibrate", take, "--skeleton",
               str(_arms_only_map(tmp_path))]]
     for argv in cases:
         assert main(argv) == 2
@@ -307,8 +307,12 @@ def test_bones_no_map_knows_train_with_a_warning_that_default_only_holds(tmp_pat
     rows = ["# fps=120", "frame,knee.rx,knee.ry,elbow.rx"] + [
         f"{k},{10 * np.sin(k / 10):.4f},{5 * np.cos(k / 7):.4f},{3 * np.sin(k / 5):.4f}" for k in t]
     (tmp_path / "odd.csv").write_text("\n".join(rows) + "\n")
-    assert main(["train", "default", str(tmp_path / "odd.csv"), "-o", str(tmp_path / "m.npz")]) == 0
+    assert main(["train", "default-blend", str(tmp_path / "odd.csv"), "-o", str(tmp_path / "m.npz")]) == 0
     err = capsys.readouterr().err
     assert "warning" in err and "match no known skeleton" in err and "hold the last value" in err
     model = modelfile.load_model(str(tmp_path / "m.npz"))
     assert set(model.group.tolist()) == {OTHER} and model.meta["skeleton_map"] == ""
+    # `lacuna train default` (the blend mixed with the HLM) says the same of its blend
+    assert main(["train", "default", str(tmp_path / "odd.csv"), "-o", str(tmp_path / "d.npz")]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "match no known skeleton" in err and "hold the last value" in err
