@@ -16,7 +16,8 @@ def _wrap(x):
 
 
 @jit
-def _knot(W, g, t, knots):
+def _hat(knots, t):
+    """(i, f): t's place on the piecewise-linear knots, clamped at both ends (value = v[i] (1 - f) + v[i + 1] f)."""
     K = knots.shape[0]
     if t <= knots[0]:
         p = 0.0
@@ -28,7 +29,12 @@ def _knot(W, g, t, knots):
             s += 1
         p = (t - knots[s]) * (1.0 / (knots[s + 1] - knots[s])) + s
     i = min(int(p), K - 2)
-    f = p - i
+    return i, p - i
+
+
+@jit
+def _knot(W, g, t, knots):
+    i, f = _hat(knots, t)
     return W[g, i] * (1.0 - f) + W[g, i + 1] * f
 
 
@@ -181,20 +187,9 @@ def _guard_solve(GS, n0, mx, L):
 @jit
 def _guard_lambda(L, g, kk, gzf, which):
     """blend.guard.guard_lambda for one channel: part ``which`` (0 velocity, 1 regression)."""
-    B = gzf.shape[0]
-    if B == 1:
+    if gzf.shape[0] == 1:
         return L[g, 0, which]
-    if kk <= gzf[0]:
-        p = 0.0
-    elif kk >= gzf[B - 1]:
-        p = B - 1.0
-    else:
-        s = 0
-        while gzf[s + 1] <= kk:
-            s += 1
-        p = (kk - gzf[s]) * (1.0 / (gzf[s + 1] - gzf[s])) + s
-    i = min(int(p), B - 2)
-    fr = p - i
+    i, fr = _hat(gzf, kk)
     return L[g, i, which] * (1.0 - fr) + L[g, i + 1, which] * fr
 
 

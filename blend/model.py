@@ -51,7 +51,7 @@ import numpy as np
 from blend import guard
 from blend.groups import GROUP_NAMES, GROUPS, NO_REGRESSION, ROOT_POS, group_of, model_groups  # noqa: F401
 from lacuna import modelfile
-from lacuna.filler import Model
+from lacuna.filler import FillerError, Model
 from mocap.representation import is_angle
 
 # seconds since the gap began; beyond the last knot the weights stay as they are there (the calibration gaps
@@ -246,19 +246,11 @@ class DefaultModel(Model):
     def step_batch(self, states, frames, observed):
         """Many streams: one check of the whole batch, then each stream's compiled step."""
         from blend.state import DefaultState
-        from lacuna.filler import FillerError
 
         if not self.compiled or not states or not all(isinstance(s, DefaultState) and s.m is self and not s.collect
                                                       for s in states):
             return super().step_batch(states, frames, observed)
-        F = np.ascontiguousarray(frames, dtype=np.float64)
-        O = np.ascontiguousarray(observed, dtype=bool)
-        if F.shape != (len(states), self.n_channels) or O.shape != F.shape:
-            raise FillerError(f"a batch of {len(states)} streams needs frames and masks of shape "
-                              f"({len(states)}, {self.n_channels}) (got {F.shape} and {O.shape})")
-        if (O & ~np.isfinite(F)).any():
-            i, j = np.argwhere(O & ~np.isfinite(F))[0]
-            raise FillerError(f"observed values must be finite (got NaN/inf in stream {i} at channel {j})")
+        F, O = checked_batch(len(states), self.n_channels, frames, observed)
         return [s._step_fast(F[i], O[i]) for i, s in enumerate(states)]
 
     def with_weights(self, weights: Weights) -> DefaultModel:
@@ -301,3 +293,17 @@ class DefaultModel(Model):
                    settings, w, {k: v for k, v in meta.items() if k not in ("settings", "groups")},
                    modelfile.require(path, arrays, "vrms", (C,)), modelfile.require(path, arrays, "vgain", (C,)),
                    model_groups(meta["channels"], arrays.get("group", "legacy"), path))
+
+
+def checked_batch(n: int, n_channels: int, frames: Any, observed: Any) -> tuple[np.ndarray, np.ndarray]:
+    """A batch's frames (float64) and masks (bool) as contiguous (n, C) arrays, or FillerError
+    saying what is wrong (the shape, or a NaN/inf where a value is observed)."""
+    F = np.ascontiguousarray(frames, dtype=np.float64)
+    O = np.ascontiguousarray(observed, dtype=bool)
+    if F.shape != (n, n_channels) or O.shape != F.shape:
+        raise FillerError(f"a batch of {n} streams needs frames and masks of shape "
+                          f"({n}, {n_channels}) (got {F.shape} and {O.shape})")
+    if (O & ~np.isfinite(F)).any():
+        i, j = np.argwhere(O & ~np.isfinite(F))[0]
+        raise FillerError(f"observed values must be finite (got NaN/inf in stream {i} at channel {j})")
+    return F, O

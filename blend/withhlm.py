@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from blend.model import checked_batch
 from blend.withhlm_fast import mix_row, shadow_counts
 from lacuna import jit, modelfile
 from lacuna.filler import Fill, FillerError, FillerState, Model, check_frame
@@ -138,14 +139,7 @@ class WithHLMModel(Model):
         mine = all(isinstance(s, WithHLMState) and s.m is self for s in states)
         if not mine or not states:
             return super().step_batch(states, frames, observed, level)
-        F = np.asarray(frames, np.float64)
-        O = np.asarray(observed, bool)
-        if F.shape != (len(states), self.n_channels) or O.shape != F.shape:
-            raise FillerError(f"a batch of {len(states)} streams needs frames and masks of shape "
-                              f"({len(states)}, {self.n_channels}) (got {F.shape} and {O.shape})")
-        if (O & ~np.isfinite(F)).any():
-            i, j = np.argwhere(O & ~np.isfinite(F))[0]
-            raise FillerError(f"observed values must be finite (got NaN/inf in stream {i} at channel {j})")
+        F, O = checked_batch(len(states), self.n_channels, frames, observed)
         return self._step(states, F, O)
 
     def _step(self, states: list[WithHLMState], F: np.ndarray, O: np.ndarray) -> list[Fill]:
