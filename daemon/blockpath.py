@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from daemon.block import FrameBlock
-from daemon.session import WAIT_FOLLOW, WAIT_PLAUSIBLE_S, WAIT_REPORT_S, Origin, Pending, Session
+from daemon.session import Origin, Pending, Session
 from lacuna.filler import Model
 
 PLANS_MAX = 16  # sets of streams whose checks are kept (a studio sends one or a few)
@@ -107,31 +107,16 @@ def take(table: Any, block: FrameBlock, origin: Origin, arrived: float, who: Any
     lasts = [s.last_seq for s in S]
     if None in lasts or not all(map(_GT, block.seqs, lasts)):  # type: ignore[arg-type]
         return False  # a first frame, or a late or duplicate one: answered by the row path
-    got = [s.t_base for s in S]
-    if None in got:
+    if any(s.t_base is None for s in S):
         return False
-    bases: list[float] = got  # type: ignore[assignment]
     now = table.clock()
     mte = table.recent.move_to_end
-    for s, t, b in zip(S, block.stamps, bases):
+    for s, t in zip(S, block.stamps):
         s.last_active = now
         mte(s.sid)
         s.counts["frames_in"] += 1
-        # did the frame wait on its way?  (SessionTable.frame: plain floats, cheaper than
-        # numpy on 64 values and the same sums)
-        off = arrived - t
-        if off < b:
-            s.t_base = off
-            continue
-        w = off - b
-        if w > WAIT_PLAUSIBLE_S:
-            s.t_base = off
-            continue
-        s.t_base = b + w * WAIT_FOLLOW
-        if w >= WAIT_REPORT_S:
-            s.counts["waited"] += 1
+        if s.delivered(arrived - t):  # did it wait on its way (as SessionTable.frame asks)
             table.count("frames_waited", s.sid)
-            s.max_wait_s = max(s.max_wait_s, w)
     table.blocks.append(BlockWait(plan, block, origin, arrived))
     return True
 

@@ -127,6 +127,26 @@ class Session:
         self.model_seq = None
         self.last_out = None
 
+    def delivered(self, off: float) -> bool:
+        """A frame arrived ``off`` = arrival - capture time after it was captured: constant for a
+        frame delivered as quickly as ever, more when it waited on its way (a stalled daemon, a
+        full socket).  Moves the quickest-delivery baseline; True when the frame waited
+        WAIT_REPORT_S or more (counted here; the table counts ``frames_waited``)."""
+        b = self.t_base
+        if b is None or off < b:
+            self.t_base = off
+            return False
+        w = off - b
+        if w > WAIT_PLAUSIBLE_S:  # the capture clock jumped: a new baseline
+            self.t_base = off
+            return False
+        self.t_base = b + w * WAIT_FOLLOW
+        if w < WAIT_REPORT_S:
+            return False
+        self.counts["waited"] += 1
+        self.max_wait_s = max(self.max_wait_s, w)
+        return True
+
     # ---- the transitions of a served frame (the scheduler's and the tick's) -------------------
     def count(self, name: str, n: int = 1) -> None:
         self.counts[name] += n

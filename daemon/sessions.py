@@ -11,9 +11,6 @@ from typing import Any
 
 from daemon import positions, wire
 from daemon.session import (
-    WAIT_FOLLOW,
-    WAIT_PLAUSIBLE_S,
-    WAIT_REPORT_S,
     Mapping,
     Origin,
     Out,
@@ -269,22 +266,8 @@ class SessionTable:
                                         f"{f.angles.shape[0]} (send a hello to change the channel list)")
         s.last_active = self.clock()
         self.recent.move_to_end(f.stream)
-        # did the frame wait on its way (a stalled daemon, a full socket)?  arrival - capture time
-        # is constant for a frame delivered as quickly as ever; more means it waited
-        off = arrived - f.t
-        b = s.t_base
-        if b is None or off < b:
-            s.t_base = off
-        else:
-            w = off - b
-            if w > WAIT_PLAUSIBLE_S:  # the capture clock jumped: a new baseline
-                s.t_base = off
-            else:
-                s.t_base = b + w * WAIT_FOLLOW
-                if w >= WAIT_REPORT_S:
-                    s.counts["waited"] += 1
-                    self.count("frames_waited", f.stream)
-                    s.max_wait_s = max(s.max_wait_s, w)
+        if s.delivered(arrived - f.t):
+            self.count("frames_waited", f.stream)
         s.counts["frames_in"] += 1
         if s.last_seq is not None and f.seq <= s.last_seq:
             why = "duplicate" if f.seq == s.last_seq else "late"
