@@ -10,17 +10,23 @@ import sys
 def add_commands(cli) -> None:
     p = cli.train("default-blend", help="train the stacked blend of hold, damped velocity and a regression on the "
                                         "observed channels (default's first expert) on motion files")
-    p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it, .bvh, .csv)")
-    p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    add_data_arguments(p)
     p.add_argument("--calibrate", nargs="+", metavar="FILE", default=None,
                    help="held-out takes to fit the stacking weights and the std on (default: the weights shipped "
                         "in blend/weights.json, fitted on the validation split)")
-    p.add_argument("--fps", type=float, help="resample every file to this rate first")
-    p.add_argument("--quiet", "-q", action="store_true")
+    p.set_defaults(func=_run)
+
+
+def add_data_arguments(p) -> None:
+    """The arguments `lacuna train default` and `default-blend` share: the motion files, the model
+    file, a rate to resample to, quiet, and the skeleton map."""
     from mocap import skelmap
 
+    p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it, .bvh, .csv)")
+    p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    p.add_argument("--fps", type=float, help="resample every file to this rate first")
+    p.add_argument("--quiet", "-q", action="store_true")
     skelmap.add_argument(p)
-    p.set_defaults(func=_run)
 
 
 def _load(paths: list[str], fps: float | None):

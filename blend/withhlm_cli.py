@@ -15,16 +15,12 @@ def add_commands(cli) -> None:
 
 
 def _add(p) -> None:
-    p.add_argument("data", nargs="+", metavar="DATA", help="motion files (.amc with its .asf beside it, .bvh, .csv)")
-    p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    from blend.cli import add_data_arguments
+
+    add_data_arguments(p)
     p.add_argument("--hlm-data", nargs="+", metavar="FILE", default=None,
                    help="the locomotion files of DATA to train the HLM on (default: those the project's split "
                         "names walk, turn or run; every file where it names none)")
-    p.add_argument("--fps", type=float, help="resample every file to this rate first")
-    p.add_argument("--quiet", "-q", action="store_true")
-    from mocap import skelmap
-
-    skelmap.add_argument(p)
     p.set_defaults(func=_run)
 
 
