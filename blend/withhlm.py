@@ -19,12 +19,28 @@ one observed limb group at a time is hidden from the HLM (never from ``default``
 output: the caller gets the observed values) for ``SHADOW_LEN`` frames, then ``SHADOW_PAUSE``
 frames rest, groups in turn.  A second ``default`` stream (the *twin*: at each window's opening a
 copy of the stream's own ``default`` state, stepped only while the window lasts) sees the same
-hidden group, so over a window the HLM's squared error
-on the hidden group is compared with ``default``'s own: r = e_HLM / e_default, and log q = the
-decayed mean of log r over windows (``Q_DECAY`` per window, one prior window of log q = 0).  A walk
-the HLM knows gives q well below 1; referee signals give q above 1, where the fitted W is about 0
-and the fill is ``default``'s own (W = 0 in the last q bin, q > 1.1, whatever the fit says).  The
-main ``default`` stream never sees the shadow mask.
+hidden group.  Over a window, from its ``SHADOW_SKIP``-th frame on (the check judges the HLM on
+the horizons it is trusted with: over a window's first frames the twin is barely off the last value
+and the HLM's own start is what the mixing's anchoring removes), the HLM's squared error on the
+hidden angles is compared with the twin's: r = e_HLM / e_default.  The main ``default`` stream never
+sees the shadow mask.
+
+The rule the check enforces (safe where evidence is thin): **the HLM gets a share only on evidence
+that it predicts this stream better than the blend, and only as much as a pessimistic bound on that
+evidence allows.**  The q bin is chosen by an upper confidence bound on log q, not its mean:
+
+    log q+ = m + Q_Z sqrt(v / n),   m, n: decayed (Q_DECAY per window) mean and count of log r,
+                                   v = (Q_V0 + decayed sum of (log r - m)^2) / (1 + n)
+
+and before any window has been scored log q+ = LOGQ_UNSCORED, the last bin, where W = 0 whatever
+the fit says (as for q+ > 1.1).  So a stream starts as ``default`` alone (the blend with its guard,
+which is itself kept within hold by its own check), an HLM that is wrong from the first frame never
+gets a share (tests/test_default_hlm.py: within 1% of the blend on every gap, the first included),
+and the share grows as windows agree (n up, the bound down), falls back when one disagrees (v up).
+The old policy (one prior window at q = 1, the bin 0.7-1.1 with its validation-fitted share from the
+first frame) let the HLM in before it had been judged: TEST's 49_20 was 3% worse than hold.
+The check also runs while up to SHADOW_MAX_MISS channels are really missing (longer dropouts are
+when it matters), never on a group with a missing channel.
 
 W is fitted on VALIDATION only (bench/default_hlm_tune.py: the gaps protocol's bursts with seeds
 100-102 and pan2009's pattern, on the experts trained on TRAIN): per cell the least-squares
@@ -64,8 +80,13 @@ T_EDGES = np.array([1.5, 6, 12, 30, 60, 120, 240])   # frames since onset (at 12
 Q_EDGES = np.log(np.array([0.4, 0.7, 1.1]))           # log q bins (chosen on VALIDATION among 4 sets)
 SHADOW_LEN = 60
 SHADOW_PAUSE = 120    # frames of rest between windows (chosen on VALIDATION among 30, 120, 240: bench/notebook/switch.md)
-SHADOW_MAX_MISS = 12
+SHADOW_MAX_MISS = 24   # chosen on VALIDATION among 12, 24, 40, 99 (bench/default_hlm_tune.py)
+SHADOW_SKIP = 30      # a window's first frames are not scored (module doc; chosen on VALIDATION among 0, 20, 30)
+SHADOW_MIN = 10       # scored frames a window needs to count
 Q_DECAY = 0.85
+Q_Z = 0.5             # how pessimistic the bound on log q is, in standard errors (chosen on VALIDATION among 0, 0.5, 1)
+Q_V0 = 1.0            # the prior variance of a window's log r (one prior window's worth)
+LOGQ_UNSCORED = math.log(100.0)   # no window scored yet: the bound is "no evidence", the last q bin (W = 0)
 W_MAX = 0.95   # the HLM's share at most: its std is 0 on channels its training held still; default's keeps std > 0
 ANCHOR_TAU = 30.0   # frames; replaced by the shipped choice (withhlm.json)
 
@@ -199,9 +220,7 @@ class WithHLMModel(Model):
                                  T is not None, self.ang, self.group, self.W, self.S, T_EDGES, bisect_right(self._qe, logq),
                                  self._anc, s.k, s.o, out, std)
             if T is not None and nh:
-                s.eh += eh
-                s.e0 += e0
-                s.sh_n += 1
+                s._score(eh, e0)
             fills.append(Fill(out, std, d.filled, {**h.extras, "hlm_q": math.exp(logq)}))   # d.filled: ~O[i]
         return fills
 
@@ -216,9 +235,7 @@ class WithHLMModel(Model):
             hid = O[i] & ~HO[i] & self.ang
             if hid.any():
                 eh, e0 = wrap(Hf[i, hid] - F[i, hid]), wrap(T[hid] - F[i, hid])
-                s.eh += float((eh * eh).sum())
-                s.e0 += float((e0 * e0).sum())
-                s.sh_n += 1
+                s._score(float((eh * eh).sum()), float((e0 * e0).sum()))
         K = np.where(O, 0, np.stack([s.k for s in states]) + 1)
         logq = np.array([s.logq for s in states])
         raw = np.where(self.ang, wrap(Hf - Df), Hf - Df)
@@ -296,7 +313,8 @@ class WithHLMState(FillerState):
         self.hs = model.hlm.stream()
         self.k = np.zeros(C, np.int64)
         self.o = np.zeros(C)         # the HLM's anchoring offset (module doc)
-        self.logq_sum, self.logq_n = 0.0, 1.0   # one prior window at log q = 0
+        self.lr_sum = self.lr_ss = self.lr_n = 0.0   # decayed sums of the windows' log r, log r^2, count
+        self._lq = LOGQ_UNSCORED     # the pessimistic bound on log q (module doc), updated as windows close
         self.sh = -1                 # index into SHADOW_GROUPS of the hidden group, -1: none
         self.sh_n = 0                # frames into the window (or, with sh = -1, the pause left)
         self.sh_next = 0             # the next group to hide
@@ -306,13 +324,27 @@ class WithHLMState(FillerState):
 
     @property
     def logq(self) -> float:
-        return self.logq_sum / self.logq_n
+        """The pessimistic bound on log q that picks the q bin (module doc); LOGQ_UNSCORED until a
+        window has been scored."""
+        return self._lq
+
+    def _score(self, eh: float, e0: float) -> None:
+        """One frame of an open window: the HLM's and the twin's squared errors on the hidden angles;
+        the window's first SHADOW_SKIP frames are counted, not scored."""
+        self.sh_n += 1
+        if self.sh_n > SHADOW_SKIP:
+            self.eh += eh
+            self.e0 += e0
 
     def _close(self) -> None:
-        if self.sh_n >= SHADOW_LEN // 3 and self.e0 > 0:
-            r = np.log(max(self.eh, 1e-9) / max(self.e0, 1e-9))
-            self.logq_sum = Q_DECAY * self.logq_sum + float(np.clip(r, -4.0, 4.0))
-            self.logq_n = Q_DECAY * self.logq_n + 1.0
+        if self.sh_n - SHADOW_SKIP >= SHADOW_MIN and self.e0 > 0:
+            r = min(max(math.log(max(self.eh, 1e-9) / max(self.e0, 1e-9)), -4.0), 4.0)
+            self.lr_sum = Q_DECAY * self.lr_sum + r
+            self.lr_ss = Q_DECAY * self.lr_ss + r * r
+            self.lr_n = Q_DECAY * self.lr_n + 1.0
+            mean = self.lr_sum / self.lr_n
+            var = (Q_V0 + max(self.lr_ss - self.lr_n * mean * mean, 0.0)) / (1.0 + self.lr_n)
+            self._lq = mean + Q_Z * math.sqrt(var / self.lr_n)
         self.sh, self.sh_n, self.eh, self.e0, self.twin = -1, SHADOW_PAUSE, 0.0, 0.0, None
 
     def _plan(self, busy: bool, gmiss: np.ndarray) -> int:

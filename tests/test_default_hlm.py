@@ -9,9 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blend.withhlm import ROOT_POS, WithHLMModel, train_model
+from blend.withhlm import ROOT_POS, WithHLMModel, shipped, train_model
 from lacuna import jit, modelfile
 from lacuna.cli import main as cli_main
+from lacuna.filler import Fill, FillerState, Model, check_frame
 from mocap import protocols, splits
 from mocap.representation import is_angle
 from mocap.rootrot import wrap180 as wrap
@@ -158,3 +159,81 @@ def test_compiled_mixing_equals_the_numpy_mixing(model):
         model.compiled = jit.enabled()
     assert windows > 60 and gaps > 60            # both paths were exercised
     assert a.logq != 0.0 and abs(a.logq - b.logq) < 1e-9 and (a.k == b.k).all()
+
+
+class _Scripted(Model):
+    """A constructed second expert for one take: the truth plus a scripted error on every value it is
+    not shown (``err(t)``, (C,) degrees).  The blend is the real one; only the HLM's slot is scripted,
+    so the online check's policy is judged on an expert whose quality is known from the first frame."""
+
+    method = "scripted"
+
+    def __init__(self, truth: np.ndarray, channels: list[str], err):
+        self.truth, self.channels, self.err = truth, list(channels), err
+
+    def stream(self) -> FillerState:
+        return _ScriptedState(self)
+
+
+class _ScriptedState(FillerState):
+    def __init__(self, m: _Scripted):
+        self.m, self.t = m, 0
+
+    def step(self, frame, observed=None) -> Fill:
+        f, obs = check_frame(frame, observed, self.m.n_channels)
+        out = np.where(obs, f, self.m.truth[self.t] + self.m.err(self.t))
+        self.t += 1
+        return Fill(out, np.where(obs, 0.0, 5.0), ~obs, {})
+
+
+def _mixed_vs_blend(model, err, take="walking_24", T=1200):
+    """One stream of ``default`` whose HLM is scripted, on TEST take ``take`` (a turning walk of
+    another performer): a limb group erased for 0.75 s every 1.6 s, the first from frame 5 (before
+    any window of the check can close).  Per gap (in order of onset) the squared errors of the mix and
+    of the blend alone over the erased angles, and the stream's state at the end."""
+    truth = splits.load_take(take).frames[:T]
+    obs = np.ones(truth.shape, bool)
+    for i, t0 in enumerate(range(5, T - 90, 190)):
+        obs[t0:t0 + 90, model.group == (3, 4, 5, 2)[i % 4]] = False     # left arm, right arm, left leg, head
+    W, S, chosen = shipped()
+    mixed = WithHLMModel(model.default, _Scripted(truth, model.channels, err), W, S, tau=float(chosen.get("tau", 15.0)))
+    st, ds = mixed.stream(), model.default.stream()
+    ang = np.array([is_angle(ch) for ch in model.channels])
+    onset = np.full(len(ang), -1)       # each channel's gap onset frame, -1 while observed
+    per: dict[int, list[float]] = {}
+    for t in range(T):
+        a, b = st.step(truth[t], obs[t]).frame, ds.step(truth[t], obs[t]).frame
+        miss = ~obs[t] & ang
+        onset = np.where(obs[t], -1, np.where(onset < 0, t, onset))
+        for j in np.flatnonzero(miss):
+            e = per.setdefault(int(onset[j]), [0.0, 0.0])
+            e[0] += float(wrap(a[j] - truth[t, j]) ** 2)
+            e[1] += float(wrap(b[j] - truth[t, j]) ** 2)
+    return [per[k] for k in sorted(per)], st
+
+
+def test_an_hlm_wrong_from_the_first_frame_never_gets_a_share(model):
+    """The second expert is 20-30 deg off on everything it fills, from the first frame (a motion the
+    HLM does not know).  Until the online check has scored it the HLM's share is 0 (the pessimistic
+    bound starts at "no evidence"), and once scored its bound on q is far above 1.1: every gap of the
+    stream, the first one included, is filled as the blend alone fills it (within 1%).  The old policy
+    (a prior window at q = 1) gave the HLM the validation-fitted share of the q bin 0.7-1.1 on every gap
+    before the first window closed."""
+    rng = np.random.default_rng(0)
+    off = rng.uniform(20, 30, len(model.channels)) * rng.choice([-1, 1], len(model.channels))
+    gaps, st = _mixed_vs_blend(model, lambda t: off * np.sin(2 * np.pi * t / 90.0 + 1.0))
+    assert len(gaps) == 6
+    for mix, blend in gaps:
+        assert mix <= 1.01 * blend + 1e-9
+    assert st.lr_n > 0 and np.exp(st.logq) > 1.1      # it was scored, and judged worse than the blend
+
+
+def test_an_hlm_that_is_right_gets_its_share_once_scored(model):
+    """The second expert fills every value it is not shown with the truth: once the check has scored
+    a window the mix leans on it and the gaps after that are filled far better than by the blend."""
+    gaps, st = _mixed_vs_blend(model, lambda t: 0.0)
+    assert np.exp(st.logq) < 0.4
+    later = np.array(gaps[len(gaps) // 4:])
+    assert later[:, 0].sum() < 0.5 * later[:, 1].sum()
+    first = np.array(gaps)
+    assert first[:, 0].sum() <= first[:, 1].sum()
