@@ -175,15 +175,16 @@ def worst(data: dict[str, np.ndarray], W: np.ndarray, tau: float) -> tuple[float
     return out
 
 
-def sweep(model: withhlm.WithHLMModel, policies: list[tuple[float, int, int]], cache: str | None):
-    """Per policy (Q_Z, SHADOW_SKIP, SHADOW_MAX_MISS) a fresh collection (the q bins depend on it), W/S fitted per tau;
+def sweep(model: withhlm.WithHLMModel, policies: list[tuple[float, int, int, int, int]], cache: str | None):
+    """Per policy (Q_Z, SHADOW_SKIP, SHADOW_MAX_MISS, SHADOW_WARM, SHADOW_EAGER) a fresh collection (the q bins depend on it), W/S fitted per tau;
     the policy kept: the lowest mean blend/default over the activity cells among those whose worst
     take x pattern row is at most ``default``'s own (a policy that makes any validation take worse than
     the blend alone is not kept while another is not), else the lowest worst."""
     best = None
-    for z, skip, mm in policies:
-        withhlm.Q_Z, withhlm.SHADOW_SKIP, withhlm.SHADOW_MAX_MISS = z, skip, mm
-        path = f"{cache}-z{z:g}-s{skip}-m{mm}.npz" if cache else None
+    for pol in policies:
+        z, skip, mm, warm, eager = pol
+        withhlm.Q_Z, withhlm.SHADOW_SKIP, withhlm.SHADOW_MAX_MISS, withhlm.SHADOW_WARM, withhlm.SHADOW_EAGER = pol
+        path = f"{cache}-z{z:g}-s{skip}-m{mm}" + (f"-w{warm}-e{eager}" if warm or eager else "") + ".npz" if cache else None
         if path and Path(path).exists():
             data = dict(np.load(path))
         else:
@@ -195,11 +196,11 @@ def sweep(model: withhlm.WithHLMModel, policies: list[tuple[float, int, int]], c
             res = report(data, W, S, tau, quiet=True)
             score = float(np.mean([v["blend"] / v["default"] for v in res.values()]))
             bad, where = worst(data, W, tau)
-            print(f"Q_Z {z:g} SHADOW_SKIP {skip} SHADOW_MAX_MISS {mm} tau {tau:5.0f}: blend / default mean over the cells {score:.4f}, "
+            print(f"Q_Z {z:g} SHADOW_SKIP {skip} SHADOW_MAX_MISS {mm} SHADOW_WARM {warm} SHADOW_EAGER {eager} tau {tau:5.0f}: blend / default mean over the cells {score:.4f}, "
                   f"worst take {bad:.4f} ({where})", flush=True)
             key = (bad > 1.0 + 1e-3, bad if bad > 1.0 + 1e-3 else score)
             if best is None or key < best[0]:
-                best = (key, (z, skip, mm), tau, W, S, data, score, bad, where)
+                best = (key, pol, tau, W, S, data, score, bad, where)
     return best
 
 
@@ -212,6 +213,8 @@ def main() -> int:
     ap.add_argument("--z", type=float, nargs="+", default=[withhlm.Q_Z], help="Q_Z values to try")
     ap.add_argument("--skip", type=int, nargs="+", default=[withhlm.SHADOW_SKIP], help="SHADOW_SKIP values to try")
     ap.add_argument("--max-miss", type=int, nargs="+", default=[withhlm.SHADOW_MAX_MISS], help="SHADOW_MAX_MISS values to try")
+    ap.add_argument("--warm", type=int, nargs="+", default=[withhlm.SHADOW_WARM], help="SHADOW_WARM values to try")
+    ap.add_argument("--eager", type=int, nargs="+", default=[withhlm.SHADOW_EAGER], help="SHADOW_EAGER values to try")
     a = ap.parse_args()
     import blend.methods  # noqa: F401  (loaders)
 
@@ -220,14 +223,15 @@ def main() -> int:
         model = withhlm.WithHLMModel(d, h, *withhlm.shipped()[:2])
     else:
         model = withhlm.train_model(protocols.Gaps().training_set(), cycle_frames=140)
-    shipped_policy = (withhlm.Q_Z, withhlm.SHADOW_SKIP, withhlm.SHADOW_MAX_MISS)
-    policies = [(z, k, m) for z in a.z for k in a.skip for m in a.max_miss]
+    shipped_policy = (withhlm.Q_Z, withhlm.SHADOW_SKIP, withhlm.SHADOW_MAX_MISS, withhlm.SHADOW_WARM, withhlm.SHADOW_EAGER)
+    policies = [(z, k, m, w, e) for z in a.z for k in a.skip for m in a.max_miss for w in a.warm for e in a.eager]
     _, pol, tau, W, S, data, score, bad, where = sweep(model, policies, a.cache)
-    z, skip, mm = pol
-    print(f"chosen Q_Z {z:g}, SHADOW_SKIP {skip}, SHADOW_MAX_MISS {mm}, tau {tau:g} frames (mean {score:.4f}, "
-          f"worst take {bad:.4f} {where})")
+    z, skip, mm, warm, eager = pol
+    print(f"chosen Q_Z {z:g}, SHADOW_SKIP {skip}, SHADOW_MAX_MISS {mm}, SHADOW_WARM {warm}, SHADOW_EAGER {eager}, "
+          f"tau {tau:g} frames (mean {score:.4f}, worst take {bad:.4f} {where})")
     if pol != shipped_policy:
-        print(f"NOTE: set Q_Z, SHADOW_SKIP, SHADOW_MAX_MISS = {pol} in blend/withhlm.py (the code ships {shipped_policy})")
+        print(f"NOTE: set Q_Z, SHADOW_SKIP, SHADOW_MAX_MISS, SHADOW_WARM, SHADOW_EAGER = {pol} in blend/withhlm.py "
+              f"(the code ships {shipped_policy})")
     print("W (group x time bin) at each q bin:")
     for q in range(W.shape[2]):
         print(f" q bin {q}:")
@@ -237,7 +241,8 @@ def main() -> int:
     if a.write:
         chosen = {"fitted_on": "VALIDATION: gaps bursts seeds " + ",".join(map(str, SEEDS)) + " + pan2009 pattern on its walks",
                   "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "tau": tau, "validation": res,
-                  "policy": {"Q_Z": z, "SHADOW_SKIP": skip, "SHADOW_MAX_MISS": mm, "worst_take": [round(bad, 4), where]}}
+                  "policy": {"Q_Z": z, "SHADOW_SKIP": skip, "SHADOW_MAX_MISS": mm, "SHADOW_WARM": warm,
+                             "SHADOW_EAGER": eager, "worst_take": [round(bad, 4), where]}}
         withhlm.SHIPPED.write_text(json.dumps({"W": W.round(4).tolist(), "S": S.round(4).tolist(), "chosen": chosen},
                                               indent=1) + "\n")
         print(f"wrote {withhlm.SHIPPED}")

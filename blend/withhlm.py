@@ -40,7 +40,10 @@ and the share grows as windows agree (n up, the bound down), falls back when one
 The old policy (one prior window at q = 1, the bin 0.7-1.1 with its validation-fitted share from the
 first frame) let the HLM in before it had been judged: TEST's 49_20 was 3% worse than hold.
 The check also runs while up to SHADOW_MAX_MISS channels are really missing (longer dropouts are
-when it matters), never on a group with a missing channel.
+when it matters), never on a group with a missing channel.  Every constant of the check (Q_Z,
+SHADOW_SKIP, SHADOW_MAX_MISS, SHADOW_WARM, SHADOW_EAGER) was chosen on VALIDATION with W and S
+refitted for each (bench/default_hlm_tune.py --z/--skip/--max-miss/--warm/--eager; the choice is
+recorded in blend/withhlm.json "policy"; bench/notebook/mixq-4.md).
 
 W is fitted on VALIDATION only (bench/default_hlm_tune.py: the gaps protocol's bursts with seeds
 100-102 and pan2009's pattern, on the experts trained on TRAIN): per cell the least-squares
@@ -83,6 +86,8 @@ SHADOW_PAUSE = 120    # frames of rest between windows (chosen on VALIDATION amo
 SHADOW_MAX_MISS = 24   # chosen on VALIDATION among 12, 24, 40, 99 (bench/default_hlm_tune.py)
 SHADOW_SKIP = 30      # a window's first frames are not scored (module doc; chosen on VALIDATION among 0, 20, 30)
 SHADOW_MIN = 10       # scored frames a window needs to count
+SHADOW_WARM = 0       # frames of a stream before its first window (chosen on VALIDATION among 0, 30)
+SHADOW_EAGER = 0      # windows back to back (no rest) until this many have counted (VALIDATION: 0, 2)
 Q_DECAY = 0.85
 Q_Z = 0.5             # how pessimistic the bound on log q is, in standard errors (chosen on VALIDATION among 0, 0.5, 1)
 Q_V0 = 1.0            # the prior variance of a window's log r (one prior window's worth)
@@ -316,7 +321,8 @@ class WithHLMState(FillerState):
         self.lr_sum = self.lr_ss = self.lr_n = 0.0   # decayed sums of the windows' log r, log r^2, count
         self._lq = LOGQ_UNSCORED     # the pessimistic bound on log q (module doc), updated as windows close
         self.sh = -1                 # index into SHADOW_GROUPS of the hidden group, -1: none
-        self.sh_n = 0                # frames into the window (or, with sh = -1, the pause left)
+        self.sh_n = SHADOW_WARM      # frames into the window (or, with sh = -1, the pause left)
+        self.n_win = 0               # windows scored
         self.sh_next = 0             # the next group to hide
         self.eh = self.e0 = 0.0
         self.collect = False         # bench/default_hlm_tune.py reads ``comp`` after each step
@@ -345,7 +351,9 @@ class WithHLMState(FillerState):
             mean = self.lr_sum / self.lr_n
             var = (Q_V0 + max(self.lr_ss - self.lr_n * mean * mean, 0.0)) / (1.0 + self.lr_n)
             self._lq = mean + Q_Z * math.sqrt(var / self.lr_n)
-        self.sh, self.sh_n, self.eh, self.e0, self.twin = -1, SHADOW_PAUSE, 0.0, 0.0, None
+            self.n_win += 1
+        rest = SHADOW_PAUSE if self.n_win >= SHADOW_EAGER else 0
+        self.sh, self.sh_n, self.eh, self.e0, self.twin = -1, rest, 0.0, 0.0, None
 
     def _plan(self, busy: bool, gmiss: np.ndarray) -> int:
         """This frame's hidden group (index into SHADOW_GROUPS) or -1; opens and closes windows.

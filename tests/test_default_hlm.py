@@ -67,10 +67,9 @@ def test_beats_default_on_a_test_walk_with_pan2009s_pattern(model):
 
 def test_no_worse_than_default_on_a_test_take_that_is_not_locomotion(model):
     """TEST take basketball_signal_5 (referee signals), the gaps protocol's bursts: the shadow check
-    sees that the HLM does not predict this body (q > 1) and the blend stays within 3% of
-    ``default`` (q > 1.1 yields entirely; 3% is for the first second, before the first shadow
-    windows, when q is still its prior 1 and the validation-fitted cells give the HLM a share;
-    measured: 1.00x default, q 5.4)."""
+    sees that the HLM does not predict this body (q > 1) and the blend stays within 1% of
+    ``default`` (q > 1.1 yields entirely, and until the first window is scored the HLM has no share;
+    the old policy's prior q = 1 needed 3% here for the first second)."""
     c = [c for c in protocols.Gaps(seed=0, split="test").cases() if c.test == "basketball_signal_5"][0]
     T = 900
     truth, obs = c.truth[:T], c.observed[:T]
@@ -81,7 +80,7 @@ def test_no_worse_than_default_on_a_test_take_that_is_not_locomotion(model):
         fill[t] = st.step(given[t], obs[t]).frame
     dfill, _ = model.default.fill_offline(given, obs)
     assert st.m is model and np.exp(st.logq) > 1.0
-    assert _mse(truth, fill, obs, c.channels) <= 1.03 * _mse(truth, dfill, obs, c.channels)
+    assert _mse(truth, fill, obs, c.channels) <= 1.01 * _mse(truth, dfill, obs, c.channels)
 
 
 def test_model_file_round_trip_and_batch_equals_streams(model, tmp_path):
@@ -237,3 +236,13 @@ def test_an_hlm_that_is_right_gets_its_share_once_scored(model):
     assert later[:, 0].sum() < 0.5 * later[:, 1].sum()
     first = np.array(gaps)
     assert first[:, 0].sum() <= first[:, 1].sum()
+
+
+def test_the_shipped_weights_were_fitted_under_the_check_the_code_runs():
+    """blend/withhlm.json's W and S are only right for the policy they were fitted under: the policy
+    it records is the module's."""
+    from blend import withhlm
+
+    pol = shipped()[2]["policy"]
+    assert (pol["Q_Z"], pol["SHADOW_SKIP"], pol["SHADOW_MAX_MISS"], pol["SHADOW_WARM"], pol["SHADOW_EAGER"]) == \
+        (withhlm.Q_Z, withhlm.SHADOW_SKIP, withhlm.SHADOW_MAX_MISS, withhlm.SHADOW_WARM, withhlm.SHADOW_EAGER)
