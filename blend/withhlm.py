@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from blend.model import DefaultModel, checked_batch
-from blend.withhlm_fast import mix_row, shadow_counts
+from blend.withhlm_fast import mix_row, observed_finite, shadow_counts
 from lacuna import jit, modelfile
 from lacuna.filler import Fill, FillerError, FillerState, Model, check_frame
 from mocap.representation import is_angle
@@ -140,6 +140,9 @@ class WithHLMModel(Model):
         mine = all(isinstance(s, WithHLMState) and s.m is self for s in states)
         if not mine or not states:
             return super().step_batch(states, frames, observed, level)
+        if self.compiled and _ready(frames, np.float64, (len(states), self.n_channels)) \
+                and _ready(observed, np.bool_, frames.shape) and observed_finite(frames, observed):
+            return self._step(states, frames, observed)   # checked as checked_batch does, compiled
         F, O = checked_batch(len(states), self.n_channels, frames, observed)
         return self._step(states, F, O)
 
@@ -351,6 +354,12 @@ class WithHLMState(FillerState):
     def step(self, frame, observed=None) -> Fill:
         f, obs = check_frame(frame, observed, self.m.n_channels)
         return self.m._step([self], f[None], obs[None])[0]
+
+
+def _ready(a: Any, dtype: Any, shape: tuple[int, ...]) -> bool:
+    """``a`` is already what checked_batch would make of it: an ndarray of this dtype and shape,
+    C-contiguous (then it is used as given, as checked_batch's ascontiguousarray would)."""
+    return type(a) is np.ndarray and a.dtype == dtype and a.shape == shape and a.flags.c_contiguous
 
 
 def _copy_state(s: FillerState) -> FillerState:

@@ -110,3 +110,25 @@ def test_batch_compiled_equals_numpy_and_each_stream_alone(model, cases):
     f1, d1, _ = _run(model, True, [alone], truths[:, 3:4], masks[:, 3:4])
     np.testing.assert_allclose(f1[:, 0], fa[:, 3], rtol=0, atol=1e-9)
     np.testing.assert_allclose(d1[:, 0], da[:, 3], rtol=0, atol=1e-9)
+
+
+def test_an_observed_nan_is_a_clear_error_and_steps_no_stream(model, cases):
+    """The compiled check (withhlm_fast.observed_finite) refuses what checked_batch refuses, with
+    its message, before any stream of the batch has stepped."""
+    from lacuna.filler import FillerError
+
+    truth, obs = cases[1]
+    streams = [model.stream(), model.stream()]
+    F = np.where(obs[:2], truth[:2], np.nan)
+    model.step_batch(streams, F, obs[:2].copy())
+    before = [(s.k.copy(), s.ds.last.copy(), s.sh_n) for s in streams]
+    F2 = truth[2:4].copy()
+    F2[1, 7] = np.nan
+    O2 = np.ones_like(obs[2:4])
+    with pytest.raises(FillerError, match="observed values must be finite"):
+        model.step_batch(streams, F2, O2)            # NaN where the mask says observed
+    for s, (k, last, n) in zip(streams, before):
+        assert (s.k == k).all() and np.array_equal(s.ds.last, last) and s.sh_n == n
+    O2[1, 7] = False
+    got = model.step_batch(streams, F2, O2)          # the streams go on from where they were
+    assert len(got) == 2 and np.isfinite(got[0].frame).all()
