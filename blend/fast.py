@@ -194,6 +194,18 @@ def _guard_lambda(L, g, kk, gzf, which):
 
 
 @jit
+def reg_missing(obs, ri, out):
+    """``out[r]`` = regression channel r (channel ``ri[r]``) is missing; returns how many are: the
+    state's ``~obs[ri]`` and its ``any()`` in one compiled call (no arrays made)."""
+    n = 0
+    for r in range(ri.shape[0]):
+        miss = not obs[ri[r]]
+        out[r] = miss
+        n += miss
+    return n
+
+
+@jit
 def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
                 last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
                 sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, GL, gbuf, gbin):

@@ -64,6 +64,7 @@ class DefaultState(FillerState):
         self.EH = np.zeros(G)               # ... and of the group's own change over the longest lag
         self.hist = np.repeat(model.mean_[None], max(model._pf["L"]) + 2, 0)  # ring of outputs, newest at sv[3]
         self.miss_key: bytes | None = None
+        self.mreg = np.zeros(len(model.reg_idx), bool)   # _step_fast's scratch: the regression channels missing
         self.Rv = np.zeros(C)
         self.collect = False                 # blend.fit sets it and reads ``comp`` after each step
         self.comp: Components | None = None
@@ -85,12 +86,12 @@ class DefaultState(FillerState):
         return self.step_numpy(f, obs)
 
     def _step_fast(self, f: np.ndarray, obs: np.ndarray) -> Fill:
-        from blend.fast import step_kernel
+        from blend.fast import reg_missing, step_kernel
 
         m = self.m
         C = m.n_channels
-        miss_reg = ~obs[m.reg_idx]
-        if miss_reg.any():
+        miss_reg = self.mreg
+        if reg_missing(obs, m.reg_idx, miss_reg):
             key = miss_reg.tobytes()
             mm, O, B = m.regression(miss_reg, key)
             changed = key != self.miss_key

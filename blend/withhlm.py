@@ -67,8 +67,8 @@ from typing import Any
 
 import numpy as np
 
-from blend.model import checked_batch
-from blend.withhlm_fast import mix_row, shadow_counts
+from blend.model import DefaultModel, checked_batch
+from blend.withhlm_fast import mix_row, observed_finite, shadow_counts
 from lacuna import jit, modelfile
 from lacuna.filler import Fill, FillerError, FillerState, Model, check_frame
 from mocap.representation import is_angle
@@ -157,6 +157,7 @@ class WithHLMModel(Model):
             self._sgroup[self.group == g] = i
         self._qe = Q_EDGES.tolist()
         self.compiled = jit.enabled()   # the compiled mixing (blend/withhlm_fast.py); else _mix_numpy
+        self._direct = isinstance(default, DefaultModel)   # _blend_step calls its streams' compiled step
 
     def stream(self) -> WithHLMState:
         return WithHLMState(self)
@@ -165,43 +166,62 @@ class WithHLMModel(Model):
         mine = all(isinstance(s, WithHLMState) and s.m is self for s in states)
         if not mine or not states:
             return super().step_batch(states, frames, observed, level)
+        if self.compiled and _ready(frames, np.float64, (len(states), self.n_channels)) \
+                and _ready(observed, np.bool_, frames.shape) and observed_finite(frames, observed):
+            return self._step(states, frames, observed)   # checked as checked_batch does, compiled
         F, O = checked_batch(len(states), self.n_channels, frames, observed)
         return self._step(states, F, O)
 
     def _step(self, states: list[WithHLMState], F: np.ndarray, O: np.ndarray) -> list[Fill]:
-        """Every stream of the batch at once: plan the shadow masks, step each expert once for the
-        batch (the twins of the streams in a shadow window beside ``default``'s own streams, in one
-        call), then mix (module doc): compiled per stream where numba runs, else as (n, C) arrays."""
+        """Every stream of the batch at once: plan the shadow masks, step each expert (the twins of
+        the streams in a shadow window beside ``default``'s own streams), then mix (module doc):
+        compiled per stream where numba runs (_step_compiled), else as (n, C) arrays."""
+        if self.compiled and not any(s.collect for s in states):
+            return self._step_compiled(states, F, O)
         n = len(states)
         win: list[int] = []
-        fast = self.compiled
-        for s in states:
-            fast = fast and not s.collect
-        HO = O
-        if fast:
-            for i, s in enumerate(states):
-                nm = shadow_counts(O[i], self._nonpos, self._sgroup, s.gm)
-                g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
-                if g >= 0:
-                    HO = O.copy() if HO is O else HO
-                    self._open(s, g, i, HO, win)
-        else:
-            busy = ((~O) & self._nonpos).sum(1) > SHADOW_MAX_MISS
-            gmiss = (~O).astype(np.float64) @ self._member            # (n, shadow groups) channels missing
-            HO = O.copy()
-            for i, s in enumerate(states):
-                self._open(s, s._plan(bool(busy[i]), gmiss[i]), i, HO, win)
+        busy = ((~O) & self._nonpos).sum(1) > SHADOW_MAX_MISS
+        gmiss = (~O).astype(np.float64) @ self._member            # (n, shadow groups) channels missing
+        HO = O.copy()
+        for i, s in enumerate(states):
+            self._open(s, s._plan(bool(busy[i]), gmiss[i]), i, HO, win)
         if win:
-            dst = [s.ds for s in states] + [states[i].twin for i in win]
+            dst = [s.ds for s in states] + [t for t in (states[i].twin for i in win) if t is not None]   # (_open set them)
             dfills = self.default.step_batch(dst, np.concatenate([F, F[win]]), np.concatenate([O, HO[win]]))
             twin = {i: dfills[n + r].frame for r, i in enumerate(win)}
         else:
             dfills = self.default.step_batch([s.ds for s in states], F, O)
             twin = {}
         hfills = self.hlm.step_batch([s.hs for s in states], F, HO)
-        if fast:
-            return self._mix_fast(states, F, O, HO, dfills, hfills, twin)
         return self._mix_numpy(states, F, O, HO, dfills, hfills, twin)
+
+    def _step_compiled(self, states: list[WithHLMState], F: np.ndarray, O: np.ndarray) -> list[Fill]:
+        """_step where numba runs: stream by stream the plan, the blend's own compiled step on its
+        stream and (window open) on its twin, called directly (F and O were checked once for the
+        batch: no second check, no concatenated batch), the HLM's batch, the compiled mixing.
+        The order is _step's: a window's twin is copied before the stream's blend steps."""
+        HO = O
+        dfills: list[Fill] = []
+        twin: dict[int, np.ndarray] = {}
+        for i, s in enumerate(states):
+            nm = shadow_counts(O[i], self._nonpos, self._sgroup, s.gm)
+            g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
+            if g >= 0:
+                HO = O.copy() if HO is O else HO
+                HO[i, self._cols[g]] = False
+                if s.twin is None:
+                    s.twin = _copy_state(s.ds)
+            dfills.append(self._blend_step(s.ds, F[i], O[i]))
+            if g >= 0:
+                twin[i] = self._blend_step(s.twin, F[i], HO[i]).frame   # type: ignore[arg-type]
+        hfills = self.hlm.step_batch([s.hs for s in states], F, HO)
+        return self._mix_fast(states, F, O, HO, dfills, hfills, twin)
+
+    def _blend_step(self, ds: FillerState, f: np.ndarray, o: np.ndarray) -> Fill:
+        """One blend stream's step on a checked row: its compiled step itself where it has one."""
+        if self._direct and self.default.compiled and not ds.collect:   # type: ignore[attr-defined]
+            return ds._step_fast(f, o)   # type: ignore[attr-defined]
+        return self.default.step_batch([ds], f[None], o[None])[0]
 
     def _open(self, s: WithHLMState, g: int, i: int, HO: np.ndarray, win: list[int]) -> None:
         """Hide shadow group g of stream i from the HLM and the twin; a window's twin starts as a
@@ -288,7 +308,6 @@ class WithHLMModel(Model):
         if parts["d"].get("method") != "default" or parts["h"].get("method") != "hlm":
             raise modelfile.ModelFileError(f"{path}: {METHOD} experts must be default and hlm "
                                            f"(got {parts['d'].get('method')}, {parts['h'].get('method')})")
-        from blend.model import DefaultModel
         from hlm.model import load as load_hlm
 
         sub = {key: {k[2:]: v for k, v in arrays.items() if k.startswith(key + "/")} for key in ("d", "h")}
@@ -375,6 +394,12 @@ class WithHLMState(FillerState):
     def step(self, frame, observed=None) -> Fill:
         f, obs = check_frame(frame, observed, self.m.n_channels)
         return self.m._step([self], f[None], obs[None])[0]
+
+
+def _ready(a: Any, dtype: Any, shape: tuple[int, ...]) -> bool:
+    """``a`` is already what checked_batch would make of it: an ndarray of this dtype and shape,
+    C-contiguous (then it is used as given, as checked_batch's ascontiguousarray would)."""
+    return type(a) is np.ndarray and a.dtype == dtype and a.shape == shape and a.flags.c_contiguous
 
 
 def _copy_state(s: FillerState) -> FillerState:
