@@ -3,11 +3,19 @@ the lone-stream numpy path of ``hlm.online`` (``_predict_one``, ``_update_one``,
 ``fill``, ``extras``), in one call per batch instead of a few hundred numpy calls per stream (or
 the batched gathers of the numpy batch path, which cost ~25 us per stream at 64).
 
-Used by ``HLMModel.core_step`` when ``lacuna.jit.enabled()`` and the filter has no transition
-adaptation and no change of style (the default ``hlm`` and the faithful kappa = 0 filter); the
-others run the numpy code, which stays the reference: ``tests/test_hlm_fast.py`` checks the two
-agree to 1e-9 frame by frame on real motion, one stream and batches (contiguous and scattered
-pool slots).  ``LACUNA_NO_JIT=1`` turns the compiled path off.
+Used by ``HLMModel.core_step``, ``step_one`` (``step_slot``: one stream) and ``step_rows``
+(``step_rows``: a daemon tick's streams, encoder, filter and decoder in one call on their pool
+rows) when ``lacuna.jit.enabled()`` and the filter has no transition adaptation and no change of
+style (the default ``hlm`` and the faithful kappa = 0 filter); the others run the numpy code,
+which stays the reference: ``tests/test_hlm_fast.py`` checks the two agree to 1e-9 frame by
+frame on real motion, one stream and batches (contiguous and scattered pool slots), and that a
+batch in one call gives each stream the bits it gets alone.  ``LACUNA_NO_JIT=1`` turns the
+compiled path off.
+
+The step visits only the support of the posterior and of the prediction (~20 of C*M = 560
+states on a walk), in working arrays made once per batch, with the emission dot products summed
+in SIMD lanes (``lacuna.jit.jit_sums``; everything else in the sequential order of the numpy
+reference's loops).  Nothing is pruned: every state with non-zero mass is carried.
 
 Equations (numbered as in ``hlm.online``): the prediction is the cyclic jump transition of
 eq. (1), the update multiplies by the expected emission of eq. (10) on the prediction's support,

@@ -4,7 +4,8 @@ Real motion: an HLM trained on three subject-35 walks follows a held-out walk wi
 and the head missing in bursts, once through the compiled step and once with LACUNA_NO_JIT=1;
 every fill, std, style posterior and phase must agree to 1e-9, for the default (stream-cycle
 adaptation, two-level offset), knots-only and faithful (kappa 0) filters, through a model's
-state pool and through the daemon's batched seam (a batch of one); and the representation's
+state pool and through the daemon's batched seam (a batch of one, and a batch of several in one call, which
+must give each stream the bits it gets alone); and the representation's
 encoder/decoder alone, for both root modes, with and without normalisation."""
 from __future__ import annotations
 
@@ -215,3 +216,60 @@ def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_t
         if root_mode == "relative" and 120 <= t < 150:
             assert a.root_st[0, 0] == t - 119     # the root's gap is counted
     assert C == len(walks[0].channels)
+
+
+@pytest.mark.parametrize("options", [dict(), dict(kappa=0.0, kappa_global=0.0)], ids=["default", "faithful"])
+def test_a_batch_in_one_call_equals_each_stream_alone(walk, monkeypatch, options):
+    """A tick of several streams runs encoder, filter and decoder of all of them in one compiled
+    call on their pool rows (``hlm.fast.step_rows``), sharing the filter's working arrays; each
+    stream stepped alone (``step_batch`` of one: ``step_slot``, its own arrays) is its reference.
+    Streams handed over in a scrambled order, on pool rows that are not contiguous (every other
+    row of a pool that grows mid-take): the same bits, every stream, every frame; and the rows
+    between them are never touched."""
+    model, frames, obs = walk
+    m = model.with_options(**options)
+    T = frames.shape[0]
+    offs = np.array([0, 91, 37, 203, 150])
+    pool_a = [m.stream() for _ in range(2 * len(offs))]     # the batch takes rows 0, 2, 4, ...
+    batch = pool_a[::2]
+    alone = [m.stream() for _ in offs]
+    order = [3, 0, 4, 1, 2]                                  # handed over out of slot order
+    calls = []
+    orig = fast.step_rows
+    monkeypatch.setattr(fast, "step_rows", lambda *a, **k: calls.append(list(a[2])) or orig(*a, **k))
+    for t in range(150):
+        rows = (offs + t) % T
+        f = np.where(obs[rows], frames[rows], np.nan)
+        got = m.step_batch([batch[i] for i in order], f[order], obs[rows][order])
+        for j, i in enumerate(order):
+            ref = m.step_batch([alone[i]], f[i : i + 1], obs[rows[i]][None])[0]
+            np.testing.assert_array_equal(got[j].frame, ref.frame)
+            np.testing.assert_array_equal(got[j].std, ref.std)
+            np.testing.assert_array_equal(got[j].filled, ref.filled)
+            assert got[j].extras == ref.extras
+        if t == 60:  # the pool grows: every row's arrays move; the next call must see the new ones
+            pool_a += [m.stream() for _ in range(m.pool.capacity - m.pool.in_use + 1)]
+    assert calls == [[batch[i].slot for i in order]] * 150     # one call a tick, the rows as handed over
+    t_rows = m.pool.core["t"]
+    assert [int(t_rows[s.slot]) for s in batch] == [150] * len(batch)
+    assert all(int(t_rows[s.slot]) == 0 for s in pool_a[1::2])
+    # the fills are real: the arm missing from frame 20 to 80 is filled with a positive std
+    arm = [i for i, c in enumerate(m.channels) if c.split(".")[0] in ("lhumerus", "lradius")]
+    assert np.isfinite(got[0].frame).all()
+    assert ((got[0].std[arm] > 0) == ~obs[(offs[order[0]] + 149) % T][arm]).all()
+
+
+def test_a_batch_refuses_rows_outside_the_pool_and_a_stream_twice(walk):
+    """Compiled code has no bounds checks: a pool row outside the pool is refused before the
+    call, and the seam refuses the same stream twice in one batch."""
+    model, frames, obs = walk
+    s = [model.stream() for _ in range(3)]
+    tabs = fast.slot_tables(model.tables, model.representation)
+    f = np.where(obs[:2], frames[:2], np.nan)
+    with pytest.raises(IndexError, match="pool rows"):
+        fast.step_rows(tabs, model.pool, np.array([s[0].slot, model.pool.capacity]), f, obs[:2])
+    with pytest.raises(IndexError, match="pool rows"):
+        fast.step_rows(tabs, model.pool, np.array([-1, s[1].slot]), f, obs[:2])
+    with pytest.raises(ValueError, match="same stream twice"):
+        model.step_batch([s[2], s[2]], f, obs[:2])
+    assert all(int(model.pool.core["t"][x.slot]) == 0 for x in s)   # nothing was stepped
