@@ -192,8 +192,7 @@ class FeatureModel(Model):
         if got is not None:
             # the whole batch in one compiled call on the pool rows, in the caller's order
             done, std, extras = got
-            missing = ~observed
-            return [Fill(done[j], std[j], missing[j], extras[j]) for j in range(n)]
+            return [Fill(a, b, c, e) for a, b, c, e in zip(done, std, ~observed, extras)]  # (row views, no indexing)
         frames, observed = frames[order], observed[order]
         given = np.where(observed, frames, np.nan)
         pool = self.pool
