@@ -432,7 +432,10 @@ def step_rows(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observe
     phase = np.empty(n)
     cyc = "D" in cp
     D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
-    _step_rows(prow, np.ascontiguousarray(frames, dtype=np.float64),
-               np.ascontiguousarray(observed, dtype=np.bool_), rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"],
+    frames = np.ascontiguousarray(frames, dtype=np.float64)
+    observed = np.ascontiguousarray(observed, dtype=np.bool_)
+    if not (frames.flags.writeable and observed.flags.writeable):  # (compiled for writable arrays: no second kernel)
+        frames, observed = frames.copy(), observed.copy()
+    _step_rows(prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"],
                rp["root_st"], rt, cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, phase)
     return out, sd, _extras(style, phase)

@@ -170,8 +170,8 @@ class FeatureModel(Model):
         mine = [s for s in states if isinstance(s, FeatureStream) and s.model is self]
         if len(mine) != len(states):
             return super().step_batch(states, frames, observed, level)
-        frames = np.asarray(frames, dtype=np.float64)
-        observed = np.asarray(observed, dtype=bool)
+        frames = _writable(np.asarray(frames, dtype=np.float64))
+        observed = _writable(np.asarray(observed, dtype=bool))
         n = len(mine)
         if n == 1:
             # one stream (the usual live case): the core's whole-step call when it has one, else
@@ -215,6 +215,13 @@ class FeatureModel(Model):
         for j, i in enumerate(order.tolist()):
             fills[i] = Fill(done[j], std[j], missing[j], extras[j] if extras else {})
         return fills
+
+
+def _writable(a: np.ndarray) -> np.ndarray:
+    """a, or a copy where it is read-only (a frame decoded from the wire): the compiled steps are
+    compiled for writable arrays, and a read-only one would compile a second kernel in the live
+    path (seconds, once per install)."""
+    return a if a.flags.writeable else a.copy()
 
 
 class FeatureStream(FillerState):

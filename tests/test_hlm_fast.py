@@ -273,3 +273,28 @@ def test_a_batch_refuses_rows_outside_the_pool_and_a_stream_twice(walk):
     with pytest.raises(ValueError, match="same stream twice"):
         model.step_batch([s[2], s[2]], f, obs[:2])
     assert all(int(model.pool.core["t"][x.slot]) == 0 for x in s)   # nothing was stepped
+
+
+def test_read_only_frames_from_the_wire_compile_no_second_kernel(walk):
+    """A bundle decoded from the wire arrives as read-only arrays; numba types those apart from
+    writable ones, and a call with them would compile a second kernel inside the live path (it
+    cost a benchmark run most of a repeat's frames).  The seam hands the compiled steps writable
+    copies: the same bits as writable input, no new signature, one stream or several."""
+    model, frames, obs = walk
+    for n in (1, 3):
+        a = [model.stream() for _ in range(n)]
+        b = [model.stream() for _ in range(n)]
+        kernel = fast._step_rows if n > 1 else fast._step_slot
+        for t in range(40):
+            f = np.where(obs[t : t + n], frames[t : t + n], np.nan)
+            fa = model.step_batch(a, f, obs[t : t + n])
+            before = len(kernel.signatures)
+            ro_f = np.frombuffer(f.tobytes(), dtype=np.float64).reshape(f.shape)
+            ro_o = np.frombuffer(obs[t : t + n].tobytes(), dtype=bool).reshape(f.shape)
+            assert not ro_f.flags.writeable and not ro_o.flags.writeable
+            fb = model.step_batch(b, ro_f, ro_o)
+            assert len(kernel.signatures) == before >= 1
+            for x, y in zip(fa, fb):
+                np.testing.assert_array_equal(x.frame, y.frame)
+                np.testing.assert_array_equal(x.std, y.std)
+                assert x.extras == y.extras
