@@ -118,9 +118,11 @@ class HLMModel(FeatureModel):
 
     def step_rows(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple | None:
         # a batch's encoders, compiled filters and decoders in one call (hlm.fast.step_rows), where
-        # step_one's would serve
+        # step_one's would serve; a fill corrected after the filter (a ``cond`` of hlm.condfill)
+        # takes step_arrays' path until _step_rows mirrors _step_slot's correction
         rep = self.representation
-        if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative"):
+        if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative") \
+                or getattr(self, "cond", None) is not None:
             return None
         tabs = self.__dict__.get("_slot_tables")
         if tabs is None:
