@@ -249,7 +249,10 @@ def test_a_batch_in_one_call_equals_each_stream_alone(walk, monkeypatch, options
             assert got[j].extras == ref.extras
         if t == 60:  # the pool grows: every row's arrays move; the next call must see the new ones
             pool_a += [m.stream() for _ in range(m.pool.capacity - m.pool.in_use + 1)]
-    assert calls == [[batch[i].slot for i in order]] * 150     # one call a tick, the rows as handed over
+    if getattr(m, "cond", None) is None:
+        assert calls == [[batch[i].slot for i in order]] * 150  # one call a tick, the rows as handed over
+    else:  # a fill corrected after the filter (hlm.condfill) takes step_arrays' path (HLMModel.step_rows)
+        assert calls == []
     t_rows = m.pool.core["t"]
     assert [int(t_rows[s.slot]) for s in batch] == [150] * len(batch)
     assert all(int(t_rows[s.slot]) == 0 for s in pool_a[1::2])
@@ -284,16 +287,16 @@ def test_read_only_frames_from_the_wire_compile_no_second_kernel(walk):
     for n in (1, 3):
         a = [model.stream() for _ in range(n)]
         b = [model.stream() for _ in range(n)]
-        kernel = fast._step_rows if n > 1 else fast._step_slot
+        kernels = (fast._step_rows, fast._step_slot, fast._step_many, fastrepr.encode_many, fastrepr.finish_many)
         for t in range(40):
             f = np.where(obs[t : t + n], frames[t : t + n], np.nan)
             fa = model.step_batch(a, f, obs[t : t + n])
-            before = len(kernel.signatures)
+            before = sum(len(k.signatures) for k in kernels)
             ro_f = np.frombuffer(f.tobytes(), dtype=np.float64).reshape(f.shape)
             ro_o = np.frombuffer(obs[t : t + n].tobytes(), dtype=bool).reshape(f.shape)
             assert not ro_f.flags.writeable and not ro_o.flags.writeable
             fb = model.step_batch(b, ro_f, ro_o)
-            assert len(kernel.signatures) == before >= 1
+            assert sum(len(k.signatures) for k in kernels) == before >= 1
             for x, y in zip(fa, fb):
                 np.testing.assert_array_equal(x.frame, y.frame)
                 np.testing.assert_array_equal(x.std, y.std)
