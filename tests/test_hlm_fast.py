@@ -301,3 +301,19 @@ def test_read_only_frames_from_the_wire_compile_no_second_kernel(walk):
                 np.testing.assert_array_equal(x.frame, y.frame)
                 np.testing.assert_array_equal(x.std, y.std)
                 assert x.extras == y.extras
+
+
+def test_the_compiled_angle_wrap_is_the_float_modulo_to_the_bit():
+    """``fastrepr._wrap`` skips the float modulo within a turn either way; on angles of every
+    range, turn boundaries, signed zeros, tiny and huge values, NaN and infinities it returns
+    what ``(x + 180) % 360 - 180`` returns in Python, bit for bit."""
+    rng = np.random.default_rng(3)
+    edges = [0.0, -0.0, 180.0, -180.0, 540.0, -540.0, 360.0, -360.0, 900.0, -900.0, 1e-300, -1e-300, 1e-20, -1e-20,
+             179.99999999999997, -180.00000000000003, 539.9999999999999, 1e300, -1e300]
+    xs = np.concatenate([rng.uniform(-200, 200, 4000), rng.uniform(-2000, 2000, 4000), edges,
+                         np.nextafter(np.array(edges), np.inf), np.nextafter(np.array(edges), -np.inf)])
+    for x in xs.tolist():
+        got, want = fastrepr._wrap(x), (x + 180.0) % 360.0 - 180.0
+        assert np.float64(got).tobytes() == np.float64(want).tobytes(), (x, got, want)
+    for x in (np.nan, np.inf, -np.inf):
+        assert np.isnan(fastrepr._wrap(x))
