@@ -3,11 +3,19 @@ the lone-stream numpy path of ``hlm.online`` (``_predict_one``, ``_update_one``,
 ``fill``, ``extras``), in one call per batch instead of a few hundred numpy calls per stream (or
 the batched gathers of the numpy batch path, which cost ~25 us per stream at 64).
 
-Used by ``HLMModel.core_step`` when ``lacuna.jit.enabled()`` and the filter has no transition
-adaptation and no change of style (the default ``hlm`` and the faithful kappa = 0 filter); the
-others run the numpy code, which stays the reference: ``tests/test_hlm_fast.py`` checks the two
-agree to 1e-9 frame by frame on real motion, one stream and batches (contiguous and scattered
-pool slots).  ``LACUNA_NO_JIT=1`` turns the compiled path off.
+Used by ``HLMModel.core_step``, ``step_one`` (``step_slot``: one stream) and ``step_rows``
+(``step_rows``: a daemon tick's streams, encoder, filter and decoder in one call on their pool
+rows) when ``lacuna.jit.enabled()`` and the filter has no transition adaptation and no change of
+style (the default ``hlm`` and the faithful kappa = 0 filter); the others run the numpy code,
+which stays the reference: ``tests/test_hlm_fast.py`` checks the two agree to 1e-9 frame by
+frame on real motion, one stream and batches (contiguous and scattered pool slots), and that a
+batch in one call gives each stream the bits it gets alone.  ``LACUNA_NO_JIT=1`` turns the
+compiled path off.
+
+The step visits only the support of the posterior and of the prediction (~20 of C*M = 560
+states on a walk), in working arrays made once per batch, with the emission dot products summed
+in SIMD lanes (``lacuna.jit.jit_sums``; everything else in the sequential order of the numpy
+reference's loops).  Nothing is pruned: every state with non-zero mass is carried.
 
 Equations (numbered as in ``hlm.online``): the prediction is the cyclic jump transition of
 eq. (1), the update multiplies by the expected emission of eq. (10) on the prediction's support,
@@ -21,56 +29,118 @@ import numpy as np
 
 from lacuna.jit import enabled  # noqa: F401  (enabled: re-exported for callers)
 from lacuna.jit import jit as _jit
+from lacuna.jit import jit_sums as _jit_sums
 from mocap import fastrepr
 from mocap.fastrepr import encode1, finish1
 
 
 @_jit
+def scratch(CM, F, M):  # pragma: no cover - compiled
+    """The step's working arrays, made once per batch (``_step_in``): pr (CM,) all zero between
+    steps; then llp (CM,), v (3F,), num/den/mean/m2 (F,) each, in one float block; rows and the
+    touched prediction entries (CM,) each, the observed features (F,), and each state's style
+    and phase (CM,) each (s // M, s % M: an integer division costs tens of cycles), in one int
+    block."""
+    ix = np.empty(4 * CM + F, np.int64)
+    s = 0
+    for c in range(CM // M):
+        for m in range(M):
+            ix[2 * CM + F + s] = c
+            ix[3 * CM + F + s] = m
+            s += 1
+    return np.zeros(2 * CM + 7 * F), ix
+
+
+@_jit
 def _step(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
           D, W, G, GW, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style):  # pragma: no cover - compiled
+    """One stream's step with its own working arrays (``_step_in``)."""
+    fs, ix = scratch(post.shape[0], z.shape[0], M)
+    return _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, D, W, G,
+                    GW, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, fs, ix)
+
+
+@_jit_sums
+def _dot(row, v):  # pragma: no cover - compiled
+    """row . v, summed in SIMD lanes (``lacuna.jit.jit_sums``): an emission's log-likelihood
+    term to ~1e-16 relative of the sequential sum (tests/test_hlm_fast*.py hold the step to
+    1e-9 of numpy's, whose matrix products sum in their own order)."""
+    acc = 0.0
+    for f in range(v.shape[0]):
+        acc += row[f] * v[f]
+    return acc
+
+
+@_jit
+def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
+             D, W, G, GW, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, fs, ix):  # pragma: no cover - compiled
+    """The step on the posterior's and the prediction's support only, in the working arrays fs,
+    ix (``scratch``; fs[:CM] must be zero and is left zero).  The same operations in the same
+    order as a pass over all C*M states: the states are visited ascending, and the terms it
+    would skip (zero mass, a missing feature's zero emission term) add exactly nothing."""
     CM = post.shape[0]
     F = z.shape[0]
     C = CM // M
     J = d_pop.shape[0]
+    pr = fs[:CM]
+    llp = fs[CM : 2 * CM]
+    v = fs[2 * CM : 2 * CM + 3 * F]
+    num = fs[2 * CM + 3 * F : 2 * CM + 4 * F]
+    den = fs[2 * CM + 4 * F : 2 * CM + 5 * F]
+    mean = fs[2 * CM + 5 * F : 2 * CM + 6 * F]
+    m2 = fs[2 * CM + 6 * F : 2 * CM + 7 * F]
+    rows = ix[:CM]
+    tch = ix[CM : 2 * CM]
+    fo = ix[2 * CM : 2 * CM + F]
+    cof = ix[2 * CM + F : 3 * CM + F]
+    mof = ix[3 * CM + F :]
     # ---- predict: p(c, m | x_<t) = sum_j d_j post(c, m - j) (the cycle wraps within a style)
-    pr = np.zeros(CM)
+    nt = 0
     if first:
         for s in range(CM):
             pr[s] = prior[s]
+            post[s] = 0.0
+            tch[s] = s
+        nt = CM
     else:
         for s in range(CM):
             ps = post[s]
             if ps != 0.0:
-                base = s - s % M
-                m = s % M
+                post[s] = 0.0
+                m = mof[s]
+                base = s - m
                 for j in range(J):
-                    pr[base + (m + j + 1) % M] += d_pop[j] * ps
+                    g = m + j + 1
+                    if g >= M:  # (J <= M: one wrap at most)
+                        g -= M
+                    g += base
+                    if pr[g] == 0.0:
+                        tch[nt] = g  # (to zero it after: a target may be listed twice if a term added 0)
+                        nt += 1
+                    pr[g] += d_pop[j] * ps
     # ---- update on the support of the prediction: emission terms [o x, o, o x^2] . fused row
-    anyobs = False
-    for f in range(F):
-        if zobs[f]:
-            anyobs = True
     k = 0
-    rows = np.empty(CM, np.int64)
-    for s in range(CM):
+    for s in range(CM):  # (ascending: one pass costs less than sorting the touched targets)
         if pr[s] > 0.0:
             rows[k] = s
             k += 1
-    llp = np.zeros(k)
-    if anyobs:
-        v = np.zeros(3 * F)
-        for f in range(F):
-            if zobs[f]:
-                x = z[f]
-                v[f] = x
-                v[F + f] = 1.0
-                v[2 * F + f] = x * x
+    no = 0
+    for f in range(F):
+        if zobs[f]:
+            fo[no] = f
+            no += 1
+    if no > 0:
+        for f in range(3 * F):
+            v[f] = 0.0
+        for i in range(no):
+            f = fo[i]
+            x = z[f]
+            v[f] = x
+            v[F + f] = 1.0
+            v[2 * F + f] = x * x
         top = -np.inf
         for i in range(k):
-            acc = 0.0
-            row = fused_t[rows[i]]
-            for f in range(3 * F):
-                acc += row[f] * v[f]
+            acc = _dot(fused_t[rows[i]], v)
             llp[i] = acc
             if acc > top:
                 top = acc
@@ -83,8 +153,8 @@ def _step(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a,
     for i in range(k):
         llp[i] *= pr[rows[i]]
         tot += llp[i]
-    for s in range(CM):
-        post[s] = 0.0
+    for i in range(nt):
+        pr[tch[i]] = 0.0
     pmax = 0.0
     for i in range(k):
         p = llp[i] / tot
@@ -92,7 +162,7 @@ def _step(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a,
         if p > pmax:
             pmax = p
     # ---- stream-cycle statistics (kappa > 0), from the live states of the new posterior
-    if kappa > 0.0 and anyobs:
+    if kappa > 0.0 and no > 0:
         for i in range(k):
             s = rows[i]
             p = post[s]
@@ -100,33 +170,31 @@ def _step(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a,
                 continue
             b0, b1, a = bin0[s], bin1[s], bin_a[s]
             w0, w1 = p * (1.0 - a), p * a
-            c = s // M
-            for f in range(F):
-                if zobs[f]:
-                    dev = z[f] - mu[s, f]
-                    D[b0, f] += w0 * dev
-                    D[b1, f] += w1 * dev
-                    W[b0, f] += w0
-                    W[b1, f] += w1
-                    G[c, f] += p * dev
-                    GW[c, f] += p
+            c = cof[s]
+            for j in range(no):
+                f = fo[j]
+                dev = z[f] - mu[s, f]
+                D[b0, f] += w0 * dev
+                D[b1, f] += w1 * dev
+                W[b0, f] += w0
+                W[b1, f] += w1
+                G[c, f] += p * dev
+                GW[c, f] += p
     # ---- fill the missing features from the live states (eq. 18 with the joint posterior)
-    anymiss = False
     for f in range(F):
         out[f] = z[f]
         sd[f] = 0.0
-        if not zobs[f]:
-            anymiss = True
-    if anymiss:
+    if no < F:
         ptot = 0.0
         for i in range(k):
             p = post[rows[i]]
             if p > live * pmax:
                 ptot += p
-        num = np.zeros(F)
-        den = np.zeros(F)
-        mean = np.zeros(F)
-        m2 = np.zeros(F)
+        for f in range(F):
+            num[f] = 0.0
+            den[f] = 0.0
+            mean[f] = 0.0
+            m2[f] = 0.0
         for i in range(k):
             s = rows[i]
             p = post[s]
@@ -135,7 +203,7 @@ def _step(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a,
             p /= ptot
             if kappa > 0.0:
                 b0, b1, a = bin0[s], bin1[s], bin_a[s]
-                c = s // M
+                c = cof[s]
                 for f in range(F):
                     if zobs[f]:
                         continue
@@ -169,17 +237,19 @@ def _step(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a,
                 var = max(m2[f] - mean[f] * mean[f], 0.0) + (mean[f] - val) ** 2
                 out[f] = val
                 sd[f] = math.sqrt(var)
-    # ---- extras: the style posterior and the circular mean of the phase
+    # ---- extras: the style posterior and the circular mean of the phase (the posterior is
+    # zero off rows)
     for c in range(C):
         style[c] = 0.0
     sc = 0.0
     ss = 0.0
-    for s in range(CM):
+    for i in range(k):
+        s = rows[i]
         p = post[s]
         if p != 0.0:
-            style[s // M] += p
-            sc += p * cos[s % M]
-            ss += p * sin[s % M]
+            style[cof[s]] += p
+            sc += p * cos[mof[s]]
+            ss += p * sin[mof[s]]
     return (math.atan2(ss, sc) / (2.0 * math.pi)) % 1.0
 
 
@@ -191,11 +261,12 @@ def usable(tab) -> bool:
 @_jit
 def _step_many(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
                D, W, G, GW, prow, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, phase):  # pragma: no cover - compiled
+    fs, ix = scratch(post.shape[1], z.shape[1], M)  # (once for the batch)
     for i in range(post.shape[0]):
         r = prow[i]
-        phase[i] = _step(post[i], first[i], prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
-                         kappa_g, nb, D[r], W[r], G[r], GW[r], lam_rows, var_q, pack, cos, sin, live, live_stats,
-                         out[i], sd[i], style[i])
+        phase[i] = _step_in(post[i], first[i], prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
+                            kappa_g, nb, D[r], W[r], G[r], GW[r], lam_rows, var_q, pack, cos, sin, live, live_stats,
+                            out[i], sd[i], style[i], fs, ix)
 
 
 def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, rows: np.ndarray | None = None,
@@ -226,7 +297,12 @@ def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, row
     if post1 is not post:
         post[...] = post1
     state["t"] += 1
-    return out, sd, [{"style": style[i].tolist(), "phase": float(phase[i])} for i in range(n)]
+    return out, sd, _extras(style, phase)
+
+
+def _extras(style: np.ndarray, phase: np.ndarray) -> list[dict]:
+    """Per-stream extras of (n, C) style posteriors and (n,) phases: two conversions for the batch."""
+    return [{"style": y, "phase": p} for y, p in zip(style.tolist(), phase.tolist())]
 
 
 # ---- one stream, the whole step in one call -------------------------------------------------------
@@ -297,3 +373,75 @@ def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarr
     phase = _step_slot(r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
                        cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style)
     return out, sd, {"style": style.tolist(), "phase": phase}
+
+
+# ---- a batch on pool rows, the whole step in one call -----------------------------------------------
+# A daemon tick of n streams: encoder, filter and decoder of every stream in one compiled call on
+# the pool rows themselves (no gather or scatter, contiguous or not), the working arrays made once.
+
+
+@_jit
+def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
+               live, live_stats, out, sd, style, phase):  # pragma: no cover - compiled
+    """``_step_slot`` for pool rows prow[i] and frames[i], observed[i] (i < n), in one call:
+    the same encode1 -> filter -> finish1 per stream (mirror any change to ``_step_slot``'s glue
+    here), in three passes over the streams (every encoder, every filter, every decoder: each
+    pass keeps its own tables in cache, which interleaving them per stream cost ~6% at 64), the
+    filter's working arrays (``scratch``) shared."""
+    center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF, root_tau, root_power = rt
+    prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin = ht
+    n, C = frames.shape
+    CM = post.shape[1] * post.shape[2]
+    x = np.empty((n, C))
+    z = np.empty((n, nF))
+    zobs = np.empty((n, nF), np.bool_)
+    zf = np.empty((n, nF))
+    zsd = np.empty((n, nF))
+    for i in range(n):
+        r = prow[i]
+        for c in range(C):
+            x[i, c] = frames[i, c] if observed[i, c] else np.nan
+        encode1(x[i], observed[i], prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center, dr, df, dang,
+                any_angle, relative, rot, pos, rootf, fsrc, normalize, mean, std, z[i], zobs[i])
+    fs, ix = scratch(CM, nF, M)
+    for i in range(n):
+        r = prow[i]
+        q = r if cyc else 0
+        p = post[r].reshape(CM)
+        phase[i] = _step_in(p, t[r] == 0, prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g,
+                            nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf[i], zsd[i],
+                            style[i], fs, ix)
+        t[r] += 1
+    for i in range(n):
+        r = prow[i]
+        prev_yaw[r] = finish1(zf[i], zsd[i], x[i], observed[i], prev_u[r], prev_raw[r], prev_yaw[r], started[r],
+                              root_st[r], center, const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean,
+                              std, root_tau, root_power, out[i], sd[i])
+        started[r] = True
+
+
+def step_rows(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observed: np.ndarray,
+              live: float = 1e-10, live_stats: float = 1e-4) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """One frame of each of n streams in pool rows prow (n,) int, distinct (a
+    ``mocap.feature_model.StatePool`` of an HLM): frames (n, C) float64, observed (n, C) bool.
+    Updates the rows in place; returns (completed (n, C), std (n, C), extras per stream), what
+    ``step_slot`` returns stream by stream.  ``tables``: ``slot_tables``'s."""
+    rt, ht, zero = tables
+    rp, cp = pool.repr, pool.core
+    n, C = frames.shape
+    prow = np.asarray(prow, dtype=np.int64)
+    if prow.shape != (n,) or (n and (prow.min() < 0 or prow.max() >= pool.capacity)):  # (compiled code has no bounds checks)
+        raise IndexError(f"pool rows {prow.tolist()} for {n} frames in a pool of {pool.capacity}")
+    out = np.empty((n, C))
+    sd = np.empty((n, C))
+    style = np.empty((n, ht[0].shape[0] // ht[2]))
+    phase = np.empty(n)
+    cyc = "D" in cp
+    D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
+    frames = np.ascontiguousarray(frames, dtype=np.float64)
+    observed = np.ascontiguousarray(observed, dtype=np.bool_)
+    if not (frames.flags.writeable and observed.flags.writeable):  # (compiled for writable arrays: no second kernel)
+        frames, observed = frames.copy(), observed.copy()
+    _step_rows(prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"],
+               rp["root_st"], rt, cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, phase)
+    return out, sd, _extras(style, phase)

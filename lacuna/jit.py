@@ -58,14 +58,24 @@ def _probe_wx() -> bool:
         return True
 
 
-def jit(fn: Callable[..., Any]) -> Callable[..., Any]:
+def jit(fn: Callable[..., Any], **options: Any) -> Callable[..., Any]:
     """numba.njit with an on-disk cache where the package directory is writable (else per process);
-    the plain Python function without numba (never called then: callers check ``enabled()``)."""
+    the plain Python function without numba (never called then: callers check ``enabled()``).
+    ``options`` go to numba.njit as they are (e.g. ``fastmath``)."""
     if numba is None:
         return fn
     try:
-        return numba.njit(cache=True, nogil=True)(fn)
+        return numba.njit(cache=True, nogil=True, **options)(fn)
     except RuntimeError:  # no writable cache location (a read-only install): compile per process
-        return numba.njit(nogil=True)(fn)
+        return numba.njit(nogil=True, **options)(fn)
+
+
+def jit_sums(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``jit`` for a function whose floating-point sums may be reassociated (LLVM's ``reassoc``
+    and ``contract``: summed in SIMD lanes, fused multiply-adds), so a dot product runs several
+    times faster; its result then differs from the sequential sum in the last bits.  None of
+    fastmath's other flags (no NaN/inf assumptions, no approximate functions).  For small pure
+    reductions only, whose callers are tested against their numpy reference."""
+    return jit(fn, fastmath={"reassoc", "contract"})
 
 

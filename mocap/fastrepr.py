@@ -18,7 +18,16 @@ from lacuna.jit import jit as _jit
 
 @_jit
 def _wrap(x):  # pragma: no cover - compiled
-    return (x + 180.0) % 360.0 - 180.0
+    """(x + 180) % 360 - 180 to the bit; the float modulo (fmod and its sign fix) only outside
+    one turn either way, where one exact subtraction or the same single rounding does not serve."""
+    y = x + 180.0
+    if 0.0 <= y < 360.0:
+        return y - 180.0
+    if 360.0 <= y < 720.0:
+        return (y - 360.0) - 180.0   # exact (Sterbenz), as fmod is
+    if -360.0 <= y < 0.0:
+        return (y + 360.0) - 180.0   # Python's modulo: fmod(y) = y, then + 360 rounded once
+    return y % 360.0 - 180.0
 
 
 @_jit

@@ -157,14 +157,21 @@ class FeatureModel(Model):
         this core has none here (``step_arrays`` serves)."""
         return None
 
+    def step_rows(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]] | None:
+        """Optional: n streams' step (distinct pool rows ``slots`` (n,) int; frames (n, C) float64,
+        observed (n, C) bool) in one compiled call on the pool rows in place, the same arithmetic
+        as ``step_arrays``.  Returns (completed, std, extras) or None: this core has none here."""
+        return None
+
     def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
                    level: int | None = None) -> list[Fill]:
         """``level`` (None: full quality) is handed to ``core_step``; the model is not changed."""
         mine = [s for s in states if isinstance(s, FeatureStream) and s.model is self]
         if len(mine) != len(states):
             return super().step_batch(states, frames, observed, level)
-        frames = np.asarray(frames, dtype=np.float64)
-        observed = np.asarray(observed, dtype=bool)
+        frames = _writable(np.asarray(frames, dtype=np.float64))
+        observed = _writable(np.asarray(observed, dtype=bool))
         n = len(mine)
         if n == 1:
             # one stream (the usual live case): the core's whole-step call when it has one, else
@@ -179,8 +186,13 @@ class FeatureModel(Model):
         slots = np.fromiter((s.slot for s in mine), dtype=np.intp, count=n)
         order = np.argsort(slots, kind="stable")
         srt = slots[order]
-        if n and np.unique(srt).size != n:
+        if n and (srt[1:] == srt[:-1]).any():
             raise ValueError("step_batch was given the same stream twice")
+        got = self.step_rows(slots, frames, observed) if level is None and n else None
+        if got is not None:
+            # the whole batch in one compiled call on the pool rows, in the caller's order
+            done, std, extras = got
+            return [Fill(a, b, c, e) for a, b, c, e in zip(done, std, ~observed, extras)]  # (row views, no indexing)
         frames, observed = frames[order], observed[order]
         given = np.where(observed, frames, np.nan)
         pool = self.pool
@@ -203,6 +215,13 @@ class FeatureModel(Model):
         for j, i in enumerate(order.tolist()):
             fills[i] = Fill(done[j], std[j], missing[j], extras[j] if extras else {})
         return fills
+
+
+def _writable(a: np.ndarray) -> np.ndarray:
+    """a, or a copy where it is read-only (a frame decoded from the wire): the compiled steps are
+    compiled for writable arrays, and a read-only one would compile a second kernel in the live
+    path (seconds, once per install)."""
+    return a if a.flags.writeable else a.copy()
 
 
 class FeatureStream(FillerState):

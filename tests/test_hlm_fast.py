@@ -4,7 +4,8 @@ Real motion: an HLM trained on three subject-35 walks follows a held-out walk wi
 and the head missing in bursts, once through the compiled step and once with LACUNA_NO_JIT=1;
 every fill, std, style posterior and phase must agree to 1e-9, for the default (stream-cycle
 adaptation, two-level offset), knots-only and faithful (kappa 0) filters, through a model's
-state pool and through the daemon's batched seam (a batch of one); and the representation's
+state pool and through the daemon's batched seam (a batch of one, and a batch of several in one call, which
+must give each stream the bits it gets alone); and the representation's
 encoder/decoder alone, for both root modes, with and without normalisation."""
 from __future__ import annotations
 
@@ -215,3 +216,104 @@ def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_t
         if root_mode == "relative" and 120 <= t < 150:
             assert a.root_st[0, 0] == t - 119     # the root's gap is counted
     assert C == len(walks[0].channels)
+
+
+@pytest.mark.parametrize("options", [dict(), dict(kappa=0.0, kappa_global=0.0)], ids=["default", "faithful"])
+def test_a_batch_in_one_call_equals_each_stream_alone(walk, monkeypatch, options):
+    """A tick of several streams runs encoder, filter and decoder of all of them in one compiled
+    call on their pool rows (``hlm.fast.step_rows``), sharing the filter's working arrays; each
+    stream stepped alone (``step_batch`` of one: ``step_slot``, its own arrays) is its reference.
+    Streams handed over in a scrambled order, on pool rows that are not contiguous (every other
+    row of a pool that grows mid-take): the same bits, every stream, every frame; and the rows
+    between them are never touched."""
+    model, frames, obs = walk
+    m = model.with_options(**options)
+    T = frames.shape[0]
+    offs = np.array([0, 91, 37, 203, 150])
+    pool_a = [m.stream() for _ in range(2 * len(offs))]     # the batch takes rows 0, 2, 4, ...
+    batch = pool_a[::2]
+    alone = [m.stream() for _ in offs]
+    order = [3, 0, 4, 1, 2]                                  # handed over out of slot order
+    calls = []
+    orig = fast.step_rows
+    monkeypatch.setattr(fast, "step_rows", lambda *a, **k: calls.append(list(a[2])) or orig(*a, **k))
+    for t in range(150):
+        rows = (offs + t) % T
+        f = np.where(obs[rows], frames[rows], np.nan)
+        got = m.step_batch([batch[i] for i in order], f[order], obs[rows][order])
+        for j, i in enumerate(order):
+            ref = m.step_batch([alone[i]], f[i : i + 1], obs[rows[i]][None])[0]
+            np.testing.assert_array_equal(got[j].frame, ref.frame)
+            np.testing.assert_array_equal(got[j].std, ref.std)
+            np.testing.assert_array_equal(got[j].filled, ref.filled)
+            assert got[j].extras == ref.extras
+        if t == 60:  # the pool grows: every row's arrays move; the next call must see the new ones
+            pool_a += [m.stream() for _ in range(m.pool.capacity - m.pool.in_use + 1)]
+    if getattr(m, "cond", None) is None:
+        assert calls == [[batch[i].slot for i in order]] * 150  # one call a tick, the rows as handed over
+    else:  # a fill corrected after the filter (hlm.condfill) takes step_arrays' path (HLMModel.step_rows)
+        assert calls == []
+    t_rows = m.pool.core["t"]
+    assert [int(t_rows[s.slot]) for s in batch] == [150] * len(batch)
+    assert all(int(t_rows[s.slot]) == 0 for s in pool_a[1::2])
+    # the fills are real: the arm missing from frame 20 to 80 is filled with a positive std
+    arm = [i for i, c in enumerate(m.channels) if c.split(".")[0] in ("lhumerus", "lradius")]
+    assert np.isfinite(got[0].frame).all()
+    assert ((got[0].std[arm] > 0) == ~obs[(offs[order[0]] + 149) % T][arm]).all()
+
+
+def test_a_batch_refuses_rows_outside_the_pool_and_a_stream_twice(walk):
+    """Compiled code has no bounds checks: a pool row outside the pool is refused before the
+    call, and the seam refuses the same stream twice in one batch."""
+    model, frames, obs = walk
+    s = [model.stream() for _ in range(3)]
+    tabs = fast.slot_tables(model.tables, model.representation)
+    f = np.where(obs[:2], frames[:2], np.nan)
+    with pytest.raises(IndexError, match="pool rows"):
+        fast.step_rows(tabs, model.pool, np.array([s[0].slot, model.pool.capacity]), f, obs[:2])
+    with pytest.raises(IndexError, match="pool rows"):
+        fast.step_rows(tabs, model.pool, np.array([-1, s[1].slot]), f, obs[:2])
+    with pytest.raises(ValueError, match="same stream twice"):
+        model.step_batch([s[2], s[2]], f, obs[:2])
+    assert all(int(model.pool.core["t"][x.slot]) == 0 for x in s)   # nothing was stepped
+
+
+def test_read_only_frames_from_the_wire_compile_no_second_kernel(walk):
+    """A bundle decoded from the wire arrives as read-only arrays; numba types those apart from
+    writable ones, and a call with them would compile a second kernel inside the live path (it
+    cost a benchmark run most of a repeat's frames).  The seam hands the compiled steps writable
+    copies: the same bits as writable input, no new signature, one stream or several."""
+    model, frames, obs = walk
+    for n in (1, 3):
+        a = [model.stream() for _ in range(n)]
+        b = [model.stream() for _ in range(n)]
+        kernels = (fast._step_rows, fast._step_slot, fast._step_many, fastrepr.encode_many, fastrepr.finish_many)
+        for t in range(40):
+            f = np.where(obs[t : t + n], frames[t : t + n], np.nan)
+            fa = model.step_batch(a, f, obs[t : t + n])
+            before = sum(len(k.signatures) for k in kernels)
+            ro_f = np.frombuffer(f.tobytes(), dtype=np.float64).reshape(f.shape)
+            ro_o = np.frombuffer(obs[t : t + n].tobytes(), dtype=bool).reshape(f.shape)
+            assert not ro_f.flags.writeable and not ro_o.flags.writeable
+            fb = model.step_batch(b, ro_f, ro_o)
+            assert sum(len(k.signatures) for k in kernels) == before >= 1
+            for x, y in zip(fa, fb):
+                np.testing.assert_array_equal(x.frame, y.frame)
+                np.testing.assert_array_equal(x.std, y.std)
+                assert x.extras == y.extras
+
+
+def test_the_compiled_angle_wrap_is_the_float_modulo_to_the_bit():
+    """``fastrepr._wrap`` skips the float modulo within a turn either way; on angles of every
+    range, turn boundaries, signed zeros, tiny and huge values, NaN and infinities it returns
+    what ``(x + 180) % 360 - 180`` returns in Python, bit for bit."""
+    rng = np.random.default_rng(3)
+    edges = [0.0, -0.0, 180.0, -180.0, 540.0, -540.0, 360.0, -360.0, 900.0, -900.0, 1e-300, -1e-300, 1e-20, -1e-20,
+             179.99999999999997, -180.00000000000003, 539.9999999999999, 1e300, -1e300]
+    xs = np.concatenate([rng.uniform(-200, 200, 4000), rng.uniform(-2000, 2000, 4000), edges,
+                         np.nextafter(np.array(edges), np.inf), np.nextafter(np.array(edges), -np.inf)])
+    for x in xs.tolist():
+        got, want = fastrepr._wrap(x), (x + 180.0) % 360.0 - 180.0
+        assert np.float64(got).tobytes() == np.float64(want).tobytes(), (x, got, want)
+    for x in (np.nan, np.inf, -np.inf):
+        assert np.isnan(fastrepr._wrap(x))
