@@ -200,7 +200,7 @@ class HLMModel(FeatureModel):
         """Offline fill (not causal): eq. (18) with the smoothed posteriors of the whole recording."""
         frames, observed = self._check_recording(frames, observed)
         Z, O = self.encode_recording(frames, observed)
-        Zf, Zsd, _ = offline.fill_features(self.tables, Z, O, self.options.n_iter_d)
+        Zf, Zsd, _ = offline.fill_features(self.tables, Z, O, self.options.n_iter_d, self.cond)
         return self.decode_recording(Zf, Zsd, frames, observed)
 
     def fill_lagged(self, frames: np.ndarray, observed: np.ndarray | None = None, lag: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -308,6 +308,8 @@ class LagStream:
         m = self.model
         zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot], *online.cycle_stats(self.core),
                              **online.group_stats(self.core))
+        if m.cond is not None:   # the smoothed posterior's fill, corrected as the causal one is
+            condfill.correct(m.tables, m.cond, {**self.core, "post": P}, self.z[slot], self.zobs[slot], zf)
         f = np.where(self.rawobs[slot], self.raw[slot], np.nan)[None]
         done, std = self.dec.finish(zf, sd, f, self.rawobs[slot][None])
         return Fill(done[0], std[0], ~self.rawobs[slot], online.extras(m.tables, P)[0])
@@ -324,6 +326,8 @@ class LagStream:
         online.accumulate(m.tables, self.core, z, zo)
         zf, zsd = online.fill(m.tables, self.core["post"], z, zo, *online.cycle_stats(self.core),
                               **online.group_stats(self.core))
+        if m.cond is not None:
+            condfill.correct(m.tables, m.cond, self.core, z, zo, zf)
         self.enc.finish(zf, zsd, np.where(obs, f, np.nan)[None], obs[None])
         slot = self.n % (self.lag + 1)
         self.post[slot], self.ll[slot], self.z[slot], self.zobs[slot] = self.core["post"], ll, z, zo
