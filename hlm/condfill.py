@@ -7,16 +7,18 @@ nothing from the other arm, the spine or the root.  But how a performer deviates
 cycle at this moment (leaning into a turn, a longer stride, a wider swing) shows in every limb at
 once.  Let r = x - x_hat be the residual of a frame about the eq. (18) fill x_hat computed for
 every feature from the joint posterior and the stream's own cycle (mu + delta, ``hlm.streamcycle``).
-Residuals of the training takes, filtered online with everything observed, give a covariance
-Sigma (F x F, with a ridge); the root's features are made independent of the body's in it (their
+Residuals of the training takes, filtered online with everything observed, give a covariance per
+style, Sigma_c (F x F, with a ridge), each frame's residual weighed by the filter's posterior of
+the style (basketball's arms do not teach a walker's); the root's features are made independent of the body's in it (their
 cross-covariance set to 0), so the root stays as ``mocap.representation`` integrates and damps
 it: a correction of the root's velocities would add up over a root gap (on VALIDATION it turned
 the heading of turns 85 -> 100 deg RMS with the root erased, and left the body's gain as it was).
 Over a gap the missing features get
 
-    x_m = x_hat_m + s Sigma_mo Sigma_oo^-1 r_o
+    x_m = x_hat_m + s sum_c P(c) Sigma^c_mo (Sigma^c_oo)^-1 r_o
 
-the mean of the missing residual given the observed one under N(0, Sigma), shrunk by s
+the mean of the missing residual given the observed one under the styles' N(0, Sigma_c) (styles
+above STYLE_LIVE of the most probable, renormalised), shrunk by s
 (``cond_shrink``, chosen on VALIDATION: bench/notebook/hlmq-4.md; in-sample residuals of the
 training takes understate how a new performer's differ).  The same mean is -Q_mm^-1 Q_mo r_o with
 Q = Sigma^-1 (the Schur complement identity); the smaller of the two systems is solved (a limb
@@ -36,10 +38,11 @@ from lacuna.jit import jit as _jit
 
 RIDGE = 0.1      # added to Sigma's diagonal (feature units squared: degrees^2 for angles)
 LIVE = 1e-10     # states below this fraction of the largest posterior are skipped (as hlm.online.fill)
+STYLE_LIVE = 1e-3  # styles below this fraction of the most probable one add no correction
 
 
 class CondTables:
-    """Sigma (F, F), its inverse Q and the shrink s, as the kernels take them."""
+    """Sigma_c (C, F, F), their inverses Q_c and the shrink s, as the kernels take them."""
 
     def __init__(self, cov: np.ndarray, shrink: float):
         self.cov = np.ascontiguousarray(cov, dtype=np.float64)
@@ -51,12 +54,13 @@ def fit_cov(tab, feats: Sequence[np.ndarray], root: np.ndarray | None = None) ->
     """Sigma from training feature sequences [(n_k, F)], everything observed: the online filter
     (numpy reference path, ``hlm.online``) runs over each, and r_t = z_t - x_hat_t is taken
     after each frame's update.  root (F,) bool: the root's features, made independent of the
-    others (module doc).  Returns Sigma + RIDGE I."""
+    others (module doc).  Returns Sigma_c + RIDGE I (C, F, F)."""
     from hlm import online
 
     F = tab.mu.shape[1]
-    S = np.zeros((F, F))
-    n = 0
+    C = tab.shape[0]
+    S = np.zeros((C, F, F))
+    n = np.zeros(C)
     for z in feats:
         z = np.asarray(z, dtype=np.float64)
         st = online.init_state(tab, 1)
@@ -66,14 +70,15 @@ def fit_cov(tab, feats: Sequence[np.ndarray], root: np.ndarray | None = None) ->
             online.accumulate(tab, st, z[t : t + 1], o)
             r = z[t] - expected(tab, st, 0)
             if np.isfinite(r).all():
-                S += np.outer(r, r)
-                n += 1
-    S /= max(n, 1)
+                pc = st["post"][0].sum(1)
+                S += pc[:, None, None] * np.outer(r, r)[None]
+                n += pc
+    S /= np.maximum(n, 1e-12)[:, None, None]
     if root is not None:
         root = np.asarray(root, dtype=bool)
-        S[np.ix_(root, ~root)] = 0.0
-        S[np.ix_(~root, root)] = 0.0
-    return S + RIDGE * np.eye(F)
+        S[:, root[:, None] & ~root[None, :]] = 0.0
+        S[:, ~root[:, None] & root[None, :]] = 0.0
+    return S + RIDGE * np.eye(F)[None]
 
 
 def expected(tab, state: dict[str, np.ndarray], i: int, r: int | None = None) -> np.ndarray:
@@ -93,13 +98,20 @@ def expected(tab, state: dict[str, np.ndarray], i: int, r: int | None = None) ->
     return out[0]
 
 
-def conditional(ct: CondTables, r_o: np.ndarray, o: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """E[r_m | r_o] under N(0, Sigma), solving the smaller system (module doc)."""
+def conditional(ct: CondTables, c: int, r_o: np.ndarray, o: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """E[r_m | r_o] under style c's N(0, Sigma_c), solving the smaller system (module doc)."""
     if m.sum() <= o.sum():
-        Q = ct.prec
+        Q = ct.prec[c]
         return -np.linalg.solve(Q[np.ix_(m, m)], Q[np.ix_(m, o)] @ r_o)
-    S = ct.cov
+    S = ct.cov[c]
     return S[np.ix_(m, o)] @ np.linalg.solve(S[np.ix_(o, o)], r_o)
+
+
+def style_weights(post: np.ndarray) -> np.ndarray:
+    """(C,) the styles' posterior above STYLE_LIVE of the largest, renormalised (0 below)."""
+    pc = post.sum(-1)
+    pc = np.where(pc > STYLE_LIVE * pc.max(), pc, 0.0)
+    return pc / pc.sum()
 
 
 def correct(tab, ct: CondTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, zf: np.ndarray,
@@ -112,7 +124,11 @@ def correct(tab, ct: CondTables, state: dict[str, np.ndarray], z: np.ndarray, zo
         if not o.any() or not m.any():
             continue
         xh = expected(tab, state, i, None if rows is None else int(rows[i]))
-        zf[i, m] += ct.shrink * conditional(ct, z[i, o] - xh[o], o, m)
+        w = style_weights(state["post"][i])
+        corr = np.zeros(int(m.sum()))
+        for c in np.flatnonzero(w):
+            corr += w[c] * conditional(ct, int(c), z[i, o] - xh[o], o, m)
+        zf[i, m] += ct.shrink * corr
 
 
 @_jit
@@ -147,7 +163,7 @@ def _chol_solve(A, b):  # pragma: no cover - compiled
 
 @_jit
 def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
-             cov, prec, shrink, live):  # pragma: no cover - compiled
+             cov, prec, shrink, live, style_live):  # pragma: no cover - compiled
     """``correct`` for one stream: post (C M,) its filtered posterior, D, W, G, GW its cycle
     statistics (ignored when kappa = 0), zf (F,) its fill, corrected in place."""
     F = z.shape[0]
@@ -210,39 +226,61 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
     r = np.empty(no)
     for j in range(no):
         r[j] = z[oi[j]] - num[j] / den[j]
-    if nm <= no:
-        # -Q_mm^-1 Q_mo r_o
-        A = np.empty((nm, nm))
-        b = np.zeros(nm)
-        for i in range(nm):
-            for j in range(nm):
-                A[i, j] = prec[mi[i], mi[j]]
-            for j in range(no):
-                b[i] += prec[mi[i], oi[j]] * r[j]
-        x = _chol_solve(A, b)
-        for i in range(nm):
-            zf[mi[i]] -= shrink * x[i]
-    else:
-        # Sigma_mo Sigma_oo^-1 r_o
-        A = np.empty((no, no))
-        for i in range(no):
-            for j in range(no):
-                A[i, j] = cov[oi[i], oi[j]]
-        y = _chol_solve(A, r)
-        for i in range(nm):
-            acc = 0.0
-            for j in range(no):
-                acc += cov[mi[i], oi[j]] * y[j]
-            zf[mi[i]] += shrink * acc
+    # the styles' weights (style_weights)
+    C = CM // M
+    pc = np.zeros(C)
+    for s in range(CM):
+        pc[s // M] += post[s]
+    cmax = 0.0
+    for c in range(C):
+        if pc[c] > cmax:
+            cmax = pc[c]
+    csum = 0.0
+    for c in range(C):
+        if pc[c] > style_live * cmax:
+            csum += pc[c]
+        else:
+            pc[c] = 0.0
+    corr = np.zeros(nm)
+    for c in range(C):
+        if pc[c] == 0.0:
+            continue
+        wc = pc[c] / csum
+        if nm <= no:
+            # -Q_mm^-1 Q_mo r_o
+            A = np.empty((nm, nm))
+            b = np.zeros(nm)
+            for i in range(nm):
+                for j in range(nm):
+                    A[i, j] = prec[c, mi[i], mi[j]]
+                for j in range(no):
+                    b[i] += prec[c, mi[i], oi[j]] * r[j]
+            x = _chol_solve(A, b)
+            for i in range(nm):
+                corr[i] -= wc * x[i]
+        else:
+            # Sigma_mo Sigma_oo^-1 r_o
+            A = np.empty((no, no))
+            for i in range(no):
+                for j in range(no):
+                    A[i, j] = cov[c, oi[i], oi[j]]
+            y = _chol_solve(A, r)
+            for i in range(nm):
+                acc = 0.0
+                for j in range(no):
+                    acc += cov[c, mi[i], oi[j]] * y[j]
+                corr[i] += wc * acc
+    for i in range(nm):
+        zf[mi[i]] += shrink * corr[i]
 
 
 @_jit
 def _correct_many(post, z, zobs, zf, prow, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
-                  cov, prec, shrink, live):  # pragma: no cover - compiled
+                  cov, prec, shrink, live, style_live):  # pragma: no cover - compiled
     for i in range(post.shape[0]):
         r = prow[i]
         correct1(post[i], z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[r], W[r], G[r], GW[r],
-                 lam_rows, pack, cov, prec, shrink, live)
+                 lam_rows, pack, cov, prec, shrink, live, style_live)
 
 
 def correct_many(tab, ct: CondTables, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, zf: np.ndarray,
@@ -258,4 +296,5 @@ def correct_many(tab, ct: CondTables, state: dict[str, np.ndarray], z: np.ndarra
         prow = np.zeros(n, dtype=np.int64)
     _correct_many(post, np.ascontiguousarray(z, dtype=np.float64), np.ascontiguousarray(zobs, dtype=np.bool_), zf,
                   prow, int(tab.shape[1]), tab.mu, tab.bin0, tab.bin1, tab.bin_a, float(tab.kappa),
-                  float(tab.kappa_global), D, W, G, GW, tab.lam_rows, tab.pack, ct.cov, ct.prec, ct.shrink, LIVE)
+                  float(tab.kappa_global), D, W, G, GW, tab.lam_rows, tab.pack, ct.cov, ct.prec, ct.shrink, LIVE,
+                  STYLE_LIVE)

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from hlm.condfill import correct1
+from hlm.condfill import STYLE_LIVE, correct1
 from lacuna.jit import enabled  # noqa: F401  (enabled: re-exported for callers)
 from lacuna.jit import jit as _jit
 from mocap import fastrepr
@@ -263,7 +263,7 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
     t[r] += 1
     if cond:
         correct1(p, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows, pack,
-                 cov, prec, shrink, live)
+                 cov, prec, shrink, live, STYLE_LIVE)
     prev_yaw[r] = finish1(zf, zsd, x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center,
                           const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power,
                           out, sd)
@@ -300,7 +300,7 @@ def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarr
     cyc = "D" in cp
     D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
     if cond is None:
-        on, cov, prec, shrink = False, zero[0], zero[0], 0.0
+        on, cov, prec, shrink = False, zero, zero, 0.0
     else:
         on, cov, prec, shrink = True, cond.cov, cond.prec, cond.shrink
     phase = _step_slot(r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,

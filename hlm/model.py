@@ -72,7 +72,7 @@ class HLMModel(FeatureModel):
     ----------
     representation : the feature space.  params : learned HLM quantities (feature space).
     options : inference options.  meta : hyperparameters, training data names, times, bounds.
-    cond_cov : (F, F) residual covariance of the conditional fill (``hlm.condfill``), or None
+    cond_cov : (C, F, F) residual covariances per style of the conditional fill (``hlm.condfill``), or None
         (files written before it, the faithful methods): the online fill is then eq. (18) alone.
     """
 
@@ -94,8 +94,9 @@ class HLMModel(FeatureModel):
                                                 self.options.adapt_rate, self.options.prior_strength,
                                                 self.options.kappa, self.options.width, self.options.kappa_global,
                                                 self.options.style_switch)
-        if cond_cov is not None and np.shape(cond_cov) != (F, F):
-            raise ValueError(f"cond_cov must be ({F}, {F}) (got {np.shape(cond_cov)})")
+        C = params.mu.shape[0]
+        if cond_cov is not None and np.shape(cond_cov) != (C, F, F):
+            raise ValueError(f"cond_cov must be ({C}, {F}, {F}) (got {np.shape(cond_cov)})")
         self.cond_cov = cond_cov
         # the correction runs only where it was fitted and asked for
         self.cond = (condfill.CondTables(cond_cov, self.options.cond_shrink)
@@ -268,10 +269,10 @@ def load(path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> HLMM
     opts = HLMOptions(**{k: v for k, v in meta.get("options", {}).items() if k in HLMOptions.__dataclass_fields__})
     cov = None
     if "cond_cov" in arrays:  # files written before hlm.condfill have none: the fill is eq. (18) alone
-        cov = require(path, arrays, "cond_cov", (F, F)).astype(float)
-        if not np.isfinite(cov).all() or np.abs(cov - cov.T).max() > 1e-9 * max(1.0, np.abs(cov).max()) \
+        cov = require(path, arrays, "cond_cov", (C, F, F)).astype(float)
+        if not np.isfinite(cov).all() or np.abs(cov - cov.transpose(0, 2, 1)).max() > 1e-9 * max(1.0, np.abs(cov).max()) \
                 or (np.linalg.eigvalsh(cov) <= 0).any():
-            raise ModelFileError(f"{path}: cond_cov must be a finite symmetric positive definite matrix")
+            raise ModelFileError(f"{path}: cond_cov must hold finite symmetric positive definite matrices")
     return HLMModel(rep, params, opts, {k: v for k, v in meta.items() if k in ("hyperparameters", "training")}, cov)
 
 

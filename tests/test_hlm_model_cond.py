@@ -49,14 +49,18 @@ def test_training_fits_a_covariance_with_the_root_apart(walk):
     cov = model.cond_cov
     rep = model.representation
     F = rep.n_features
-    assert cov.shape == (F, F) and np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() > 0
+    C = model.params.n_styles
+    assert cov.shape == (C, F, F) and np.allclose(cov, cov.transpose(0, 2, 1)) and np.linalg.eigvalsh(cov).min() > 0
     root = np.array([f.startswith("root.") for f in rep.features])
-    assert root.any() and (cov[np.ix_(root, ~root)] == 0).all()
-    # the body's residuals are correlated (or there is nothing to condition on)
-    body = cov[np.ix_(~root, ~root)]
-    d = np.sqrt(np.diag(body))
-    corr = body / np.outer(d, d)
-    assert np.abs(corr[~np.eye(corr.shape[0], dtype=bool)]).max() > 0.5
+    assert root.any() and (cov[:, root][:, :, ~root] == 0).all()
+    # the body's residuals are correlated (or there is nothing to condition on), and the styles
+    # (each frame weighed by its style's posterior) differ
+    for c in range(C):
+        body = cov[c][np.ix_(~root, ~root)]
+        d = np.sqrt(np.diag(body))
+        corr = body / np.outer(d, d)
+        assert np.abs(corr[~np.eye(corr.shape[0], dtype=bool)]).max() > 0.5
+    assert np.abs(cov[0] - cov[1]).max() > 1e-3 * np.abs(cov[0]).max()
     assert model.cond is not None and model.cond.shrink == 1.0
 
 
@@ -64,15 +68,16 @@ def test_the_two_solves_agree(walk):
     model, _, _ = walk
     ct = model.cond
     rng = np.random.default_rng(0)
-    F = ct.cov.shape[0]
-    for n_obs in (3, F // 2, F - 3):
-        o = np.zeros(F, bool)
-        o[rng.choice(F, n_obs, replace=False)] = True
-        r = rng.normal(size=n_obs)
-        via_q = -np.linalg.solve(ct.prec[np.ix_(~o, ~o)], ct.prec[np.ix_(~o, o)] @ r)
-        via_s = ct.cov[np.ix_(~o, o)] @ np.linalg.solve(ct.cov[np.ix_(o, o)], r)
-        np.testing.assert_allclose(via_q, via_s, rtol=1e-7, atol=1e-9)
-        np.testing.assert_allclose(condfill.conditional(ct, r, o, ~o), via_s, rtol=1e-7, atol=1e-9)
+    F = ct.cov.shape[1]
+    for c in range(ct.cov.shape[0]):
+        for n_obs in (3, F // 2, F - 3):
+            o = np.zeros(F, bool)
+            o[rng.choice(F, n_obs, replace=False)] = True
+            r = rng.normal(size=n_obs)
+            via_q = -np.linalg.solve(ct.prec[c][np.ix_(~o, ~o)], ct.prec[c][np.ix_(~o, o)] @ r)
+            via_s = ct.cov[c][np.ix_(~o, o)] @ np.linalg.solve(ct.cov[c][np.ix_(o, o)], r)
+            np.testing.assert_allclose(via_q, via_s, rtol=1e-7, atol=1e-9)
+            np.testing.assert_allclose(condfill.conditional(ct, c, r, o, ~o), via_s, rtol=1e-7, atol=1e-9)
 
 
 @pytest.mark.skipif(not fast.enabled(), reason="numba is not installed (or LACUNA_NO_JIT=1)")
