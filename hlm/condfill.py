@@ -39,6 +39,7 @@ from lacuna.jit import jit as _jit
 RIDGE = 0.1      # added to Sigma's diagonal (feature units squared: degrees^2 for angles)
 LIVE = 1e-10     # states below this fraction of the largest posterior are skipped (as hlm.online.fill)
 STYLE_LIVE = 1e-3  # styles below this fraction of the most probable one add no correction
+PRIOR_FRAMES = 1000.0  # pseudo-frames of the pooled covariance in each style's (cov_from_sums)
 
 
 class CondTables:
@@ -50,11 +51,17 @@ class CondTables:
         self.shrink = float(shrink)
 
 
-def fit_cov(tab, feats: Sequence[np.ndarray], root: np.ndarray | None = None) -> np.ndarray:
-    """Sigma from training feature sequences [(n_k, F)], everything observed: the online filter
+def fit_cov(tab, feats: Sequence[np.ndarray], root: np.ndarray | None = None,
+            prior_frames: float = PRIOR_FRAMES) -> np.ndarray:
+    """Sigma_c from training feature sequences [(n_k, F)], everything observed: the online filter
     (numpy reference path, ``hlm.online``) runs over each, and r_t = z_t - x_hat_t is taken
-    after each frame's update.  root (F,) bool: the root's features, made independent of the
-    others (module doc).  Returns Sigma_c + RIDGE I (C, F, F)."""
+    after each frame's update, weighed by the style posterior.  root (F,) bool: the root's
+    features, made independent of the others (module doc).  Returns Sigma_c + RIDGE I (C, F, F)."""
+    return cov_from_sums(*residual_sums(tab, feats), root, prior_frames)
+
+
+def residual_sums(tab, feats: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(sum_t P_t(c) r_t r_t^T (C, F, F), sum_t P_t(c) (C,)) over the training sequences."""
     from hlm import online
 
     F = tab.mu.shape[1]
@@ -73,12 +80,24 @@ def fit_cov(tab, feats: Sequence[np.ndarray], root: np.ndarray | None = None) ->
                 pc = st["post"][0].sum(1)
                 S += pc[:, None, None] * np.outer(r, r)[None]
                 n += pc
-    S /= np.maximum(n, 1e-12)[:, None, None]
+    return S, n
+
+
+def cov_from_sums(S: np.ndarray, n: np.ndarray, root: np.ndarray | None = None,
+                  prior_frames: float = PRIOR_FRAMES) -> np.ndarray:
+    """Sigma_c = (S_c + n0 Sigma_pooled) / (n_c + n0): each style's covariance shrunk toward all
+    styles' by n0 = prior_frames pseudo-frames (a style seen in few frames borrows the rest's
+    correlations; n0 = inf is one pooled covariance), the root apart, plus RIDGE I."""
+    pooled = S.sum(0) / max(n.sum(), 1e-12)
+    if np.isinf(prior_frames):
+        out = np.repeat(pooled[None], S.shape[0], 0)
+    else:
+        out = (S + prior_frames * pooled[None]) / (n + prior_frames + 1e-12)[:, None, None]
     if root is not None:
         root = np.asarray(root, dtype=bool)
-        S[:, root[:, None] & ~root[None, :]] = 0.0
-        S[:, ~root[:, None] & root[None, :]] = 0.0
-    return S + RIDGE * np.eye(F)[None]
+        out[:, root[:, None] & ~root[None, :]] = 0.0
+        out[:, ~root[:, None] & root[None, :]] = 0.0
+    return out + RIDGE * np.eye(S.shape[1])[None]
 
 
 def expected(tab, state: dict[str, np.ndarray], i: int, r: int | None = None) -> np.ndarray:
