@@ -63,7 +63,7 @@ DEFAULTS: dict[str, Any] = {
     # the missing features given the observed ones' residuals about the stream's own cycle
     # (hlm.condfill), shrunk by this factor: chosen on VALIDATION (bench/notebook/hlmq-4.md); 0 = the
     # paper's eq. (18) fill, and no residual covariance is fitted
-    "cond_shrink": 0.75,
+    "cond_shrink": 0.5,
     "skeleton": None,      # skeleton map (name or file) of the channels; None: recognised from their names
 }
 FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0, "cond_shrink": 0.0}
