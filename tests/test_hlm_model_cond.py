@@ -149,3 +149,15 @@ def test_model_file_round_trip_and_old_files(walk, tmp_path, monkeypatch):
     modelfile.save_arrays(str(r), meta, bad)
     with pytest.raises(modelfile.ModelFileError, match="cond_cov"):
         modelfile.load_model(str(r))
+
+
+def test_cli_rejects_a_shrink_outside_0_1(tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "m.npz"
+    r = subprocess.run([sys.executable, "-m", "lacuna.cli", "train", "hlm", str(tmp_path / "none.amc"), "-o", str(out),
+                        "--cond-shrink", "1.5"], capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1] == "lacuna: error: --cond-shrink must be in [0, 1] (got 1.5)"
+    assert not out.exists()
