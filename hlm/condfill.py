@@ -216,6 +216,11 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
             ptot += post[s]
     num = np.zeros(no)
     den = np.zeros(no)
+    # the knot offsets at the observed features, each knot computed once (live states share a few)
+    CB = D.shape[0] if kappa > 0.0 else 1
+    nbk = max(CB // (CM // M), 1)
+    E = np.empty((CB, no))
+    done = np.zeros(CB, np.bool_)
     for s in range(CM):
         p = post[s]
         if not p > live * pmax:
@@ -223,17 +228,20 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
         p /= ptot
         if kappa > 0.0:
             b0, b1, a = bin0[s], bin1[s], bin_a[s]
-            c = s // M
+            for b in (b0, b1):
+                if not done[b]:
+                    done[b] = True
+                    cb = b // nbk
+                    for j in range(no):
+                        f = oi[j]
+                        if kappa_g > 0.0:
+                            g = G[cb, f] / (kappa_g + GW[cb, f])
+                            E[b, j] = g + (D[b, f] - W[b, f] * g) / (kappa + W[b, f])
+                        else:
+                            E[b, j] = D[b, f] / (kappa + W[b, f])
             for j in range(no):
                 f = oi[j]
-                if kappa_g > 0.0:
-                    g = G[c, f] / (kappa_g + GW[c, f])
-                    e0 = g + (D[b0, f] - W[b0, f] * g) / (kappa + W[b0, f])
-                    e1 = g + (D[b1, f] - W[b1, f] * g) / (kappa + W[b1, f])
-                else:
-                    e0 = D[b0, f] / (kappa + W[b0, f])
-                    e1 = D[b1, f] / (kappa + W[b1, f])
-                u = mu[s, f] + (1.0 - a) * e0 + a * e1
+                u = mu[s, f] + (1.0 - a) * E[b0, j] + a * E[b1, j]
                 lam = lam_rows[s, f]
                 num[j] += p * lam * u
                 den[j] += p * lam
