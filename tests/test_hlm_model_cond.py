@@ -161,3 +161,12 @@ def test_cli_rejects_a_shrink_outside_0_1(tmp_path):
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1] == "lacuna: error: --cond-shrink must be in [0, 1] (got 1.5)"
     assert not out.exists()
+
+
+def test_too_few_training_takes_fit_no_correction(data):
+    from mocap.datasets import load_trial
+
+    m = load_trial("35_01")
+    model = train_model([m.frames, m.frames[::-1].copy()], m.channels, n_iter=1, restarts=1, styles=1, cond_shrink=0.5)
+    assert model.cond is None and model.cond_cov is None and model.options.cond_shrink == 0.0
+    assert "2 training takes" in model.meta["training"]["cond_off"]
