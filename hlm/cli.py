@@ -43,6 +43,9 @@ def add_commands(cli) -> None:
                    help="probability per frame that the performer changes style, e.g. 1e-3 for takes that go "
                         "from walking to running (default 0: the paper's one style per take, better on single-style "
                         "takes; see docs/BENCHMARKS.md)")
+    p.add_argument("--cond-shrink", type=float, default=None, metavar="S",
+                   help="the fill's correction from the observed features' residuals (hlm.condfill), 0..1 "
+                        "(default 0.5, chosen on VALIDATION; 0: the paper's eq. 18 fill, no covariance fitted)")
     p.add_argument("--lag", type=int, default=15, help="frames of look-ahead of the fixed-lag filler (default 15)")
     p.add_argument("--scheduler", metavar="ADDR", help="run each E-step over the takes on this Dask cluster "
                    "(tcp://HOST:PORT; archive/hlm_dist.py): the same bound and parameters as one process")
@@ -67,6 +70,8 @@ def _run_train(args: argparse.Namespace) -> int:
     from hlm.methods import train_model
     from mocap.representation import resample
 
+    if args.cond_shrink is not None and not 0.0 <= args.cond_shrink <= 1.0:
+        raise LacunaError(f"--cond-shrink must be in [0, 1] (got {args.cond_shrink})")
     motions = [_read(p, args.quiet) for p in args.data]
     ch = motions[0].channels
     if args.skeleton or args.root_mode == "relative":
@@ -101,7 +106,7 @@ def _run_train(args: argparse.Namespace) -> int:
                             n_iter=args.iterations, n_var=args.sweeps, restarts=args.restarts, seed=args.seed,
                             root_mode=args.root_mode, root_tau=args.root_tau, normalize=args.normalize, kappa=args.kappa,
                             width=args.width, kappa_global=args.kappa_global, style_switch=args.style_switch,
-                            lag=args.lag, skeleton=args.skeleton)
+                            lag=args.lag, skeleton=args.skeleton, cond_shrink=args.cond_shrink)
     model.meta["training"]["fps"] = fps
     from mocap.fk import skeleton_record
 

@@ -27,6 +27,7 @@ import math
 
 import numpy as np
 
+from hlm.condfill import STYLE_LIVE, correct1
 from lacuna.jit import enabled  # noqa: F401  (enabled: re-exported for callers)
 from lacuna.jit import jit as _jit
 from lacuna.jit import jit_sums as _jit_sums
@@ -315,7 +316,7 @@ def _extras(style: np.ndarray, phase: np.ndarray) -> list[dict]:
 
 @_jit
 def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
-               live, live_stats, out, sd, style):  # pragma: no cover - compiled
+               live, live_stats, out, sd, style, cond, cov, prec, shrink):  # pragma: no cover - compiled
     """fastrepr.encode1 -> _step -> fastrepr.finish1 for pool row r: the arithmetic of
     ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Writes the
     completed frame to out, its std to sd, the style posterior to style; returns the phase."""
@@ -336,6 +337,9 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
     phase = _step(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
                   D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style)
     t[r] += 1
+    if cond:
+        correct1(p, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows, pack,
+                 cov, prec, shrink, live, STYLE_LIVE)
     prev_yaw[r] = finish1(zf, zsd, x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center,
                           const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power,
                           out, sd)
@@ -358,10 +362,11 @@ def slot_tables(tab, rep) -> tuple:
 
 
 def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarray,
-              live: float = 1e-10, live_stats: float = 1e-4) -> tuple[np.ndarray, np.ndarray, dict]:
+              live: float = 1e-10, live_stats: float = 1e-4, cond=None) -> tuple[np.ndarray, np.ndarray, dict]:
     """One frame of the stream in pool row r (a ``mocap.feature_model.StatePool`` of an HLM):
     frame (C,) float64, observed (C,) bool.  Updates the row in place; returns (completed (C,),
-    std (C,), extras).  ``tables``: ``slot_tables``'s."""
+    std (C,), extras).  ``tables``: ``slot_tables``'s; ``cond``: the model's ``condfill.CondTables``
+    or None (no conditional correction)."""
     rt, ht, zero = tables
     rp, cp = pool.repr, pool.core
     C = frame.shape[0]
@@ -370,8 +375,12 @@ def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarr
     style = np.empty(ht[0].shape[0] // ht[2])
     cyc = "D" in cp
     D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
+    if cond is None:
+        on, cov, prec, shrink = False, zero, zero, 0.0
+    else:
+        on, cov, prec, shrink = True, cond.cov, cond.prec, cond.shrink
     phase = _step_slot(r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
-                       cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style)
+                       cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, on, cov, prec, shrink)
     return out, sd, {"style": style.tolist(), "phase": phase}
 
 

@@ -21,11 +21,12 @@ from typing import Any
 
 import numpy as np
 
+from hlm import condfill
 from hlm import model as _model  # noqa: F401  (registers the model-file loader)
 from hlm.model import HLMModel, HLMOptions
 from hlm.train import fit
 from lacuna.registry import MethodSpec, register_method
-from mocap.representation import Representation, has_root_channels
+from mocap.representation import ROOT_FEATURES, Representation, has_root_channels
 
 # Defaults (section 4 of the paper where it says; representation: see docs/BENCHMARKS.md ## HLM)
 DEFAULTS: dict[str, Any] = {
@@ -59,9 +60,17 @@ DEFAULTS: dict[str, Any] = {
     # default: on the single-style test takes it costs up to 40% (docs/BENCHMARKS.md); a studio
     # whose takes change gait turns it on (lacuna train hlm --style-switch 1e-3)
     "style_switch": 0.0,
+    # the missing features given the observed ones' residuals about the stream's own cycle
+    # (hlm.condfill), shrunk by this factor: chosen on VALIDATION (bench/notebook/hlmq-4.md); 0 = the
+    # paper's eq. (18) fill, and no residual covariance is fitted
+    "cond_shrink": 0.5,
     "skeleton": None,      # skeleton map (name or file) of the channels; None: recognised from their names
 }
-FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0}
+FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0, "cond_shrink": 0.0}
+# below this many training takes the conditional fill is not fitted (cond_shrink 0): the residuals
+# about a cycle fitted on one or two takes are those takes' own noise, not how a new performer
+# deviates (one CMU BVH walk: 0.82x hold with it, tests/test_bvh_commands.py asks < 0.8x)
+MIN_COND_TAKES = 3
 # the faithful methods' training defaults: the paper's representation (raw root angles and
 # positions, not normalised) and C = 4, whatever ``hlm``'s defaults become
 FAITHFUL_TRAIN = {"root_mode": "raw", "normalize": False, "root_tau": 0.0, "root_power": 1.0, "styles": 4}
@@ -96,9 +105,22 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
             "best_seed": res.seed, "psi": res.psi.tolist(),
         },
     }
+    cond = float(o["cond_shrink"])
+    if cond > 0.0 and len(sequences) < MIN_COND_TAKES:
+        meta["training"]["cond_off"] = f"{len(sequences)} training takes (the conditional fill needs {MIN_COND_TAKES})"
+        cond = 0.0
     opts = HLMOptions(adapt_rate=float(o["adapt_rate"]), lag=int(o["lag"]), kappa=float(o["kappa"]), width=int(o["width"]),
-                       kappa_global=float(o["kappa_global"]), style_switch=float(o["style_switch"]))
-    return HLMModel(rep, res.params, opts, meta)
+                       kappa_global=float(o["kappa_global"]), style_switch=float(o["style_switch"]), cond_shrink=cond)
+    model = HLMModel(rep, res.params, opts, meta)
+    if opts.cond_shrink > 0.0:
+        # the residuals of the training takes about the filter's own fill (hlm.condfill), with the
+        # stream-cycle options the model is trained with
+        t1 = time.perf_counter()
+        root = np.array([f in ROOT_FEATURES or rep._is_root(f) for f in rep.features])
+        cov = condfill.fit_cov(model.tables, feats, root)
+        meta["training"]["cond_seconds"] = round(time.perf_counter() - t1, 2)
+        model = HLMModel(rep, res.params, opts, meta, cov)
+    return model
 
 
 def _train(training_set, **options: Any) -> HLMModel:

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from hlm import fast, offline, online
+from hlm import condfill, fast, offline, online
 from hlm.params import HLMParams
 from hlm.streamcycle import LIVE_STATS
 from lacuna import modelfile
@@ -35,6 +35,8 @@ class HLMOptions:
     kappa_global : pseudo-count of the stream's constant offset under the knots (0 = none).
     style_switch : probability per frame that the performer changes style (walk -> run) in the
         online filter and the fixed-lag smoother; 0 is the paper's model (one style per recording).
+    cond_shrink : the online fill's conditional correction from the observed features' residuals
+        (``hlm.condfill``; needs the model's residual covariance); 0 is the paper's fill.
     """
 
     adapt_rate: float = 0.0
@@ -45,6 +47,7 @@ class HLMOptions:
     width: int = 5
     kappa_global: float = 0.0
     style_switch: float = 0.0
+    cond_shrink: float = 0.0
 
     def check(self) -> None:
         if not (0.0 <= self.adapt_rate < 1.0):
@@ -56,6 +59,8 @@ class HLMOptions:
         if self.kappa < 0 or self.width < 0 or self.kappa_global < 0:
             raise ValueError(f"kappa, width and kappa_global must be >= 0 "
                              f"(got {self.kappa}, {self.width}, {self.kappa_global})")
+        if not (0.0 <= self.cond_shrink <= 1.0):
+            raise ValueError(f"cond_shrink must be in [0, 1] (got {self.cond_shrink})")
         if self.n_iter_d < 0 or self.lag < 0:
             raise ValueError(f"n_iter_d and lag must be >= 0 (got {self.n_iter_d}, {self.lag})")
 
@@ -67,6 +72,8 @@ class HLMModel(FeatureModel):
     ----------
     representation : the feature space.  params : learned HLM quantities (feature space).
     options : inference options.  meta : hyperparameters, training data names, times, bounds.
+    cond_cov : (C, F, F) residual covariances per style of the conditional fill (``hlm.condfill``), or None
+        (files written before it, the faithful methods): the online fill is then eq. (18) alone.
     """
 
     method = METHOD
@@ -74,7 +81,7 @@ class HLMModel(FeatureModel):
     core_sparse_keys = ("D", "W", "G", "GW")   # the stream-cycle statistics: touched only at live knots
 
     def __init__(self, representation: Representation, params: HLMParams, options: HLMOptions | None = None,
-                 meta: dict[str, Any] | None = None):
+                 meta: dict[str, Any] | None = None, cond_cov: np.ndarray | None = None):
         self.representation = representation
         self.params = params
         self.options = options or HLMOptions()
@@ -87,6 +94,13 @@ class HLMModel(FeatureModel):
                                                 self.options.adapt_rate, self.options.prior_strength,
                                                 self.options.kappa, self.options.width, self.options.kappa_global,
                                                 self.options.style_switch)
+        C = params.mu.shape[0]
+        if cond_cov is not None and np.shape(cond_cov) != (C, F, F):
+            raise ValueError(f"cond_cov must be ({C}, {F}, {F}) (got {np.shape(cond_cov)})")
+        self.cond_cov = cond_cov
+        # the correction runs only where it was fitted and asked for
+        self.cond = (condfill.CondTables(cond_cov, self.options.cond_shrink)
+                     if cond_cov is not None and self.options.cond_shrink > 0.0 else None)
 
     def with_options(self, **kw) -> HLMModel:
         """A copy with other inference options (the learned parameters are shared, read-only);
@@ -98,7 +112,7 @@ class HLMModel(FeatureModel):
             if (tau, q) != (rep.root_tau, rep.root_power):
                 rep = rep.with_root_damping(tau, q)
         o = HLMOptions(**{**self.options.__dict__, **kw})
-        return HLMModel(rep, self.params, o, self.meta)
+        return HLMModel(rep, self.params, o, self.meta, self.cond_cov)
 
     # ---- online core (FeatureModel hooks) ------------------------------------------------------
     def core_init(self, n: int) -> dict[str, np.ndarray]:
@@ -113,7 +127,7 @@ class HLMModel(FeatureModel):
         tabs = self.__dict__.get("_slot_tables")
         if tabs is None:
             tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, self.representation)
-        done, std, extras = fast.step_slot(tabs, self.pool, slot, frame, observed, online.LIVE, LIVE_STATS)
+        done, std, extras = fast.step_slot(tabs, self.pool, slot, frame, observed, online.LIVE, LIVE_STATS, self.cond)
         return Fill(done, std, ~observed, extras)
 
     def step_rows(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple | None:
@@ -134,12 +148,16 @@ class HLMModel(FeatureModel):
         if fast.usable(self.tables):
             # the compiled step (hlm.fast), stream by stream: the same arithmetic as below
             zf, sd, ex = fast.step(self.tables, state, z, zobs, rows, online.LIVE, LIVE_STATS)
+            if self.cond is not None:
+                condfill.correct_many(self.tables, self.cond, state, z, zobs, zf, rows)
             return CoreOut(zf, sd, ex)
         keep: dict = {}
         online.update(self.tables, state, z, zobs, prow=rows, keep=keep, want_ll=False)
         online.accumulate(self.tables, state, z, zobs, prow=rows)
         zf, sd = online.fill(self.tables, state["post"], z, zobs, *online.cycle_stats(state), prow=rows, keep=keep,
                              **online.group_stats(state))
+        if self.cond is not None:
+            condfill.correct(self.tables, self.cond, state, z, zobs, zf, rows)
         return CoreOut(zf, sd, online.extras(self.tables, state["post"]))
 
     # ---- offline ----------------------------------------------------------------------------------
@@ -196,7 +214,7 @@ class HLMModel(FeatureModel):
         """Offline fill (not causal): eq. (18) with the smoothed posteriors of the whole recording."""
         frames, observed = self._check_recording(frames, observed)
         Z, O = self.encode_recording(frames, observed)
-        Zf, Zsd, _ = offline.fill_features(self.tables, Z, O, self.options.n_iter_d)
+        Zf, Zsd, _ = offline.fill_features(self.tables, Z, O, self.options.n_iter_d, self.cond)
         return self.decode_recording(Zf, Zsd, frames, observed)
 
     def fill_lagged(self, frames: np.ndarray, observed: np.ndarray | None = None, lag: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -234,7 +252,10 @@ class HLMModel(FeatureModel):
             "lam_zbar": p.lam_zbar,
             **{k: v for k, v in self.meta.items() if k not in ("method", "channels", "representation", "options")},
         }
-        modelfile.save_arrays(path, meta, {"zbar": p.zbar, "mu": p.mu, "var": p.var, "lam": p.lam, "tau": p.tau, "d": p.d})
+        arrays = {"zbar": p.zbar, "mu": p.mu, "var": p.var, "lam": p.lam, "tau": p.tau, "d": p.d}
+        if self.cond_cov is not None:
+            arrays["cond_cov"] = self.cond_cov
+        modelfile.save_arrays(path, meta, arrays)
 
 
 def load(path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> HLMModel:
@@ -259,7 +280,13 @@ def load(path: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> HLMM
     params = HLMParams(zbar.astype(float), mu.astype(float), var.astype(float), lam.astype(float), tau.astype(float),
                        d.astype(float), float(meta["lam_s"]), float(meta["lam_zbar"]))
     opts = HLMOptions(**{k: v for k, v in meta.get("options", {}).items() if k in HLMOptions.__dataclass_fields__})
-    return HLMModel(rep, params, opts, {k: v for k, v in meta.items() if k in ("hyperparameters", "training")})
+    cov = None
+    if "cond_cov" in arrays:  # files written before hlm.condfill have none: the fill is eq. (18) alone
+        cov = require(path, arrays, "cond_cov", (C, F, F)).astype(float)
+        if not np.isfinite(cov).all() or np.abs(cov - cov.transpose(0, 2, 1)).max() > 1e-9 * max(1.0, np.abs(cov).max()) \
+                or (np.linalg.eigvalsh(cov) <= 0).any():
+            raise ModelFileError(f"{path}: cond_cov must hold finite symmetric positive definite matrices")
+    return HLMModel(rep, params, opts, {k: v for k, v in meta.items() if k in ("hyperparameters", "training")}, cov)
 
 
 class LagStream:
@@ -295,6 +322,8 @@ class LagStream:
         m = self.model
         zf, sd = online.fill(m.tables, P, self.z[slot], self.zobs[slot], *online.cycle_stats(self.core),
                              **online.group_stats(self.core))
+        if m.cond is not None:   # the smoothed posterior's fill, corrected as the causal one is
+            condfill.correct(m.tables, m.cond, {**self.core, "post": P}, self.z[slot], self.zobs[slot], zf)
         f = np.where(self.rawobs[slot], self.raw[slot], np.nan)[None]
         done, std = self.dec.finish(zf, sd, f, self.rawobs[slot][None])
         return Fill(done[0], std[0], ~self.rawobs[slot], online.extras(m.tables, P)[0])
@@ -311,6 +340,8 @@ class LagStream:
         online.accumulate(m.tables, self.core, z, zo)
         zf, zsd = online.fill(m.tables, self.core["post"], z, zo, *online.cycle_stats(self.core),
                               **online.group_stats(self.core))
+        if m.cond is not None:
+            condfill.correct(m.tables, m.cond, self.core, z, zo, zf)
         self.enc.finish(zf, zsd, np.where(obs, f, np.nan)[None], obs[None])
         slot = self.n % (self.lag + 1)
         self.post[slot], self.ll[slot], self.z[slot], self.zobs[slot] = self.core["post"], ll, z, zo

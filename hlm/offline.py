@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -58,12 +59,26 @@ def infer(tab: FilterTables, z: np.ndarray, zobs: np.ndarray, n_iter_d: int = 3,
     return Posterior(P, P.sum(2).mean(0), ph, d, float(log_z))
 
 
-def fill_features(tab: FilterTables, z: np.ndarray, zobs: np.ndarray, n_iter_d: int = 3) -> tuple[np.ndarray, np.ndarray, Posterior]:
+def fill_features(tab: FilterTables, z: np.ndarray, zobs: np.ndarray, n_iter_d: int = 3,
+                  cond: Any = None) -> tuple[np.ndarray, np.ndarray, Posterior]:
     """Fill a whole recording in feature space by eq. (18) with the smoothed posteriors.
     Returns (z completed (T, F), std (T, F), posterior).  With ``tab.kappa > 0`` the recording's
     own cycle (see ``hlm.online``) is estimated from all its observed frames and the smoothed
-    posteriors, then used in (18)."""
+    posteriors, then used in (18).  ``cond`` (``hlm.condfill.CondTables``): each frame's fill is
+    then corrected from its observed features' residuals, as the online filter's is."""
     post = infer(tab, z, zobs, n_iter_d)
+    zf, sd, stats = _fill18(tab, z, zobs, post)
+    if cond is not None:
+        from hlm import condfill
+
+        for t in np.flatnonzero(zobs.any(1) & ~zobs.all(1)):
+            st = {"post": post.P[t : t + 1], **stats}
+            condfill.correct(tab, cond, st, z[t : t + 1], zobs[t : t + 1], zf[t : t + 1])
+    return zf, sd, post
+
+
+def _fill18(tab: FilterTables, z: np.ndarray, zobs: np.ndarray, post: Posterior) -> tuple[np.ndarray, np.ndarray, dict]:
+    """eq. (18) over the smoothed posteriors; returns the recording's cycle statistics too."""
     if tab.kappa > 0.0:
         T = z.shape[0]
         C, M = tab.shape
@@ -77,9 +92,9 @@ def fill_features(tab: FilterTables, z: np.ndarray, zobs: np.ndarray, n_iter_d: 
         D = Pb.T @ (o * np.where(zobs, z, 0.0)) - A.T @ (tab.mu * (P.T @ o))
         W = Pb.T @ o
         zf, sd = fill(tab, post.P, z, zobs, D[None].repeat(T, 0), W[None].repeat(T, 0))
-        return zf, sd, post
+        return zf, sd, {"D": D[None], "W": W[None]}
     zf, sd = fill(tab, post.P, z, zobs)
-    return zf, sd, post
+    return zf, sd, {}
 
 
 def viterbi(tab: FilterTables, z: np.ndarray, zobs: np.ndarray, d: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
