@@ -391,7 +391,7 @@ def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarr
 
 @_jit
 def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
-               live, live_stats, out, sd, style, phase):  # pragma: no cover - compiled
+               live, live_stats, out, sd, style, phase, cond, cov, prec, shrink):  # pragma: no cover - compiled
     """``_step_slot`` for pool rows prow[i] and frames[i], observed[i] (i < n), in one call:
     the same encode1 -> filter -> finish1 per stream (mirror any change to ``_step_slot``'s glue
     here), in three passes over the streams (every encoder, every filter, every decoder: each
@@ -421,6 +421,9 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
                             nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf[i], zsd[i],
                             style[i], fs, ix)
         t[r] += 1
+        if cond:
+            correct1(p, z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows,
+                     pack, cov, prec, shrink, live, STYLE_LIVE)
     for i in range(n):
         r = prow[i]
         prev_yaw[r] = finish1(zf[i], zsd[i], x[i], observed[i], prev_u[r], prev_raw[r], prev_yaw[r], started[r],
@@ -430,7 +433,7 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
 
 
 def step_rows(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observed: np.ndarray,
-              live: float = 1e-10, live_stats: float = 1e-4) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+              live: float = 1e-10, live_stats: float = 1e-4, cond=None) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """One frame of each of n streams in pool rows prow (n,) int, distinct (a
     ``mocap.feature_model.StatePool`` of an HLM): frames (n, C) float64, observed (n, C) bool.
     Updates the rows in place; returns (completed (n, C), std (n, C), extras per stream), what
@@ -452,5 +455,6 @@ def step_rows(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observe
     if not (frames.flags.writeable and observed.flags.writeable):  # (compiled for writable arrays: no second kernel)
         frames, observed = frames.copy(), observed.copy()
     _step_rows(prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"],
-               rp["root_st"], rt, cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, phase)
+               rp["root_st"], rt, cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, phase,
+               *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)))
     return out, sd, _extras(style, phase)

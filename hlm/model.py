@@ -132,16 +132,14 @@ class HLMModel(FeatureModel):
 
     def step_rows(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple | None:
         # a batch's encoders, compiled filters and decoders in one call (hlm.fast.step_rows), where
-        # step_one's would serve; a fill corrected after the filter (a ``cond`` of hlm.condfill)
-        # takes step_arrays' path until _step_rows mirrors _step_slot's correction
+        # step_one's would serve
         rep = self.representation
-        if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative") \
-                or getattr(self, "cond", None) is not None:
+        if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative"):
             return None
         tabs = self.__dict__.get("_slot_tables")
         if tabs is None:
             tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, self.representation)
-        return fast.step_rows(tabs, self.pool, slots, frames, observed, online.LIVE, LIVE_STATS)
+        return fast.step_rows(tabs, self.pool, slots, frames, observed, online.LIVE, LIVE_STATS, self.cond)
 
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
                   rows: np.ndarray | None = None) -> CoreOut:
