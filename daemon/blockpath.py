@@ -18,7 +18,7 @@ message object per frame:
   frame of a stream that already has one waiting, a second bundle in the turn, any other
   request touching those sessions) makes the block become the n pending slots it stands for
   (``BlockWait.to_pending``, via ``SessionTable.materialize``) before the row path goes on, so
-  every answer and every state is the one the row path gives (tests/test_daemon_blockpath.py).
+  every answer and every state is the one the row path gives (tests/test_daemon_wire_block.py).
 """
 from __future__ import annotations
 

@@ -2,12 +2,13 @@
 daemon/tick.py for the usual case of a studio's bundle, as arrays.
 
 The frames are answered exactly as the row path answers them (the same fills, drops, order,
-counters and session states; tests/test_daemon_blockpath.py compares the two on fuzzed bundles):
+counters and session states; tests/test_daemon_wire_block.py compares the two on fuzzed bundles):
 the streams in the table's order, the model stepped on the block's (n, C) rows, the replies'
 angles, masks and deviations built as (n, C) arrays and encoded at once, one map per frame
 straight from them (no fill message object), the bundle's replies packed in one pass and sent
-as one message.  A tick the array path does not cover (frames already overdue when the tick
-begins, more streams than ``max_batch``, a model's fills that do not stack) declines before it
+as one message.  Frames already overdue when the tick begins (the overload case) are dropped
+as Tick._serve drops them and the rest are served as arrays.  A tick the array path does not
+cover (more streams than ``max_batch``, a model's fills that do not stack) declines before it
 changes anything, or hands its results to the row path's tail.
 """
 from __future__ import annotations
@@ -38,13 +39,24 @@ class BlockTick(Parts):
         t0 = self.clock()
         arrived = bw.arrived
         late = [s.late_streak for s in S]
-        if self._drop_overdue and True in sched.overdue([arrived] * n, t0, late):
-            return False  # some are overdue before the step: the row path picks which
+        block = bw.block
+        rows: list[int] | None = None if plan.ident else plan.perm  # (None: the bundle is in the table's order)
         sessions.blocks.clear()
         sessions.block_served += 1
         self.metrics.inc("bundles_as_arrays")  # (status: how many bundles took this path)
-        block = bw.block
-        rows = None if plan.ident else plan.perm  # (None: the bundle is in the table's order)
+        if self._drop_overdue and True in (gone := sched.overdue([arrived] * n, t0, late)):
+            # the overload case: some frames are overdue before the step (Tick._serve drops
+            # them, in the table's order); the rest are served as arrays
+            sessions.block_overdue += 1
+            origin = bw.origin
+            for s, q, x in zip(S, block.seqs if rows is None else [block.seqs[i] for i in rows], gone):
+                if x:
+                    self._conflated.extend(sessions.overdue_seq(s, q, origin))
+            keep = [k for k, x in enumerate(gone) if not x]
+            if not keep:
+                return True
+            S, late = [S[k] for k in keep], [late[k] for k in keep]
+            rows, n = (keep if rows is None else [rows[k] for k in keep]), len(keep)
         seqs = block.seqs if rows is None else [block.seqs[i] for i in rows]
         mf, mo = blockpath.inputs(block, rows)
         model = plan.model

@@ -167,8 +167,10 @@ def test_block_path_answers_and_state_equal_row_path(case, seed):
         assert _state(fast) == _state(ref)
         fast.sent.clear()
         ref.sent.clear()
-    # the array path did serve (not only decline)
+    # the array path did serve (not only decline), the overload case too (frames overdue at the tick's start)
     assert fast.sessions.block_served > 0 and ref.sessions.block_served == 0
+    if overdue == "drop":
+        assert fast.sessions.block_overdue > 0
 
 
 @pytest.mark.parametrize("start,n", [(0, 5), (19990, 30), (5, 20000), (19999, 1)])
