@@ -14,7 +14,7 @@ message object per frame:
 * :func:`take` does what ``SessionTable.frame`` does for each frame (activity, the delivery
   baseline and ``waited``, ``frames_in``), the sequence checks at once, and leaves the block
   waiting as one (``SessionTable.blocks``) instead of n pending slots;
-* anything the array path does not cover (a stream's first frame, a late or duplicate frame, a
+* anything the array path does not cover (a late or duplicate frame, a
   frame of a stream that already has one waiting, a second bundle in the turn, any other
   request touching those sessions) makes the block become the n pending slots it stands for
   (``BlockWait.to_pending``, via ``SessionTable.materialize``) before the row path goes on, so
@@ -105,10 +105,11 @@ def take(table: Any, block: FrameBlock, origin: Origin, arrived: float, who: Any
         return False
     S = plan.sessions
     lasts = [s.last_seq for s in S]
-    if None in lasts or not all(map(_GT, block.seqs, lasts)):  # type: ignore[arg-type]
-        return False  # a first frame, or a late or duplicate one: answered by the row path
-    if any(s.t_base is None for s in S):
-        return False
+    if None in lasts:  # a stream's first frame (after its hello): any seq opens the numbering
+        if not all(last is None or q > last for q, last in zip(block.seqs, lasts)):
+            return False
+    elif not all(map(_GT, block.seqs, lasts)):  # type: ignore[arg-type]
+        return False  # a late or duplicate frame: answered by the row path
     now = table.clock()
     mte = table.recent.move_to_end
     for s, t in zip(S, block.stamps):

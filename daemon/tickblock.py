@@ -96,8 +96,7 @@ class BlockTick(Parts):
         self.metrics.inc("ticks")
         self.metrics.step_time(self.clock() - t0)
         t1 = self.clock()
-        # (last_seq is never None here: blockpath.take leaves a first frame to the row path)
-        gaps = [q - s.last_seq - 1 for s, q in zip(so, qo)]  # type: ignore[operator]
+        gaps = [0 if s.last_seq is None else q - s.last_seq - 1 for s, q in zip(so, qo)]  # (None: a first frame)
         ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
         t1e = self.clock()
         now = self.clock()
