@@ -65,7 +65,7 @@ class Dispatch(Parts):
             self._rate_limited(origin, m)
         else:  # (_take's decode and dispatch, for a map: it decodes to one message)
             try:
-                msg = wire.decode_map(m)
+                msg = wire.decode_map(m)  # type: ignore[arg-type]  # (a dict: bytes and errors went above)
             except wire.WireError as e:
                 self._reject(origin, e.reason, e.detail, e.stream, e.seq)
                 return
