@@ -283,10 +283,11 @@ class Dispatch(Parts):
         who = principal(origin)
         if origin[0] == "router":
             origin = (*origin, "bundle")
-            # the usual bundle: its frames taken as one block, served as arrays (daemon/blockpath.py)
-            if msg.block is not None and blockpath.take(self.sessions, msg.block, origin, arrived, who):
-                self.metrics.inc("frames_in", len(msg.block))
-                return
+        # the usual bundle: its frames taken as one block, served as arrays (daemon/blockpath.py);
+        # from PULL/SUB too (their fills go to PUB one by one, as the row path sends them)
+        if origin[0] != "osc" and msg.block is not None and blockpath.take(self.sessions, msg.block, origin, arrived, who):
+            self.metrics.inc("frames_in", len(msg.block))
+            return
         for f in msg.items:
             if isinstance(f, wire.WireError):
                 self._reject(origin, f.reason, f.detail, f.stream, f.seq)

@@ -101,30 +101,43 @@ class BlockTick(Parts):
         t1e = self.clock()
         now = self.clock()
         budget, drop, origin = sched.budget_s, self._drop_overdue, bw.origin
-        # the step ran longer than planned: the first k0 fills would leave over budget (Tick._answer
-        # checks each: sent_at(now, n - k, n) - arrived > budget, true for a prefix of them)
-        k0 = 0
+        # the step ran longer than planned: fills that would leave over budget are dropped, as
+        # Tick._answer checks each (sent_at(now, n - k, place) - arrived > budget): a bundle's
+        # replies leave together (place n: true for a prefix of them), a PULL bundle's fills one
+        # by one on PUB (place: the fills sent before it, plus one)
+        ks: range | list[int] = range(n)
         if drop:
             enc, snd = sched.encode_cost, sched.send_cost
-            while k0 < n and now + (n - k0) * enc + n * snd - arrived > budget:
-                k0 += 1
-            if k0:
-                self.metrics.inc("overdue_after_step", k0)
-                for k in range(k0):
+            if len(origin) == 3:
+                k0 = 0
+                while k0 < n and now + (n - k0) * enc + n * snd - arrived > budget:
+                    k0 += 1
+                gone: range | list[int] = range(k0)
+                ks = range(k0, n)
+            else:
+                gone, ks = [], []
+                for k in range(n):
+                    (gone if now + (n - k) * enc + (len(ks) + 1) * snd - arrived > budget else ks).append(k)
+            if gone:
+                self.metrics.inc("overdue_after_step", len(gone))
+                for k in gone:
                     self._conflated.extend(sessions.overdue_seq(so[k], qo[k], origin))
-        out = so[k0:] if k0 else so
-        degs = None if statuses is None else [st == "degraded" for st in statuses[k0:]]
-        filled_rows(out, qo[k0:] if k0 else qo, degs)
+        whole = len(ks) == n
+        out = so if whole else [so[k] for k in ks]
+        qk = qo if whole else [qo[k] for k in ks]
+        degs = None if statuses is None else [statuses[k] == "degraded" for k in ks]
+        filled_rows(out, qk, degs)
         stamps = block.stamps if ro is None else [block.stamps[r] for r in ro]
         proc_us = int((now - arrived) * 1e6)
         name = S[0].model_name
         status = "passthrough"
         maps: list[dict[str, Any]] = [
-            {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
-             "status": status if statuses is None else statuses[k], "model": name, "proc_us": proc_us}
-            for k, s, q, t, a, f, d in zip(range(k0, n), out, qo[k0:], stamps[k0:], ab[k0:], fb[k0:], sb[k0:])]
+            {"v": 1, "type": "fill", "stream": so[k].sid, "seq": qo[k], "t": stamps[k], "angles": ab[k],
+             "filled": fb[k], "std": sb[k], "status": status if statuses is None else statuses[k], "model": name,
+             "proc_us": proc_us}
+            for k in ks]
         if styles is not None or any(gaps):
-            for k, m in zip(range(k0, n), maps):
+            for k, m in zip(ks, maps):
                 if styles is not None and styles[k] is not None:
                     m["style"] = styles[k]
                 if phases is not None and (ph := phases[k]) is not None and math.isfinite(ph):
@@ -133,7 +146,7 @@ class BlockTick(Parts):
                     m["gap"] = gaps[k]
         if degs is not None and True in degs:
             self.metrics.inc("degraded", sum(degs))
-            for k, dg in zip(range(k0, n), degs):
+            for k, dg in zip(ks, degs):
                 if dg:
                     self.metrics.inc("degraded_held" if held is not None and held[k] else "degraded_iterations")
         if out:
@@ -142,7 +155,7 @@ class BlockTick(Parts):
         te = self.clock()
         self._send_held(len(out))
         if out and self.prewarm.on:
-            self.prewarm.served(out[-1], _frame(block, n - 1 if ro is None else ro[-1]), arrived, sched)
+            self.prewarm.served(out[-1], _frame(block, ks[-1] if ro is None else ro[ks[-1]]), arrived, sched)
         t2 = self.clock()
         sched.observe_replies(n, te - t1e, t2 - t1)
         wait = t2 - arrived

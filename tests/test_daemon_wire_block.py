@@ -20,6 +20,7 @@ from mocap.baselines import HoldModel
 
 C = 6
 PEER = ("router", [b"studio"])
+PULL = ("pull", None)  # (a PULL or SUB input: answers go to PUB)
 
 
 class FakeClock:
@@ -88,7 +89,7 @@ def _frame_map(rng, sid, seq, t, masked):
     return d
 
 
-def _turns(rng, sids, model_name, n_turns, clock):
+def _turns(rng, sids, model_name, n_turns, clock, peer=PEER):
     """(advance the clock by, items) per turn: the studio's bundles and the odd other message."""
     seqs = dict.fromkeys(sids, 0)
     for k in range(n_turns):
@@ -102,11 +103,11 @@ def _turns(rng, sids, model_name, n_turns, clock):
         r = rng.random()
         if k == 0 or r < 0.05:  # a (re-)handshake of one stream or all
             for sid in (sids if k == 0 else [str(rng.choice(sids))]):
-                items.append((wire.encode(wire.Hello(sid, [f"c{i}" for i in range(C)], model_name)), PEER, arrived))
+                items.append((wire.encode(wire.Hello(sid, [f"c{i}" for i in range(C)], model_name)), peer, arrived))
         if rng.random() < 0.1:  # a single frame ahead of the bundle (the bundle's frame supersedes it)
             sid = str(rng.choice(sids))
             items.append((msgpack.packb({"v": 1, "type": "frame", **_frame_map(rng, sid, seqs[sid] + 1, t, False)},
-                                        use_bin_type=True), PEER, arrived))
+                                        use_bin_type=True), peer, arrived))
         for _b in range(2 if rng.random() < 0.1 else 1):
             order = list(sids)
             if rng.random() < 0.2:
@@ -119,12 +120,12 @@ def _turns(rng, sids, model_name, n_turns, clock):
                 els.append(_frame_map(rng, sid, max(seqs[sid], 0), t, masked))
             if rng.random() < 0.05:
                 els[0]["angles"] = b"\0" * (4 * C + 4)  # a malformed element: not a regular bundle
-            items.append((msgpack.packb({"v": 1, "type": "frames", "frames": els}, use_bin_type=True), PEER, arrived))
+            items.append((msgpack.packb({"v": 1, "type": "frames", "frames": els}, use_bin_type=True), peer, arrived))
         if rng.random() < 0.1:  # a single frame after it: it supersedes the bundle's (or is late)
             sid = str(rng.choice(sids))
             seqs[sid] += 1
             items.append((msgpack.packb({"v": 1, "type": "frame", **_frame_map(rng, sid, seqs[sid], t, False)},
-                                        use_bin_type=True), PEER, arrived))
+                                        use_bin_type=True), peer, arrived))
         yield 1 / 120, items
 
 
@@ -143,17 +144,18 @@ def _state(d):
 
 
 @pytest.mark.parametrize("seed", range(8))
-@pytest.mark.parametrize("case", ["pt-drop", "pt-serve", "styled-drop", "styled-held"])
+@pytest.mark.parametrize("case", ["pt-drop", "pt-serve", "styled-drop", "styled-held", "pt-drop-pull", "styled-drop-pull"])
 def test_block_path_answers_and_state_equal_row_path(case, seed):
     rng = np.random.default_rng(seed)
     clock = FakeClock()
-    model_name, overdue = case.split("-")
+    model_name, overdue, *via = case.split("-")
+    peer = PULL if via else PEER
     model = StyledHold([f"c{i}" for i in range(C)], np.zeros(C), np.ones(C)) if model_name == "styled" else None
     name = "st" if model is not None else "pt"
     fast, ref = (_daemon(clock, arrays, "serve" if overdue == "serve" else "drop", model) for arrays in (True, False))
     n = int(rng.integers(1, 12))
     sids = [f"p{i}" for i in range(n)]
-    for step, items in _turns(rng, sids, name, 60, clock):
+    for step, items in _turns(rng, sids, name, 60, clock, peer):
         clock.t += step
         for d in (fast, ref):
             # fixed reply costs (a fake clock would let them decay to nothing): frames received
@@ -261,4 +263,66 @@ def test_real_cmu_bundles_over_a_real_daemon_take_the_array_path(data, tmp_path)
             assert st["counters"]["frames_out"] == n * (len(rows) - n)
         finally:
             s.close(0)
+            ctx.term()
+
+
+def test_real_cmu_bundles_pushed_over_pull_are_served_as_arrays_and_published(data, tmp_path):
+    """The same bundles PUSHed to the daemon's PULL input (hellos too, so the PULL side owns the
+    streams): served as arrays, first bundle included, each fill published on PUB under its
+    stream's topic, one message per fill (not a ``replies``), the observed values exactly as sent."""
+    import zmq
+    from waiting import wait_until
+
+    from clients.control import control
+    from clients.harness import DaemonProcess
+    from mocap.datasets import load_trial
+
+    take = load_trial("35_08")
+    ch = list(take.channels)
+    rows = take.frames[:24].astype(np.float32)
+    rows[:, [c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand") for c in ch]] = np.nan
+    n = 4
+    with DaemonProcess({"floor": {"builtin": "passthrough", "channels": ch}}, workdir=tmp_path,
+                       daemon={"budget_ms": 250.0, "log_level": "warning"},
+                       zmq={"pull": "tcp://127.0.0.1:*", "pub": "tcp://127.0.0.1:*"}) as d:
+        ctx = zmq.Context()
+        sub, push = ctx.socket(zmq.SUB), ctx.socket(zmq.PUSH)
+        try:
+            for s in (sub, push):
+                s.setsockopt(zmq.LINGER, 0)
+            sub.setsockopt(zmq.SUBSCRIBE, b"")
+            sub.connect(d.endpoints["pub"])
+            push.connect(d.endpoints["pull"])
+            # PUB/SUB's slow joiner: joined once a hello's ack comes through on PUB
+            wait_until(lambda: push.send(wire.encode(wire.Hello("join", ch))) or sub.poll(50), 10, "a published ack")
+            while sub.poll(200):
+                sub.recv_multipart()
+
+            def published(k: int) -> list[tuple[bytes, wire.Message]]:
+                got = []
+                for _ in range(k):
+                    assert sub.poll(10000), "nothing published"
+                    topic, body = sub.recv_multipart()
+                    got.append((topic, wire.decode(body)))
+                return got
+
+            for i in range(n):
+                push.send(wire.encode(wire.Hello(f"actor{i}", ch)))
+            assert all(isinstance(m, wire.HelloAck) for _, m in published(n))
+            for k in range(len(rows) - n):
+                push.send(wire.encode(wire.Bundle([wire.Frame(f"actor{i}", k, k / 120, rows[k + i]) for i in range(n)])))
+                for i, (topic, f) in enumerate(published(n)):
+                    assert topic == f"actor{i}".encode() and isinstance(f, wire.FillMsg)
+                    assert (f.stream, f.seq, f.status) == (f"actor{i}", k, "passthrough")
+                    sent = rows[k + i]
+                    assert f.angles.tobytes() == np.where(np.isfinite(sent), sent, np.float32(np.nan)).tobytes()
+                    assert not f.filled.any() and not f.std.any()
+            st = control(d.endpoint, "status", timeout_s=10.0).result
+            assert st["counters"]["bundles_as_arrays"] == len(rows) - n
+            assert st["counters"]["frames_out"] == n * (len(rows) - n)
+            # (no answer was lost or failed on its way)
+            assert st["counters"].get("send_errors", 0) == 0 and st["counters"].get("send_dropped", 0) == 0
+        finally:
+            sub.close(0)
+            push.close(0)
             ctx.term()
