@@ -44,15 +44,15 @@ class BlockTick(Parts):
         sessions.blocks.clear()
         sessions.block_served += 1
         self.metrics.inc("bundles_as_arrays")  # (status: how many bundles took this path)
-        if self._drop_overdue and True in (gone := sched.overdue([arrived] * n, t0, late)):
+        if self._drop_overdue and True in (early := sched.overdue([arrived] * n, t0, late)):
             # the overload case: some frames are overdue before the step (Tick._serve drops
             # them, in the table's order); the rest are served as arrays
             sessions.block_overdue += 1
             origin = bw.origin
-            for s, q, x in zip(S, block.seqs if rows is None else [block.seqs[i] for i in rows], gone):
+            for s, q, x in zip(S, block.seqs if rows is None else [block.seqs[i] for i in rows], early):
                 if x:
                     self._conflated.extend(sessions.overdue_seq(s, q, origin))
-            keep = [k for k, x in enumerate(gone) if not x]
+            keep = [k for k, x in enumerate(early) if not x]
             if not keep:
                 return True
             S, late = [S[k] for k in keep], [late[k] for k in keep]
@@ -115,9 +115,11 @@ class BlockTick(Parts):
                 gone: range | list[int] = range(k0)
                 ks = range(k0, n)
             else:
-                gone, ks = [], []
+                kept: list[int] = []
+                gone = []
                 for k in range(n):
-                    (gone if now + (n - k) * enc + (len(ks) + 1) * snd - arrived > budget else ks).append(k)
+                    (gone if now + (n - k) * enc + (len(kept) + 1) * snd - arrived > budget else kept).append(k)
+                ks = kept
             if gone:
                 self.metrics.inc("overdue_after_step", len(gone))
                 for k in gone:
