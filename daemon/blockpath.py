@@ -6,10 +6,10 @@ the same streams in the same order every time.  daemon/block.py reads such a bun
 sessions and, in daemon/tick.py, serves it, without a ``Frame``, a ``Pending`` or a fill
 message object per frame:
 
-* :func:`plan_for` checks once per set of streams (cached until the session table changes:
-  ``SessionTable.gen``) that every stream is open, owned by the sender, of the bundle's width,
-  sends the model's own channels in its order, asked for no positions, and that all share one
-  model; it keeps the sessions in the bundle's order and the permutation to the table's order
+* :func:`plan_for` checks once per set of streams and sender (cached until the session table
+  changes: ``SessionTable.gen``) that every stream is open, owned by the sender, of the
+  bundle's width, sends the model's own channels in its order, asked for no positions, and
+  that all share one model; it keeps the sessions in the bundle's order and the permutation to the table's order
   (the order the row path serves them in);
 * :func:`take` does what ``SessionTable.frame`` does for each frame (activity, the delivery
   baseline and ``waited``, ``frames_in``), the sequence checks at once, and leaves the block
@@ -42,6 +42,7 @@ class BlockPlan:
 
     key: tuple[str, ...]
     gen: int  # SessionTable.gen when checked
+    who: Any  # the sender it was checked for (the owner of every stream)
     sessions: list[Session]  # in the bundle's order
     perm: list[int]  # bundle rows in the table's order
     ident: bool  # perm is 0..n-1 (the studio sends its streams in the order it opened them)
@@ -71,7 +72,7 @@ def plan_for(table: Any, block: FrameBlock, who: Any) -> BlockPlan | None:
     key = tuple(block.sids)
     plans: dict[tuple[str, ...], BlockPlan] = table.block_plans
     plan = plans.get(key)
-    if plan is not None and plan.gen == table.gen:
+    if plan is not None and plan.gen == table.gen and plan.who == who:
         return plan
     sessions = table.sessions
     width = block.values.shape[1]
@@ -88,7 +89,7 @@ def plan_for(table: Any, block: FrameBlock, who: Any) -> BlockPlan | None:
     if len(set(key)) != len(key) or any(s.model is not model for s in got):
         return None
     perm = sorted(range(len(got)), key=lambda i: got[i].order)
-    plan = BlockPlan(key, table.gen, got, perm, perm == list(range(len(got))), [got[i] for i in perm], model, width)
+    plan = BlockPlan(key, table.gen, who, got, perm, perm == list(range(len(got))), [got[i] for i in perm], model, width)
     if len(plans) >= PLANS_MAX:
         plans.clear()
     plans[key] = plan

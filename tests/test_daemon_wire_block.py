@@ -326,3 +326,28 @@ def test_real_cmu_bundles_pushed_over_pull_are_served_as_arrays_and_published(da
             sub.close(0)
             push.close(0)
             ctx.term()
+
+
+def test_a_bundle_from_another_connection_is_refused_as_the_row_path_refuses_it():
+    """The checked plan of a set of streams is kept between bundles: a bundle naming the same
+    streams from a connection that does not own them must still be refused (``not_owner``, the
+    owner's streams untouched), not served through the plan the owner's bundles made."""
+    clock = FakeClock()
+    other = ("router", [b"intruder"])
+    fast, ref = (_daemon(clock, arrays, "drop", None) for arrays in (True, False))
+    rng = np.random.default_rng(5)
+    sids = ["a", "b"]
+
+    def bundle(seqs):
+        els = [_frame_map(rng, sid, q, clock.t - 0.001, False) for sid, q in zip(sids, seqs)]
+        return msgpack.packb({"v": 1, "type": "frames", "frames": els}, use_bin_type=True)
+
+    hello = [(wire.encode(wire.Hello(sid, [f"c{i}" for i in range(C)], "pt")), PEER) for sid in sids]
+    for turn in (hello + [([1, 1], PEER)], [([2, 2], PEER)], [([3, 3], other)], [([3, 3], PEER)]):
+        clock.t += 1 / 120
+        items = [(m if isinstance(m, bytes) else bundle(m), who, clock.t) for m, who in turn]
+        for d in (fast, ref):
+            d.turn(clock(), items=list(items))
+        assert fast.sent == ref.sent
+        assert _state(fast) == _state(ref)
+    assert ref.metrics.rejected.get("not_owner") == 2 and fast.metrics.rejected == ref.metrics.rejected
