@@ -285,8 +285,10 @@ class Dispatch(Parts):
             origin = (*origin, "bundle")
         # the usual bundle: its frames taken as one block, served as arrays (daemon/blockpath.py);
         # from PULL/SUB too (their fills go to PUB one by one, as the row path sends them)
-        if origin[0] != "osc" and msg.block is not None and blockpath.take(self.sessions, msg.block, origin, arrived, who):
+        if origin[0] != "osc" and msg.block is not None and \
+                (drops := blockpath.take(self.sessions, msg.block, origin, arrived, who)) is not None:
             self.metrics.inc("frames_in", len(msg.block))
+            self._conflated += drops  # (a waiting bundle's frames it superseded: after the fills)
             return
         for f in msg.items:
             if isinstance(f, wire.WireError):

@@ -203,6 +203,43 @@ def test_first_bundle_after_the_hellos_is_served_as_arrays_as_the_row_path_serve
     assert fast.sessions.block_served == 3 and ref.sessions.block_served == 0
 
 
+@pytest.mark.parametrize("case", ["pt", "styled"])
+@pytest.mark.parametrize("overdue", ["drop", "serve"])
+def test_a_bundle_superseding_the_waiting_one_stays_on_the_array_path(case, overdue):
+    """A daemon behind reads two or three bundles of the same streams in one turn: each newer one
+    supersedes the one waiting as a block (its frames answered ``conflated`` after the fills, as
+    the row path answers them), and the newest is served as arrays; one with a frame not newer
+    than the one waiting (a duplicate), or of other streams, goes to the row path, with the
+    same answers."""
+    clock = FakeClock()
+    model = StyledHold([f"c{i}" for i in range(C)], np.zeros(C), np.ones(C)) if case == "styled" else None
+    name = "st" if model is not None else "pt"
+    fast, ref = (_daemon(clock, arrays, overdue, model) for arrays in (True, False))
+    rng = np.random.default_rng(11)
+    sids = ["a", "b", "c", "d"]
+    hello = [wire.encode(wire.Hello(sid, [f"c{i}" for i in range(C)], name)) for sid in sids]
+
+    def bundle(seqs, who=sids):
+        masked = bool(rng.random() < 0.5)  # (a regular bundle: every element masked, or none)
+        els = [_frame_map(rng, sid, q, clock.t - 0.001, masked) for sid, q in zip(who, seqs)]
+        return msgpack.packb({"v": 1, "type": "frames", "frames": els}, use_bin_type=True)
+
+    served = []
+    for turn in ([*hello, [1, 1, 1, 1]], [[2, 2, 2, 2], [3, 4, 3, 3]], [[5, 5, 5, 5], [6, 6, 6, 6], [9, 7, 8, 7]],
+                 [[10, 10, 10, 10], [11, 10, 11, 11]], [[12, 12, 12, 12], ("ab", [13, 13])]):
+        clock.t += 1 / 120
+        items = [(m if isinstance(m, bytes) else bundle(m) if isinstance(m, list) else bundle(m[1], list(m[0])),
+                  PEER, clock.t) for m in turn]
+        for d in (fast, ref):
+            d.turn(clock(), items=list(items))
+        assert fast.sent == ref.sent
+        assert _state(fast) == _state(ref)
+        served.append(fast.sessions.block_served)
+    assert ref.metrics.counters["dropped_conflated"] == 4 + 8 + 3 + 2  # (turn 4: b is a duplicate)
+    # the first three turns' newest bundles on the array path; the duplicate's and the other streams' not
+    assert served == [1, 2, 3, 3, 3]
+
+
 @pytest.mark.parametrize("start,n", [(0, 5), (19990, 30), (5, 20000), (19999, 1)])
 def test_latencies_equal_latency_n_times(start, n):
     from daemon.metrics import Metrics
