@@ -133,11 +133,11 @@ class BlockTick(Parts):
         proc_us = int((now - arrived) * 1e6)
         name = S[0].model_name
         status = "passthrough"
+        cols: list[list[Any]] = [stamps, ab, fb, sb] if whole else [[c[k] for k in ks] for c in (stamps, ab, fb, sb)]
         maps: list[dict[str, Any]] = [
-            {"v": 1, "type": "fill", "stream": so[k].sid, "seq": qo[k], "t": stamps[k], "angles": ab[k],
-             "filled": fb[k], "std": sb[k], "status": status if statuses is None else statuses[k], "model": name,
-             "proc_us": proc_us}
-            for k in ks]
+            {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
+             "status": status if statuses is None else statuses[k], "model": name, "proc_us": proc_us}
+            for k, s, q, t, a, f, d in zip(ks, out, qk, *cols)]
         if styles is not None or any(gaps):
             for k, m in zip(ks, maps):
                 if styles is not None and styles[k] is not None:
