@@ -23,6 +23,7 @@ import json
 import sys
 import tempfile
 import time
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -93,6 +94,32 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
     return 1e6 * cpu / (ticks * n_streams), 1e6 * float(np.median(walls)) / n_streams
 
 
+def count_calls(d: Daemon, model: str, frames: np.ndarray, channels: list[str]) -> tuple[int, int]:
+    """(Python calls, C calls) from receipt to the fill handed to the transport, for one frame of
+    one stream (after 50 that warm it), the bench's send (encoding) included: ``sys.setprofile``."""
+    d._send = lambda o, m, publish=False: wire.encode(m)  # type: ignore[method-assign]
+    sid = f"calls-{model}-{time.monotonic_ns()}"
+    d._handle(wire.encode(wire.Hello(sid, channels, model)), ("router", [b"x"]), time.perf_counter())
+    msgs = [wire.encode(wire.Frame(sid, k, k / 120, frames[k % len(frames)])) for k in range(51)]
+    for b in msgs[:50]:
+        d._handle(b, ("router", [b"x"]), time.perf_counter())
+        d._serve()
+    n = {"call": 0, "c_call": 0}
+
+    def prof(frame: Any, event: str, arg: Any) -> None:
+        if event in n:
+            n[event] += 1
+
+    sys.setprofile(prof)
+    try:
+        d._handle(msgs[50], ("router", [b"x"]), time.perf_counter())
+        d._serve()
+    finally:
+        sys.setprofile(None)
+    d.sessions.reset(sid)
+    return n["call"], n["c_call"]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=7)
@@ -104,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--behind", type=int, default=1, metavar="K",
                     help="with --bundle, also rows of K bundles read in each turn (a daemon behind)")
     ap.add_argument("--cpu-latency", type=int, default=None, metavar="US", help="hold a PM QoS request while measuring")
+    ap.add_argument("--calls", action="store_true", help="only count the calls of one frame (pass-through, one stream)")
     ap.add_argument("--json", dest="json_out")
     args = ap.parse_args(argv)
     qos = CpuLatency()
@@ -125,6 +153,10 @@ def main(argv: list[str] | None = None) -> int:
     table, errors = load_all(cfg)
     assert not errors, errors
     d._install(table)
+    if args.calls:
+        py, c = count_calls(d, "floor", frames, ch)
+        print(f"one pass-through frame, receipt to send: {py} Python calls, {c} C calls")
+        return 0
     rows = []
     for model in args.models.split(",") + [s.split("=", 1)[0] for s in args.model]:
         cases = [(1, False, 1), (64, False, 1)] + ([(64, True, 1)] if args.bundle else []) + \
