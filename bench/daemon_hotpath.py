@@ -10,7 +10,9 @@ Run with ``PYTHONPATH=DIR`` to measure another checkout's daemon with this same 
 across commits: ``PYTHONPATH=/tmp/perf-64e7005 python bench/daemon_hotpath.py ...``).
 
 ``--bundle`` adds rows where the 64 streams' frames of a tick come as one ``frames`` message.
-``--gap-ms G`` sleeps G ms between ticks, as the live daemon waits between capture frames: the
+``--behind K`` adds rows where each turn reads K bundles at once (a daemon behind its studio:
+the first K - 1 are superseded by the newest and answered ``conflated``); CPU per frame is then
+per frame served (each turn serves 64).  ``--gap-ms G`` sleeps G ms between ticks, as the live daemon waits between capture frames: the
 caches and the CPU are then as cold as they are live (back to back, the figure is the warm
 one).  ``--cpu-latency US`` holds a PM QoS request while measuring (daemon.cpu_latency_us).
 """
@@ -21,6 +23,7 @@ import json
 import sys
 import tempfile
 import time
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -37,7 +40,7 @@ WARM_TICKS = 20  # a filter's first frames cost more (the HLM's posterior starts
 
 
 def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarray, channels: list[str],
-            bundle: bool = False, gap_s: float = 0.0) -> tuple[float, float]:
+            bundle: bool = False, gap_s: float = 0.0, behind: int = 1) -> tuple[float, float]:
     """(CPU, wall) microseconds per frame for ``ticks`` rounds of one frame on each of n streams,
     after WARM_TICKS rounds that are not timed; ``bundle``: each round is one ``frames`` message;
     ``gap_s``: a sleep between rounds.  CPU is process time over all rounds; wall is the median
@@ -66,8 +69,10 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
     sids = [f"{model}-{n_streams}-{time.monotonic_ns()}-{i}" for i in range(n_streams)]
     for sid in sids:
         d._handle(wire.encode(wire.Hello(sid, channels, model)), ("router", [b"x"]), time.perf_counter())
-    fr = [[wire.Frame(sid, k, k / 120, frames[k % len(frames)]) for sid in sids] for k in range(WARM_TICKS + ticks)]
+    fr = [[wire.Frame(sid, k, k / 120, frames[k % len(frames)]) for sid in sids] for k in range(behind * (WARM_TICKS + ticks))]
     msgs = [[wire.encode(wire.Bundle(fs))] if bundle else [wire.encode(f) for f in fs] for fs in fr]
+    if behind > 1:  # (each turn reads ``behind`` bundles in a row)
+        msgs = [sum(msgs[k:k + behind], []) for k in range(0, len(msgs), behind)]
     for k in range(WARM_TICKS):
         for b in msgs[k]:
             d._handle(b, ("router", [b"x"]), time.perf_counter())
@@ -89,6 +94,32 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
     return 1e6 * cpu / (ticks * n_streams), 1e6 * float(np.median(walls)) / n_streams
 
 
+def count_calls(d: Daemon, model: str, frames: np.ndarray, channels: list[str]) -> tuple[int, int]:
+    """(Python calls, C calls) from receipt to the fill handed to the transport, for one frame of
+    one stream (after 50 that warm it), the bench's send (encoding) included: ``sys.setprofile``."""
+    d._send = lambda o, m, publish=False: wire.encode(m)  # type: ignore[method-assign]
+    sid = f"calls-{model}-{time.monotonic_ns()}"
+    d._handle(wire.encode(wire.Hello(sid, channels, model)), ("router", [b"x"]), time.perf_counter())
+    msgs = [wire.encode(wire.Frame(sid, k, k / 120, frames[k % len(frames)])) for k in range(51)]
+    for b in msgs[:50]:
+        d._handle(b, ("router", [b"x"]), time.perf_counter())
+        d._serve()
+    n = {"call": 0, "c_call": 0}
+
+    def prof(frame: Any, event: str, arg: Any) -> None:
+        if event in n:
+            n[event] += 1
+
+    sys.setprofile(prof)
+    try:
+        d._handle(msgs[50], ("router", [b"x"]), time.perf_counter())
+        d._serve()
+    finally:
+        sys.setprofile(None)
+    d.sessions.reset(sid)
+    return n["call"], n["c_call"]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=7)
@@ -97,7 +128,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--models", default="floor,hold,nn", help="builtin set to measure")
     ap.add_argument("--bundle", action="store_true", help="also 64 streams sent as one frames message a tick")
     ap.add_argument("--gap-ms", type=float, default=0.0, help="sleep between ticks (default 0: back to back)")
+    ap.add_argument("--behind", type=int, default=1, metavar="K",
+                    help="with --bundle, also rows of K bundles read in each turn (a daemon behind)")
     ap.add_argument("--cpu-latency", type=int, default=None, metavar="US", help="hold a PM QoS request while measuring")
+    ap.add_argument("--calls", action="store_true", help="only count the calls of one frame (pass-through, one stream)")
     ap.add_argument("--json", dest="json_out")
     args = ap.parse_args(argv)
     qos = CpuLatency()
@@ -119,21 +153,29 @@ def main(argv: list[str] | None = None) -> int:
     table, errors = load_all(cfg)
     assert not errors, errors
     d._install(table)
+    if args.calls:
+        py, c = count_calls(d, "floor", frames, ch)
+        print(f"one pass-through frame, receipt to send: {py} Python calls, {c} C calls")
+        return 0
     rows = []
     for model in args.models.split(",") + [s.split("=", 1)[0] for s in args.model]:
-        for n, bundle in ((1, False), (64, False)) + (((64, True),) if args.bundle else ()):
+        cases = [(1, False, 1), (64, False, 1)] + ([(64, True, 1)] if args.bundle else []) + \
+            ([(64, True, args.behind)] if args.bundle and args.behind > 1 else [])
+        for n, bundle, behind in cases:
             ticks = max(2, args.frames // n) if model in ("floor", "hold") else max(10, 600 // n)
             if args.gap_ms:
                 ticks = min(ticks, 200)  # each tick waits gap_ms
-            got = [measure(d, model, n, ticks, frames, ch, bundle, args.gap_ms / 1000.0) for _ in range(args.repeats)]
+            got = [measure(d, model, n, ticks, frames, ch, bundle, args.gap_ms / 1000.0, behind)
+                   for _ in range(args.repeats)]
             vals, walls = [g[0] for g in got], [g[1] for g in got]
-            row = {"model": model, "streams": n, "bundle": bundle, "gap_ms": args.gap_ms,
+            row = {"model": model, "streams": n, "bundle": bundle, "behind": behind, "gap_ms": args.gap_ms,
                    "cpu_latency_us": args.cpu_latency,
                    "cpu_us_per_frame_median": round(float(np.median(vals)), 1),
                    "cpu_us_per_frame_min": round(float(np.min(vals)), 1),
                    "wall_us_per_frame_median": round(float(np.median(walls)), 1), "repeats": args.repeats}
             rows.append(row)
-            print(f"{model:>6} {n:>3} streams{' bundled' if bundle else ''}: {row['cpu_us_per_frame_median']} us CPU "
+            print(f"{model:>6} {n:>3} streams{' bundled' if bundle else ''}{f' {behind} a turn' if behind > 1 else ''}: "
+                  f"{row['cpu_us_per_frame_median']} us CPU "
                   f"per frame (min {row['cpu_us_per_frame_min']}), wall {row['wall_us_per_frame_median']} us per frame",
                   file=sys.stderr, flush=True)
     if args.json_out:

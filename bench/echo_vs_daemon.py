@@ -82,16 +82,17 @@ def tree_hlm(root: Path, cache: Path) -> Path:
 
 
 class Served:
-    """One tree's ``lacuna serve`` with models floor (pass-through) and hlm on the same channels."""
+    """One tree's ``lacuna serve`` with models floor (pass-through) and hlm (unless None) on the same channels."""
 
-    def __init__(self, root: Path, hlm: Path, channels: list[str], workdir: Path, budget_ms: float):
+    def __init__(self, root: Path, hlm: Path | None, channels: list[str], workdir: Path, budget_ms: float):
         self.endpoint = f"tcp://127.0.0.1:{free_port()}"
         cfg = workdir / "lacuna.toml"
+        models: dict[str, Any] = {"models.floor": {"builtin": "passthrough", "channels": channels}}
+        if hlm is not None:
+            models["models.hlm"] = {"file": str(hlm)}
         write_config(cfg, {"daemon": {"default_model": "floor", "budget_ms": budget_ms, "max_streams": 4096,
                                       "log_level": "warning"},
-                           "zmq": {"router": self.endpoint},
-                           "models.floor": {"builtin": "passthrough", "channels": channels},
-                           "models.hlm": {"file": str(hlm)}})
+                           "zmq": {"router": self.endpoint}, **models})
         self.log = open(workdir / "daemon.log", "ab")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "serve", "--config", str(cfg)], cwd=root,
                                      env=tree_env(root), stdin=subprocess.DEVNULL, stdout=self.log, stderr=self.log)
@@ -177,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         order = list(roots)[rep % len(roots):] + list(roots)[:rep % len(roots)]
         for name in order:
             work = Path(tempfile.mkdtemp(prefix=f"evd-{name}-", dir=cache))
-            d = Served(roots[name], hlms.get(name, hlms and next(iter(hlms.values()))), channels, work, args.budget_ms)
+            d = Served(roots[name], hlms.get(name, next(iter(hlms.values()), None)), channels, work, args.budget_ms)
             try:
                 for case in cases:
                     e = Echo()

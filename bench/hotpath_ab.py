@@ -34,6 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--root", action="append", default=[], metavar="NAME=DIR")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--frames", type=int, default=3000)
+    ap.add_argument("--behind", type=int, default=1, metavar="K",
+                    help="also 64 bundled with K bundles read each turn (daemon_hotpath.py --behind)")
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "lacuna-echo-vs-daemon"))
     ap.add_argument("--json", dest="json_out", default=str(ROOT / "bench/results/hotpath_ab.json"))
     args = ap.parse_args(argv)
@@ -47,17 +49,19 @@ def main(argv: list[str] | None = None) -> int:
             env = dict(os.environ, PYTHONPATH=str(roots[name]), OPENBLAS_NUM_THREADS="1")
             subprocess.run([sys.executable, str(ROOT / "bench/daemon_hotpath.py"), "--repeats", "1", "--frames",
                             str(args.frames), "--models", "floor", "--bundle", "--model", f"hlm={hlms[name]}",
-                            "--json", str(out)], env=env, check=True, cwd=roots[name], stderr=subprocess.DEVNULL)
+                            "--behind", str(args.behind), "--json", str(out)], env=env, check=True, cwd=roots[name], stderr=subprocess.DEVNULL)
             for r in json.loads(out.read_text())["rows"]:
                 rows.append({"repeat": rep, "tree": name, **r})
-                print(f"repeat {rep} {name:>5} {r['model']:>5} {r['streams']:>3}{' bundled' if r['bundle'] else '':8}: "
+                r.setdefault("behind", 1)
+                print(f"repeat {rep} {name:>5} {r['model']:>5} {r['streams']:>3}{' bundled' if r['bundle'] else '':8}"
+                      f"{' x' + str(r['behind']) if r['behind'] > 1 else ''}: "
                       f"{r['cpu_us_per_frame_median']:.1f} us CPU/frame", file=sys.stderr, flush=True)
     summary: dict[str, dict[str, float]] = {}
-    for key in sorted({(r["model"], r["streams"], r["bundle"]) for r in rows}):
-        case = f"{key[0]} {key[1]}{' bundled' if key[2] else ''}"
+    for key in sorted({(r["model"], r["streams"], r["bundle"], r["behind"]) for r in rows}):
+        case = f"{key[0]} {key[1]}{' bundled' if key[2] else ''}{f' {key[3]} a turn' if key[3] > 1 else ''}"
         s: dict[str, float] = {}
         for name in names:
-            v = [r["cpu_us_per_frame_median"] for r in rows if r["tree"] == name and (r["model"], r["streams"], r["bundle"]) == key]
+            v = [r["cpu_us_per_frame_median"] for r in rows if r["tree"] == name and (r["model"], r["streams"], r["bundle"], r["behind"]) == key]
             s[f"{name}_min"], s[f"{name}_median"] = float(np.min(v)), float(np.median(v))
         for name in names[1:]:
             s[f"{names[0]}_over_{name}_min"] = s[f"{names[0]}_min"] / s[f"{name}_min"]

@@ -6,19 +6,20 @@ the same streams in the same order every time.  daemon/block.py reads such a bun
 sessions and, in daemon/tick.py, serves it, without a ``Frame``, a ``Pending`` or a fill
 message object per frame:
 
-* :func:`plan_for` checks once per set of streams (cached until the session table changes:
-  ``SessionTable.gen``) that every stream is open, owned by the sender, of the bundle's width,
-  sends the model's own channels in its order, asked for no positions, and that all share one
-  model; it keeps the sessions in the bundle's order and the permutation to the table's order
+* :func:`plan_for` checks once per set of streams and sender (cached until the session table
+  changes: ``SessionTable.gen``) that every stream is open, owned by the sender, of the
+  bundle's width, sends the model's own channels in its order, asked for no positions, and
+  that all share one model; it keeps the sessions in the bundle's order and the permutation to the table's order
   (the order the row path serves them in);
 * :func:`take` does what ``SessionTable.frame`` does for each frame (activity, the delivery
   baseline and ``waited``, ``frames_in``), the sequence checks at once, and leaves the block
   waiting as one (``SessionTable.blocks``) instead of n pending slots;
-* anything the array path does not cover (a stream's first frame, a late or duplicate frame, a
-  frame of a stream that already has one waiting, a second bundle in the turn, any other
-  request touching those sessions) makes the block become the n pending slots it stands for
+* a bundle of the same streams, newer, while one waits (a daemon behind: two in one turn)
+  supersedes it as one: its frames are answered ``conflated`` as the row path answers them;
+* anything the array path does not cover (a late or duplicate frame, a frame of a stream that
+  already has one waiting otherwise, any other request touching those sessions) makes the block become the n pending slots it stands for
   (``BlockWait.to_pending``, via ``SessionTable.materialize``) before the row path goes on, so
-  every answer and every state is the one the row path gives (tests/test_daemon_blockpath.py).
+  every answer and every state is the one the row path gives (tests/test_daemon_wire_block.py).
 """
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from daemon.block import FrameBlock
+from daemon.schema import Drop
 from daemon.session import Origin, Pending, Session
 from lacuna.filler import Model
 
@@ -42,6 +44,7 @@ class BlockPlan:
 
     key: tuple[str, ...]
     gen: int  # SessionTable.gen when checked
+    who: Any  # the sender it was checked for (the owner of every stream)
     sessions: list[Session]  # in the bundle's order
     perm: list[int]  # bundle rows in the table's order
     ident: bool  # perm is 0..n-1 (the studio sends its streams in the order it opened them)
@@ -71,7 +74,7 @@ def plan_for(table: Any, block: FrameBlock, who: Any) -> BlockPlan | None:
     key = tuple(block.sids)
     plans: dict[tuple[str, ...], BlockPlan] = table.block_plans
     plan = plans.get(key)
-    if plan is not None and plan.gen == table.gen:
+    if plan is not None and plan.gen == table.gen and plan.who == who:
         return plan
     sessions = table.sessions
     width = block.values.shape[1]
@@ -88,27 +91,33 @@ def plan_for(table: Any, block: FrameBlock, who: Any) -> BlockPlan | None:
     if len(set(key)) != len(key) or any(s.model is not model for s in got):
         return None
     perm = sorted(range(len(got)), key=lambda i: got[i].order)
-    plan = BlockPlan(key, table.gen, got, perm, perm == list(range(len(got))), [got[i] for i in perm], model, width)
+    plan = BlockPlan(key, table.gen, who, got, perm, perm == list(range(len(got))), [got[i] for i in perm], model, width)
     if len(plans) >= PLANS_MAX:
         plans.clear()
     plans[key] = plan
     return plan
 
 
-def take(table: Any, block: FrameBlock, origin: Origin, arrived: float, who: Any) -> bool:
+def take(table: Any, block: FrameBlock, origin: Origin, arrived: float, who: Any) -> list[Any] | None:
     """Take a bundle's frames into their sessions as one block, if the array path covers it
-    (see the module's docstring); False (nothing changed): the row path takes them."""
-    if table.blocks or table.waiting or not table.block_path:
-        return False
+    (see the module's docstring); returns the answers owed now: the ``conflated`` drops of the
+    frames of a bundle waiting that this one supersedes (a daemon behind: two bundles in one
+    turn), else none.  None (nothing changed): the row path takes them."""
+    if table.waiting or not table.block_path or len(table.blocks) > 1:
+        return None
     plan = plan_for(table, block, who)
     if plan is None:
-        return False
+        return None
+    prev: BlockWait | None = table.blocks[0] if table.blocks else None
+    if prev is not None and (prev.plan is not plan or not all(map(_GT, block.seqs, prev.block.seqs))):
+        return None  # another set of streams, or a frame not newer than the one waiting
     S = plan.sessions
     lasts = [s.last_seq for s in S]
-    if None in lasts or not all(map(_GT, block.seqs, lasts)):  # type: ignore[arg-type]
-        return False  # a first frame, or a late or duplicate one: answered by the row path
-    if any(s.t_base is None for s in S):
-        return False
+    if None in lasts:  # a stream's first frame (after its hello): any seq opens the numbering
+        if not all(last is None or q > last for q, last in zip(block.seqs, lasts)):
+            return None
+    elif not all(map(_GT, block.seqs, lasts)):  # type: ignore[arg-type]
+        return None  # a late or duplicate frame: answered by the row path
     now = table.clock()
     mte = table.recent.move_to_end
     for s, t in zip(S, block.stamps):
@@ -117,8 +126,16 @@ def take(table: Any, block: FrameBlock, origin: Origin, arrived: float, who: Any
         s.counts["frames_in"] += 1
         if s.delivered(arrived - t):  # did it wait on its way (as SessionTable.frame asks)
             table.count("frames_waited", s.sid)
+    out: list[Any] = []
+    if prev is not None:  # each waiting frame superseded, as SessionTable.frame conflates it
+        po = prev.origin
+        for s, q in zip(S, prev.block.seqs):
+            s.counts["dropped_conflated"] += 1
+            table.count("dropped_conflated", s.sid)
+            out.append((po, Drop(s.sid, q, "conflated")))
+        table.blocks.clear()
     table.blocks.append(BlockWait(plan, block, origin, arrived))
-    return True
+    return out
 
 
 def inputs(block: FrameBlock, rows: list[int] | None) -> tuple[np.ndarray, np.ndarray]:

@@ -63,8 +63,16 @@ class Dispatch(Parts):
                 not self.budget.allow(principal(origin), units):
             # (before decoding: checking a hello's names is the cost the budget is for)
             self._rate_limited(origin, m)
-        else:
-            self._take(_decode_map, m, origin, arrived)
+        else:  # (_take's decode and dispatch, for a map: it decodes to one message)
+            try:
+                msg = wire.decode_map(m)  # type: ignore[arg-type]  # (a dict: bytes and errors went above)
+            except wire.WireError as e:
+                self._reject(origin, e.reason, e.detail, e.stream, e.seq)
+                return
+            except Exception as e:  # noqa: BLE001 - a decoder bug must cost one message, never the loop
+                self._internal("decode", e, origin, None, None)
+                return
+            self._dispatch(msg, origin, arrived)
 
     def _rate_limited(self, origin: Origin, m: dict[str, Any] | None = None) -> None:
         sid = m.get("stream") if m is not None else None
@@ -244,7 +252,8 @@ class Dispatch(Parts):
         try:
             if isinstance(msg, wire.Frame):
                 self.metrics.inc("frames_in")
-                self._frame_answers(self.sessions.frame(msg, origin, arrived, principal(origin)))
+                if out := self.sessions.frame(msg, origin, arrived, principal(origin)):
+                    self._frame_answers(out)
             elif isinstance(msg, wire.Bundle):
                 self._bundle(msg, origin, arrived)
             elif isinstance(msg, (wire.Hello, wire.Control)) and \
@@ -274,10 +283,13 @@ class Dispatch(Parts):
         who = principal(origin)
         if origin[0] == "router":
             origin = (*origin, "bundle")
-            # the usual bundle: its frames taken as one block, served as arrays (daemon/blockpath.py)
-            if msg.block is not None and blockpath.take(self.sessions, msg.block, origin, arrived, who):
-                self.metrics.inc("frames_in", len(msg.block))
-                return
+        # the usual bundle: its frames taken as one block, served as arrays (daemon/blockpath.py);
+        # from PULL/SUB too (their fills go to PUB one by one, as the row path sends them)
+        if origin[0] != "osc" and msg.block is not None and \
+                (drops := blockpath.take(self.sessions, msg.block, origin, arrived, who)) is not None:
+            self.metrics.inc("frames_in", len(msg.block))
+            self._conflated += drops  # (a waiting bundle's frames it superseded: after the fills)
+            return
         for f in msg.items:
             if isinstance(f, wire.WireError):
                 self._reject(origin, f.reason, f.detail, f.stream, f.seq)
@@ -345,9 +357,3 @@ class Dispatch(Parts):
                 return
             msg = wire.ErrorMsg(msg.reason, msg.detail.encode()[:keep].decode(errors="ignore"), msg.stream, msg.seq)
         self._out.append((origin, msg))
-
-
-
-def _decode_map(m: dict[str, Any], max_bytes: int) -> wire.Message:
-    return wire.decode_map(m)  # (already unpacked, within max_bytes)
-

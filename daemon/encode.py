@@ -82,7 +82,10 @@ def fill_messages(results: list[tuple[Session, Fill, str]], now: float) -> list[
         if s.mapping.identity and not small:
             by_width.setdefault(s.mapping.n_in, []).append(i)
         else:
-            out[i] = _fill_message_or_error(s, fill, status, now)
+            try:
+                out[i] = fill_message(s, fill, status, now)
+            except Exception as e:  # noqa: BLE001 - reported per stream by the caller
+                out[i] = e
     for C, rows in by_width.items():
         try:
             msgs = _identity_fills([results[i] for i in rows], C, now)

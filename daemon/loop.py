@@ -282,8 +282,13 @@ class Daemon(Dispatch, Tick, Control, Reloading):
     def _batch(self, items: list[tuple[bytes, Origin, float]]) -> None:
         """What the transport read (its ``on_batch``): the dispatcher's answers handed to the
         transport, the frames taken so far served between two slices of a long burst."""
-        if len(items) < BATCH_MIN:
-            self._deliver(self.dispatch_few(items))
+        if len(items) < BATCH_MIN:  # (dispatch_few, inline: a live stream's turn is most often one frame)
+            for data, origin, arrived in items:
+                self._take_bytes(data, origin, arrived)
+            if self._out:  # (a frame taken has no answer yet)
+                out, self._out = self._out, []
+                for o, m in out:
+                    self._send(o, m)
             return
         gen = self.dispatch(items)
         while True:
@@ -297,7 +302,11 @@ class Daemon(Dispatch, Tick, Control, Reloading):
 
     def _handle(self, data: bytes, origin: Origin, arrived: float) -> None:
         """One message as :meth:`_batch` takes a turn's (the transport's ``on_message``)."""
-        self._batch([(data, origin, arrived)])
+        self._take_bytes(data, origin, arrived)
+        if self._out:
+            out, self._out = self._out, []
+            for o, m in out:
+                self._send(o, m)
 
     def _answer_superseded(self) -> None:
         """After the turn's fills: its drops, and the answers to the frames set aside."""

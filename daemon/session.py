@@ -72,6 +72,12 @@ class Mapping:
     passthrough: list[str]
     missing: list[str]
     n_model: int
+    # (set once from the above, plain attributes: read for every frame; a mapping is never
+    # changed, a new one is built)
+    n_in: int = field(init=False)
+    # the studio sends exactly the model's channels in the model's order (the usual case):
+    # frames need no reordering either way
+    identity: bool = field(init=False)
 
     @classmethod
     def build(cls, studio: list[str], model_channels: list[str]) -> Mapping:
@@ -82,21 +88,11 @@ class Mapping:
         return cls(list(studio), s_idx, m_idx, [c for c in studio if c not in pos],
                    [c for c in model_channels if c not in sent], len(model_channels))
 
-    @property
-    def n_in(self) -> int:
-        return len(self.channels)
-
-    @property
-    def identity(self) -> bool:
-        """The studio sends exactly the model's channels in the model's order (the usual case):
-        frames need no reordering either way."""
-        ident = self.__dict__.get("_identity")
-        if ident is None:
-            n = self.n_model
-            ident = self.__dict__["_identity"] = bool(
-                self.n_in == n and self.s_idx.size == n and (self.s_idx == np.arange(n)).all()
-                and (self.m_idx == np.arange(n)).all())
-        return ident
+    def __post_init__(self) -> None:
+        n = self.n_model
+        self.n_in = len(self.channels)
+        self.identity = bool(self.n_in == n and self.s_idx.size == n and (self.s_idx == np.arange(n)).all()
+                             and (self.m_idx == np.arange(n)).all())
 
 
 @dataclass

@@ -50,6 +50,7 @@ class SessionTable:
         self.gen = 0
         self.block_path = True  # (False: every bundle frame by frame; tests compare the two)
         self.block_served = 0  # bundles served as arrays
+        self.block_overdue = 0  # of them, bundles with frames dropped overdue before the step
 
     def materialize(self) -> None:
         """The blocks waiting become the pending slots they stand for (before anything that

@@ -24,7 +24,11 @@ class Tick(BlockTick):
         if not pend:
             return
         t0 = self.clock()
-        if self._drop_overdue:
+        if self._drop_overdue and len(pend) == 1:  # (a live stream's turn: Scheduler.overdue of one frame)
+            if pend[0].pending.arrived + self.sched.budget_s < t0 + self.sched.send_cost:  # type: ignore[union-attr]
+                self._conflated.extend(self.sessions.overdue(pend[0]))
+                return
+        elif self._drop_overdue:
             late = self.sched.overdue([s.pending.arrived for s in pend], t0,  # type: ignore[union-attr]
                                       [s.late_streak for s in pend])
             if True in late:

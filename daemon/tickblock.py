@@ -2,12 +2,13 @@
 daemon/tick.py for the usual case of a studio's bundle, as arrays.
 
 The frames are answered exactly as the row path answers them (the same fills, drops, order,
-counters and session states; tests/test_daemon_blockpath.py compares the two on fuzzed bundles):
+counters and session states; tests/test_daemon_wire_block.py compares the two on fuzzed bundles):
 the streams in the table's order, the model stepped on the block's (n, C) rows, the replies'
 angles, masks and deviations built as (n, C) arrays and encoded at once, one map per frame
 straight from them (no fill message object), the bundle's replies packed in one pass and sent
-as one message.  A tick the array path does not cover (frames already overdue when the tick
-begins, more streams than ``max_batch``, a model's fills that do not stack) declines before it
+as one message.  Frames already overdue when the tick begins (the overload case) are dropped
+as Tick._serve drops them and the rest are served as arrays.  A tick the array path does not
+cover (more streams than ``max_batch``, a model's fills that do not stack) declines before it
 changes anything, or hands its results to the row path's tail.
 """
 from __future__ import annotations
@@ -38,13 +39,24 @@ class BlockTick(Parts):
         t0 = self.clock()
         arrived = bw.arrived
         late = [s.late_streak for s in S]
-        if self._drop_overdue and True in sched.overdue([arrived] * n, t0, late):
-            return False  # some are overdue before the step: the row path picks which
+        block = bw.block
+        rows: list[int] | None = None if plan.ident else plan.perm  # (None: the bundle is in the table's order)
         sessions.blocks.clear()
         sessions.block_served += 1
         self.metrics.inc("bundles_as_arrays")  # (status: how many bundles took this path)
-        block = bw.block
-        rows = None if plan.ident else plan.perm  # (None: the bundle is in the table's order)
+        if self._drop_overdue and True in (early := sched.overdue([arrived] * n, t0, late)):
+            # the overload case: some frames are overdue before the step (Tick._serve drops
+            # them, in the table's order); the rest are served as arrays
+            sessions.block_overdue += 1
+            origin = bw.origin
+            for s, q, x in zip(S, block.seqs if rows is None else [block.seqs[i] for i in rows], early):
+                if x:
+                    self._conflated.extend(sessions.overdue_seq(s, q, origin))
+            keep = [k for k, x in enumerate(early) if not x]
+            if not keep:
+                return True
+            S, late = [S[k] for k in keep], [late[k] for k in keep]
+            rows, n = (keep if rows is None else [rows[k] for k in keep]), len(keep)
         seqs = block.seqs if rows is None else [block.seqs[i] for i in rows]
         mf, mo = blockpath.inputs(block, rows)
         model = plan.model
@@ -84,36 +96,50 @@ class BlockTick(Parts):
         self.metrics.inc("ticks")
         self.metrics.step_time(self.clock() - t0)
         t1 = self.clock()
-        # (last_seq is never None here: blockpath.take leaves a first frame to the row path)
-        gaps = [q - s.last_seq - 1 for s, q in zip(so, qo)]  # type: ignore[operator]
+        gaps = [0 if s.last_seq is None else q - s.last_seq - 1 for s, q in zip(so, qo)]  # (None: a first frame)
         ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
         t1e = self.clock()
         now = self.clock()
         budget, drop, origin = sched.budget_s, self._drop_overdue, bw.origin
-        # the step ran longer than planned: the first k0 fills would leave over budget (Tick._answer
-        # checks each: sent_at(now, n - k, n) - arrived > budget, true for a prefix of them)
-        k0 = 0
+        # the step ran longer than planned: fills that would leave over budget are dropped, as
+        # Tick._answer checks each (sent_at(now, n - k, place) - arrived > budget): a bundle's
+        # replies leave together (place n: true for a prefix of them), a PULL bundle's fills one
+        # by one on PUB (place: the fills sent before it, plus one)
+        ks: range | list[int] = range(n)
         if drop:
             enc, snd = sched.encode_cost, sched.send_cost
-            while k0 < n and now + (n - k0) * enc + n * snd - arrived > budget:
-                k0 += 1
-            if k0:
-                self.metrics.inc("overdue_after_step", k0)
-                for k in range(k0):
+            if len(origin) == 3:
+                k0 = 0
+                while k0 < n and now + (n - k0) * enc + n * snd - arrived > budget:
+                    k0 += 1
+                gone: range | list[int] = range(k0)
+                ks = range(k0, n)
+            else:
+                kept: list[int] = []
+                gone = []
+                for k in range(n):
+                    (gone if now + (n - k) * enc + (len(kept) + 1) * snd - arrived > budget else kept).append(k)
+                ks = kept
+            if gone:
+                self.metrics.inc("overdue_after_step", len(gone))
+                for k in gone:
                     self._conflated.extend(sessions.overdue_seq(so[k], qo[k], origin))
-        out = so[k0:] if k0 else so
-        degs = None if statuses is None else [st == "degraded" for st in statuses[k0:]]
-        filled_rows(out, qo[k0:] if k0 else qo, degs)
+        whole = len(ks) == n
+        out = so if whole else [so[k] for k in ks]
+        qk = qo if whole else [qo[k] for k in ks]
+        degs = None if statuses is None else [statuses[k] == "degraded" for k in ks]
+        filled_rows(out, qk, degs)
         stamps = block.stamps if ro is None else [block.stamps[r] for r in ro]
         proc_us = int((now - arrived) * 1e6)
         name = S[0].model_name
         status = "passthrough"
+        cols: list[list[Any]] = [stamps, ab, fb, sb] if whole else [[c[k] for k in ks] for c in (stamps, ab, fb, sb)]
         maps: list[dict[str, Any]] = [
             {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
              "status": status if statuses is None else statuses[k], "model": name, "proc_us": proc_us}
-            for k, s, q, t, a, f, d in zip(range(k0, n), out, qo[k0:], stamps[k0:], ab[k0:], fb[k0:], sb[k0:])]
+            for k, s, q, t, a, f, d in zip(ks, out, qk, *cols)]
         if styles is not None or any(gaps):
-            for k, m in zip(range(k0, n), maps):
+            for k, m in zip(ks, maps):
                 if styles is not None and styles[k] is not None:
                     m["style"] = styles[k]
                 if phases is not None and (ph := phases[k]) is not None and math.isfinite(ph):
@@ -122,7 +148,7 @@ class BlockTick(Parts):
                     m["gap"] = gaps[k]
         if degs is not None and True in degs:
             self.metrics.inc("degraded", sum(degs))
-            for k, dg in zip(range(k0, n), degs):
+            for k, dg in zip(ks, degs):
                 if dg:
                     self.metrics.inc("degraded_held" if held is not None and held[k] else "degraded_iterations")
         if out:
@@ -130,8 +156,9 @@ class BlockTick(Parts):
         self._send_fills(origin, maps)
         te = self.clock()
         self._send_held(len(out))
-        if out and self.prewarm.on:
-            self.prewarm.served(out[-1], _frame(block, n - 1 if ro is None else ro[-1]), arrived, sched)
+        # (no rehearsal is planned for a bundle: it would run one stream's row path, not this
+        # tick's, and cost the loop an extra wake a tick; live, 64 x 120 Hz, CPU per frame
+        # 0.84x pass-through, 0.94x hlm without it, p50 unchanged: bench/notebook/wire-4.md)
         t2 = self.clock()
         sched.observe_replies(n, te - t1e, t2 - t1)
         wait = t2 - arrived

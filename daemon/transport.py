@@ -236,8 +236,7 @@ class Transports:
         return n
 
     def flush(self) -> int:
-        """Send what is held and stop holding; returns the number of answers sent (a `replies`
-        message counts its answers)."""
+        """Send what is held and stop holding; returns the answers sent (a `replies` counts its answers)."""
         held, self._held = self._held, None
         n = 0
         if held:
@@ -314,8 +313,9 @@ class Transports:
 
     def send_fill_maps(self, origin: Origin, maps: list[dict[str, Any]]) -> None:
         """:meth:`send` with ``publish`` for each of a bundle's fills given as maps (origin
-        ``("router", envelope, "bundle")``, daemon/tickblock.py): the same messages, in order."""
-        pub, router, envelope, pack = self.pub, self.router, tuple(origin[1]), self._pack
+        ``("router", envelope, "bundle")`` or PULL's, daemon/tickblock.py): the same messages, in order."""
+        pub, pack = self.pub, self._pack
+        router, envelope = (self.router, tuple(origin[1])) if origin[0] == "router" else (None, ())
         for m in maps:
             if router is not None:
                 if self._held is not None:  # (looked up each time: a flush for PUB's sake empties it)
