@@ -71,7 +71,9 @@ def collect(model: withhlm.WithHLMModel) -> dict[str, np.ndarray]:
 
 
 def _z(data):
-    return np.abs(data["err"]) / np.maximum(data["std"], 1e-9)
+    """|error| / std; 0 where the error is 0 to rounding (a channel held still: no evidence)."""
+    a = np.abs(data["err"])
+    return np.where(a < 1e-6, 0.0, a / np.maximum(data["std"], 1e-9))
 
 
 def criterion(w2: np.ndarray, keys: list[np.ndarray]) -> float:
@@ -85,7 +87,7 @@ def criterion(w2: np.ndarray, keys: list[np.ndarray]) -> float:
     return float(np.mean(out))
 
 
-def choose(data, group, n_ch, n_tb):
+def choose(data, group, n_ch, n_tb, n0s=N0S, n1s=N1S, eachs=EACHS):
     """(N0, N1, each) by leaving one VALIDATION take out at a time (module doc): the criterion is
     the mean |within 2 std - 0.95| of the held-out values over channel x activity cells and over
     group x time-bin cells (blend/calib.py's module doc), angles only."""
@@ -98,9 +100,9 @@ def choose(data, group, n_ch, n_tb):
     print(f"  uncalibrated (F = 1): mean |w2 - 0.95| {base:.4f}  by activity "
           + " ".join(f"{np.mean(w2[act[ang] == a]):.3f}" for a in range(4)))
     res = []
-    for each in EACHS:
-        for n1 in N1S:
-            for n0 in N0S:
+    for each in eachs:
+        for n1 in n1s:
+            for n0 in n0s:
                 zz = np.empty_like(z)
                 for t in np.unique(data["take"]):
                     out = data["take"] == t
@@ -129,7 +131,8 @@ def cmd_fit(a) -> int:
         if a.cache:
             np.savez(a.cache, **data)
     data["ang"] = np.asarray(m0.ang)[data["c"]] & ~np.isin(m0.group[data["c"]], [withhlm.ROOT_POS])
-    crit, n0, n1, each = choose(data, m0.group, n_ch, n_tb)
+    grid = (a.n0 or N0S, a.n1 or N1S, [None if e < 0 else e for e in a.each] if a.each else EACHS)
+    crit, n0, n1, each = choose(data, m0.group, n_ch, n_tb, *grid)
     print(f"chosen N0 {n0:g}, N1 {n1:g}, each {each} (held-out criterion {crit:.4f})")
     tb = withhlm.t_bin(data["k"])
     F = calib.fit(_z(data), data["c"], m0.group[data["c"]], tb, n_ch, n_tb, n0, n1, data["act"], each)
@@ -144,7 +147,8 @@ def cmd_fit(a) -> int:
             "fitted_on": "VALIDATION: gaps bursts seeds 100,101,102 + pan2009 pattern on its walks",
             "model": Path(a.model).name, "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
             "N0": n0 if math.isfinite(n0) else "inf", "N1": n1 if math.isfinite(n1) else "inf", "each": each,
-            "loto_criterion": round(crit, 4)})
+            "loto_criterion": round(crit, 4),
+            "chosen_by": "leave one VALIDATION take out over the N0 x N1 x each grid of bench/default_calib.py (bench/notebook/calib-4.md)"})
         withhlm.SHIPPED.write_text(json.dumps(d, indent=1) + "\n")
         print(f"wrote {withhlm.SHIPPED}")
     return 0
@@ -154,12 +158,12 @@ def cmd_fit(a) -> int:
 def load_fills(d: str):
     from blend.model import GROUP_NAMES, group_of
 
-    rows: dict[str, list] = {k: [] for k in ("err", "std", "c", "act", "fill")}
+    rows: dict[str, list] = {k: [] for k in ("err", "std", "c", "act", "fill", "k")}
     channels = None
     for p in sorted(Path(d).glob("*.npz")):
         z = np.load(p)
         channels = [str(c) for c in z["channels"]]
-        sc = z["scored"] if "scored" in z else z["erased"] & np.array([is_angle(c) for c in channels])
+        sc = z["erased"] & (z["scored"][None, :] if "scored" in z else np.array([is_angle(c) for c in channels])[None, :])
         t, j = np.nonzero(sc)
         e = wrap(z["fill"][t, j] - z["truth"][t, j])
         take = p.stem.split("-")[0]
@@ -169,6 +173,11 @@ def load_fills(d: str):
         rows["c"].append(j)
         rows["act"].append(np.full(len(j), ACTS.index(splits.ACTIVITY[take])))
         rows["fill"].append(z["fill"][t, j])
+        er = z["erased"]
+        k = np.zeros(er.shape, np.int64)   # frames since onset: 1 on a gap's first erased frame
+        for r in range(er.shape[0]):
+            k[r] = np.where(er[r], (k[r - 1] if r else 0) + 1, 0)
+        rows["k"].append(k[t, j])
     out = {k: np.concatenate(v) for k, v in rows.items()}
     assert channels is not None, f"no fills in {d}"
     out["g"] = np.array([group_of(c) for c in channels])[out["c"]]
@@ -208,24 +217,59 @@ def cmd_report(a) -> int:
         row(act, lambda d, i=i: d["act"] == i)
     for g, gn in enumerate(gnames):
         row(f"group {gn}", lambda d, g=g: d["g"] == g)
-    print(f"\nworst {a.worst} channels by |within 2 std - 0.95| (in {names[0]}), and in each run:")
+    tb0 = withhlm.t_bin(ref["k"])
+    edges = ["1", "2-6", "7-12", "13-30", "31-60", "61-120", "121-240", ">240"]
+    print(f"\nwithin 2 std by group x frames since onset ({hdr}; cells with >= {MIN_CELL} values):")
+    print("| group | " + " | ".join(edges) + " |\n|---|" + "---|" * len(edges))
+    for g, gn in enumerate(gnames):
+        cells = []
+        for t in range(len(edges)):
+            m = (ref["g"] == g) & (tb0 == t)
+            cells.append(" / ".join(f"{_s(loaded[k][0]['err'][m], loaded[k][0]['std'][m])[1]:.3f}" for k in names)
+                         if m.sum() >= MIN_CELL else "-")
+        if any(x != "-" for x in cells):
+            print(f"| {gn} | " + " | ".join(cells) + " |")
     d0 = loaded[names[0]][0]
-    dev = []
-    for c in np.unique(d0["c"]):
-        m = d0["c"] == c
-        if m.sum() >= MIN_CELL:
-            dev.append((abs(_s(d0["err"][m], d0["std"][m])[1] - 0.95), c))
-    print(f"| channel | n | within 2 std ({hdr}) | NLL ({hdr}) |\n|---|---|---|---|")
-    for _, c in sorted(dev, reverse=True)[:a.worst]:
-        cells = [_s(loaded[k][0]["err"][loaded[k][0]["c"] == c], loaded[k][0]["std"][loaded[k][0]["c"] == c]) for k in names]
-        print(f"| {channels[c]} | {int((d0['c'] == c).sum())} | " + " / ".join(f"{x[1]:.3f}" for x in cells)
-              + " | " + " / ".join(f"{x[2]:.2f}" for x in cells) + " |")
+    still = [c for c in np.unique(d0["c"]) if np.abs(d0["err"][d0["c"] == c]).max() < 1e-6]
+    print(f"\n{len(still)} channels never off (error 0 to rounding: {', '.join(channels[c] for c in still)}) "
+          "are left out below: within 2 std is 1 whatever the band")
+    for who in names:
+        dw = loaded[who][0]
+        dev = []
+        for c in np.unique(dw["c"]):
+            m = dw["c"] == c
+            if m.sum() >= MIN_CELL and c not in still:
+                dev.append((abs(_s(dw["err"][m], dw["std"][m])[1] - 0.95), c))
+        print(f"\nworst {a.worst} channels by |within 2 std - 0.95| in {who}, and in each run:")
+        print(f"| channel | n | within 2 std ({hdr}) | NLL ({hdr}) |\n|---|---|---|---|")
+        _worst(loaded, names, channels, sorted(dev, reverse=True)[:a.worst])
     for k in names:
         d = loaded[k][0]
-        w2s = np.array([_s(d["err"][m], d["std"][m])[1] for c in np.unique(d["c"]) if (m := d["c"] == c).sum() >= MIN_CELL])
+        w2s = np.array([_s(d["err"][m], d["std"][m])[1] for c in np.unique(d["c"])
+                        if (m := d["c"] == c).sum() >= MIN_CELL and c not in still])
         dv = np.abs(w2s - 0.95)
         print(f"{k}: channels {len(w2s)}, mean |w2 - 0.95| {dv.mean():.4f}, max {dv.max():.4f}, "
               f"outside 0.90-0.98: {int(np.sum((w2s < 0.90) | (w2s > 0.98)))}")
+    return 0
+
+
+def _worst(loaded, names, channels, dev):
+    d0 = loaded[names[0]][0]
+    for _, c in dev:
+        cells = [_s(loaded[k][0]["err"][loaded[k][0]["c"] == c], loaded[k][0]["std"][loaded[k][0]["c"] == c]) for k in names]
+        print(f"| {channels[c]} | {int((d0['c'] == c).sum())} | " + " / ".join(f"{x[1]:.3f}" for x in cells)
+              + " | " + " / ".join(f"{x[2]:.2f}" for x in cells) + " |")
+
+
+def cmd_apply(a) -> int:
+    """A copy of a default model file with blend/withhlm.json's factors (by channel name)."""
+    import blend.methods  # noqa: F401  (loaders)
+
+    m = modelfile.load_model(a.model)
+    d = json.loads(withhlm.SHIPPED.read_text()).get("calib")
+    F = calib.from_json(d, m.channels, m.group, withhlm.GROUP_NAMES, len(withhlm.T_EDGES) + 1)
+    withhlm.WithHLMModel(m.default, m.hlm, m.W, m.S, m.meta, m.tau, F).save(a.out)
+    print(f"wrote {a.out} (factors {F.min():.2f}-{F.max():.2f})")
     return 0
 
 
@@ -237,11 +281,17 @@ def main() -> int:
     f.add_argument("--cache", help="npz of collected VALIDATION values (read if it exists, else written)")
     f.add_argument("--out", help="write a copy of the model with the fitted calibration")
     f.add_argument("--write", action="store_true", help="write the factors into blend/withhlm.json")
+    f.add_argument("--n0", type=float, nargs="+", help=f"N0 values to try (default {N0S})")
+    f.add_argument("--n1", type=float, nargs="+", help=f"N1 values to try (default {N1S})")
+    f.add_argument("--each", type=float, nargs="+", help=f"each values to try, -1 for none (default {EACHS})")
     r = sub.add_parser("report")
     r.add_argument("runs", nargs="+", help="NAME=DIR of lacuna eval --fills output")
     r.add_argument("--worst", type=int, default=10)
+    p = sub.add_parser("apply")
+    p.add_argument("--model", required=True)
+    p.add_argument("--out", required=True)
     a = ap.parse_args()
-    return cmd_fit(a) if a.cmd == "fit" else cmd_report(a)
+    return {"fit": cmd_fit, "report": cmd_report, "apply": cmd_apply}[a.cmd](a)
 
 
 if __name__ == "__main__":

@@ -68,6 +68,8 @@ def fit(z: np.ndarray, chan: np.ndarray, group: np.ndarray, tb: np.ndarray, n_ch
             continue
         m = chan == c
         n = int(m.sum())
+        if n and not np.any(z[m] > 1e-9):
+            n = 0   # never off on VALIDATION (a channel held still everywhere): no evidence, the group's
         if n == 0 or not math.isfinite(n0):
             a[c] = ag[g]
         else:
@@ -86,13 +88,13 @@ def fit(z: np.ndarray, chan: np.ndarray, group: np.ndarray, tb: np.ndarray, n_ch
 
 
 def group_factors(F: np.ndarray, gch: np.ndarray, n_groups: int) -> np.ndarray:
-    """Each group's factor per time bin: the geometric mean over its channels (for channels of
-    another skeleton, known only by group)."""
+    """Each group's factor per time bin: the median over its channels (for channels of another
+    skeleton, known only by group)."""
     out = np.ones((n_groups, F.shape[1]))
     for g in range(n_groups):
         m = gch == g
         if m.any():
-            out[g] = np.exp(np.log(F[m]).mean(0))
+            out[g] = np.median(F[m], 0)
     return out
 
 

@@ -116,6 +116,11 @@ def test_fit_shrinks_a_channel_with_few_values_toward_its_group():
     assert abs(shrunk[2, 0] - g0) < 0.1 * g0                         # 20 values vs N0 2000: the group's
     assert abs(shrunk[0, 0] - own[0, 0]) < 0.1 * own[0, 0]           # 20000 values: still its own
     assert shrunk[4, 0] == 1.0                                       # a channel with no value and no group
+    # a channel never off (error 0 everywhere): no evidence, its group's factor, not the floor
+    still = calib.fit(np.concatenate([z, np.zeros(5000)]), np.concatenate([chan, np.full(5000, 4)]),
+                      np.concatenate([group, np.zeros(5000, int)]), np.concatenate([tb, np.zeros(5000, int)]),
+                      5, TB, n0=0.0, n1=np.inf)
+    assert still[4, 0] > 1.0
     # a time-bin part: errors twice as wide in bin 5 for every channel of group 0
     z2 = np.where((tb == 5) & (group == 0), 2 * z, z)
     tf = calib.fit(z2, chan, group, tb, 5, TB, n0=0.0, n1=0.0)
@@ -131,7 +136,7 @@ def test_json_round_trip_gives_other_skeletons_their_groups_factor():
     other = ["root.rz", "lfemur.rw", "hand.rx"]          # a channel not in the file, of a known group
     og = group_index(other)
     G = calib.from_json(d, other, og, GROUP_NAMES, TB)
-    assert G[0, 0] == 2.0 and abs(G[1, 0] - 1.0) < 1e-3  # lfemur's group: geometric mean of 0.5 and 2
+    assert G[0, 0] == 2.0 and abs(G[1, 0] - 1.25) < 1e-3  # lfemur's group: the median of 0.5 and 2
     np.testing.assert_allclose(calib.from_json(None, other, og, GROUP_NAMES, TB), 1.0)
 
 
