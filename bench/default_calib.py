@@ -40,6 +40,7 @@ from mocap.rootrot import wrap180 as wrap  # noqa: E402
 N0S = (0.0, 300.0, 3000.0, 30000.0, math.inf)
 N1S = (math.inf, 0.0, 1000.0)
 EACHS = (None, 0.92, 0.94)
+N2S = (math.inf,)
 ACTS = ("walk", "turn", "run", "nonloco")
 MIN_CELL = 100   # held-out values a channel / group x bin needs to count in the criterion
 
@@ -87,35 +88,36 @@ def criterion(w2: np.ndarray, keys: list[np.ndarray]) -> float:
     return float(np.mean(out))
 
 
-def choose(data, group, n_ch, n_tb, n0s=N0S, n1s=N1S, eachs=EACHS):
+def choose(data, group, n_ch, n_tb, n0s=N0S, n1s=N1S, eachs=EACHS, n2s=N2S):
     """(N0, N1, each) by leaving one VALIDATION take out at a time (module doc): the criterion is
-    the mean |within 2 std - 0.95| of the held-out values over channel x activity cells and over
-    group x time-bin cells (blend/calib.py's module doc), angles only."""
+    the mean |within 2 std - 0.95| of the held-out values over channel x activity cells, over
+    group x time-bin cells and over channel x time-bin cells (blend/calib.py's module doc), angles
+    only."""
     z, c, tb, act = _z(data), data["c"], withhlm.t_bin(data["k"]), data["act"]
     g = group[c]
     ang = data["ang"]
-    keys = [(c * 10 + act)[ang], (g * 100 + tb)[ang]]
+    keys = [(c * 10 + act)[ang], (g * 100 + tb)[ang], (c * 100 + tb)[ang]]
     w2 = (z <= 2)[ang]
     base = criterion(w2, keys)
     print(f"  uncalibrated (F = 1): mean |w2 - 0.95| {base:.4f}  by activity "
           + " ".join(f"{np.mean(w2[act[ang] == a]):.3f}" for a in range(4)))
     res = []
-    for each in eachs:
+    for each, n2 in [(e, n) for e in eachs for n in n2s]:
         for n1 in n1s:
             for n0 in n0s:
                 zz = np.empty_like(z)
                 for t in np.unique(data["take"]):
                     out = data["take"] == t
-                    F = calib.fit(z[~out], c[~out], g[~out], tb[~out], n_ch, n_tb, n0, n1, act[~out], each)
+                    F = calib.fit(z[~out], c[~out], g[~out], tb[~out], n_ch, n_tb, n0, n1, act[~out], each, n2)
                     zz[out] = z[out] / F[c[out], tb[out]]
                 w2 = (zz <= 2)[ang]
                 crit = criterion(w2, keys)
                 acts = [float(np.mean(w2[act[ang] == a])) for a in range(4)]
-                res.append((crit, n0, n1, -1.0 if each is None else each))
-                print(f"  each {each} N0 {n0:>7g} N1 {n1:>6g}: held-out mean |w2 - 0.95| {crit:.4f}  by activity "
+                res.append((crit, n0, n1, -1.0 if each is None else each, n2))
+                print(f"  each {each} N2 {n2:>6g} N0 {n0:>7g} N1 {n1:>6g}: held-out mean |w2 - 0.95| {crit:.4f}  by activity "
                       + " ".join(f"{v:.3f}" for v in acts), flush=True)
-    crit, n0, n1, each = min(res)
-    return crit, n0, n1, None if each < 0 else each
+    crit, n0, n1, each, n2 = min(res)
+    return crit, n0, n1, None if each < 0 else each, n2
 
 
 def cmd_fit(a) -> int:
@@ -131,12 +133,12 @@ def cmd_fit(a) -> int:
         if a.cache:
             np.savez(a.cache, **data)
     data["ang"] = np.asarray(m0.ang)[data["c"]] & ~np.isin(m0.group[data["c"]], [withhlm.ROOT_POS])
-    grid = (a.n0 or N0S, a.n1 or N1S, [None if e < 0 else e for e in a.each] if a.each else EACHS)
-    crit, n0, n1, each = choose(data, m0.group, n_ch, n_tb, *grid)
-    print(f"chosen N0 {n0:g}, N1 {n1:g}, each {each} (held-out criterion {crit:.4f})")
+    grid = (a.n0 or N0S, a.n1 or N1S, [None if e < 0 else e for e in a.each] if a.each else EACHS, a.n2 or N2S)
+    crit, n0, n1, each, n2 = choose(data, m0.group, n_ch, n_tb, *grid)
+    print(f"chosen N0 {n0:g}, N1 {n1:g}, each {each}, N2 {n2:g} (held-out criterion {crit:.4f})")
     tb = withhlm.t_bin(data["k"])
-    F = calib.fit(_z(data), data["c"], m0.group[data["c"]], tb, n_ch, n_tb, n0, n1, data["act"], each)
-    for i in np.argsort(-np.abs(np.log(F[:, 0])))[:12]:
+    F = calib.fit(_z(data), data["c"], m0.group[data["c"]], tb, n_ch, n_tb, n0, n1, data["act"], each, n2)
+    for i in np.argsort(-np.abs(np.log(F)).max(1))[:12]:
         print(f"  {m0.channels[i]:14s} " + " ".join(f"{v:5.2f}" for v in F[i]))
     if a.out:
         withhlm.WithHLMModel(m.default, m.hlm, m.W, m.S, m.meta, m.tau, F).save(a.out)
@@ -146,9 +148,9 @@ def cmd_fit(a) -> int:
         d["calib"] = calib.to_json(F, m0.channels, m0.group, withhlm.GROUP_NAMES, {
             "fitted_on": "VALIDATION: gaps bursts seeds 100,101,102 + pan2009 pattern on its walks",
             "model": Path(a.model).name, "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-            "N0": n0 if math.isfinite(n0) else "inf", "N1": n1 if math.isfinite(n1) else "inf", "each": each,
+            "N0": n0 if math.isfinite(n0) else "inf", "N1": n1 if math.isfinite(n1) else "inf", "each": each, "N2": n2 if math.isfinite(n2) else "inf",
             "loto_criterion": round(crit, 4),
-            "chosen_by": "leave one VALIDATION take out over the N0 x N1 x each grid of bench/default_calib.py (bench/notebook/calib-4.md)"})
+            "chosen_by": "leave one VALIDATION take out over the N0 x N1 x N2 x each grid of bench/default_calib.py (bench/notebook/calib-4.md)"})
         withhlm.SHIPPED.write_text(json.dumps(d, indent=1) + "\n")
         print(f"wrote {withhlm.SHIPPED}")
     return 0
@@ -283,6 +285,7 @@ def main() -> int:
     f.add_argument("--write", action="store_true", help="write the factors into blend/withhlm.json")
     f.add_argument("--n0", type=float, nargs="+", help=f"N0 values to try (default {N0S})")
     f.add_argument("--n1", type=float, nargs="+", help=f"N1 values to try (default {N1S})")
+    f.add_argument("--n2", type=float, nargs="+", help=f"N2 values to try (default {N2S})")
     f.add_argument("--each", type=float, nargs="+", help=f"each values to try, -1 for none (default {EACHS})")
     r = sub.add_parser("report")
     r.add_argument("runs", nargs="+", help="NAME=DIR of lacuna eval --fills output")

@@ -17,7 +17,10 @@ on VALIDATION only (bench/default_calib.py), from z = |truth - fill| / std of ev
 - with ``each`` (chosen by leaving one take out too), every q95 above is at least the ``each``
   quantile of each activity's z in the cell (a band has to hold in every activity, not on average);
 - b_{g,t} the same on z / exp(a_c) per group x time bin, shrunk toward 0 with N1 (N1 = inf: no
-  time-bin part), also chosen by leaving one take out.
+  time-bin part), also chosen by leaving one take out;
+- d_{c,t} the same on z / exp(a_c + b) per channel x time bin, shrunk toward 0 with N2 (a channel
+  whose band is right at one horizon and wrong at another: the root's heading is too wide over
+  short gaps and too narrow over seconds), chosen the same way; log F = a_c + b_{g,t} + d_{c,t}.
 
 Only std changes: fills are the same to the bit (tests/test_default_calib.py).  A model file without
 the array loads with F = 1.  Factors are stored by channel name in blend/withhlm.json ("calib"), so
@@ -50,7 +53,8 @@ def _lq(z: np.ndarray, act: np.ndarray | None = None, each: float | None = None)
 
 
 def fit(z: np.ndarray, chan: np.ndarray, group: np.ndarray, tb: np.ndarray, n_ch: int, n_tb: int,
-        n0: float, n1: float, act: np.ndarray | None = None, each: float | None = None) -> np.ndarray:
+        n0: float, n1: float, act: np.ndarray | None = None, each: float | None = None,
+        n2: float = math.inf) -> np.ndarray:
     """F (n_ch, n_tb) from the erased values' z = |error| / std, their channel, group, time bin
     (module doc).  ``group`` is per value; channels with no value get their group's factor."""
     G = int(group.max()) + 1 if len(group) else 0
@@ -83,8 +87,19 @@ def fit(z: np.ndarray, chan: np.ndarray, group: np.ndarray, tb: np.ndarray, n_ch
                 n = int(m.sum())
                 if n >= MIN_GROUP:
                     b[g, t] = n * _lq(r[m], None if act is None else act[m], each) / (n + n1)
-    F = np.exp(a[:, None] + np.where(gch[:, None] >= 0, b[np.maximum(gch, 0)], 0.0))
-    return np.clip(F, F_MIN, F_MAX)
+    L = a[:, None] + np.where(gch[:, None] >= 0, b[np.maximum(gch, 0)], 0.0)
+    if math.isfinite(n2):
+        r = z / np.exp(L[chan, tb])
+        for c in range(n_ch):
+            mc = chan == c
+            if not mc.any() or not np.any(z[mc] > 1e-9):
+                continue
+            for t in range(n_tb):
+                m = mc & (tb == t)
+                n = int(m.sum())
+                if n >= MIN_GROUP:
+                    L[c, t] += n * _lq(r[m], None if act is None else act[m], each) / (n + n2)
+    return np.clip(np.exp(L), F_MIN, F_MAX)
 
 
 def group_factors(F: np.ndarray, gch: np.ndarray, n_groups: int) -> np.ndarray:

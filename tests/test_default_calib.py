@@ -125,6 +125,14 @@ def test_fit_shrinks_a_channel_with_few_values_toward_its_group():
     z2 = np.where((tb == 5) & (group == 0), 2 * z, z)
     tf = calib.fit(z2, chan, group, tb, 5, TB, n0=0.0, n1=0.0)
     assert tf[1, 5] / tf[1, 0] > 1.6 and abs(tf[3, 5] / tf[3, 0] - 1) < 0.1
+    # a channel x time-bin part: only channel 1 twice as wide in bin 6 (its group's other channel not)
+    z3 = np.where((tb == 6) & (chan == 1), 2 * z, z)
+    no = calib.fit(z3, chan, group, tb, 5, TB, n0=0.0, n1=np.inf)
+    ct = calib.fit(z3, chan, group, tb, 5, TB, n0=0.0, n1=np.inf, n2=0.0)
+    assert np.allclose(no, no[:, :1])
+    assert ct[1, 6] / ct[1, 0] > 1.6 and abs(ct[0, 6] / ct[0, 0] - 1) < 0.1
+    half = calib.fit(z3, chan, group, tb, 5, TB, n0=0.0, n1=np.inf, n2=float(((tb == 6) & (chan == 1)).sum()))
+    assert 1.2 < half[1, 6] / half[1, 0] < ct[1, 6] / ct[1, 0]     # N2 = its values: half the log step
 
 
 def test_json_round_trip_gives_other_skeletons_their_groups_factor():
