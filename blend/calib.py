@@ -146,11 +146,6 @@ def check(F: Any, n_ch: int, n_tb: int, where: str) -> np.ndarray:
     return np.ascontiguousarray(F)
 
 
-def apply(F: np.ndarray, rows: np.ndarray, k: np.ndarray, t_edges: np.ndarray, std: np.ndarray) -> None:
-    """std *= F[c, bin(k)] in place (k: frames since onset per channel, 0 where observed)."""
-    std *= F[rows, np.searchsorted(t_edges, k, side="right")]
-
-
 def scores(z: np.ndarray, std: np.ndarray, err: np.ndarray) -> dict[str, float]:
     """Share within 1 and 2 std and the Gaussian negative log-likelihood per value."""
     s = np.maximum(std, 1e-6)

@@ -56,7 +56,8 @@ std: the experts as a two-part mixture, var = (1 - w) sd_D^2 + w sd_H^2 + w (1 -
 times a scale S[g, bin(k)] fitted on VALIDATION so that 2 std hold 95% of the errors there in the
 activity that needs the widest band (walk, turn, run, non-locomotion: each then holds >= 95%),
 then times a per channel x time-bin factor F (blend/calib.py, fitted on VALIDATION; 1 in files
-written before it): one multiply where the std leaves the model, fills unchanged.
+written before it): folded into the compiled mixing's per-channel S table, one factor on the numpy
+path's std; fills unchanged.
 """
 from __future__ import annotations
 
@@ -163,7 +164,10 @@ class WithHLMModel(Model):
         C, TB = len(self.channels), len(T_EDGES) + 1
         self.calib = np.ones((C, TB)) if cal is None else calib.check(cal, C, TB, METHOD)   # blend/calib.py
         self._rows = np.arange(C)
-        self._cal = bool(np.any(self.calib != 1.0))
+        # the compiled mixing reads per-channel tables (channel j its own "group"): W of its group,
+        # S of its group times its calibration, so the calibration costs nothing there (same fills)
+        self._kW = np.ascontiguousarray(self.W[self.group])
+        self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
 
     def stream(self) -> WithHLMState:
         return WithHLMState(self)
@@ -229,12 +233,10 @@ class WithHLMModel(Model):
             T = twin.get(i)
             out, std = np.empty(C), np.empty(C)
             eh, e0, nh = mix_row(F[i], O[i], HO[i], d.frame, d.std, h.frame, h.std, d.frame if T is None else T,
-                                 T is not None, self.ang, self.group, self.W, self.S, T_EDGES, bisect_right(self._qe, logq),
+                                 T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, logq),
                                  self._anc, s.k, s.o, out, std)
             if T is not None and nh:
                 s._score(eh, e0)
-            if self._cal:
-                calib.apply(self.calib, self._rows, s.k, T_EDGES, std)
             fills.append(Fill(out, std, d.filled, {**h.extras, "hlm_q": math.exp(logq)}))   # d.filled: ~O[i]
         return fills
 
