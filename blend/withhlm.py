@@ -54,7 +54,10 @@ with the root erased), so W[root-pos] = 0 and the fill there is ``default``'s ho
 
 std: the experts as a two-part mixture, var = (1 - w) sd_D^2 + w sd_H^2 + w (1 - w) wrap(H - D)^2,
 times a scale S[g, bin(k)] fitted on VALIDATION so that 2 std hold 95% of the errors there in the
-activity that needs the widest band (walk, turn, run, non-locomotion: each then holds >= 95%).
+activity that needs the widest band (walk, turn, run, non-locomotion: each then holds >= 95%),
+then times a per channel x time-bin factor F (blend/calib.py, fitted on VALIDATION; 1 in files
+written before it): folded into the compiled mixing's per-channel S table, one factor on the numpy
+path's std; fills unchanged.
 """
 from __future__ import annotations
 
@@ -67,6 +70,7 @@ from typing import Any
 
 import numpy as np
 
+from blend import calib
 from blend.model import DefaultModel, checked_batch
 from blend.withhlm_fast import mix_row, observed_finite, shadow_counts
 from lacuna import jit, modelfile
@@ -134,7 +138,7 @@ class WithHLMModel(Model):
     causal = True
 
     def __init__(self, default: Model, hlm: Model, W: np.ndarray, S: np.ndarray, meta: dict[str, Any] | None = None,
-                 tau: float = ANCHOR_TAU):
+                 tau: float = ANCHOR_TAU, cal: np.ndarray | None = None):
         if list(default.channels) != list(hlm.channels):
             raise FillerError(f"{METHOD}: the experts' channels differ ({len(default.channels)} vs {len(hlm.channels)})")
         self.default, self.hlm = default, hlm
@@ -158,6 +162,13 @@ class WithHLMModel(Model):
         self._qe = Q_EDGES.tolist()
         self.compiled = jit.enabled()   # the compiled mixing (blend/withhlm_fast.py); else _mix_numpy
         self._direct = isinstance(default, DefaultModel)   # _blend_step calls its streams' compiled step
+        C, TB = len(self.channels), len(T_EDGES) + 1
+        self.calib = np.ones((C, TB)) if cal is None else calib.check(cal, C, TB, METHOD)   # blend/calib.py
+        self._rows = np.arange(C)
+        # the compiled mixing reads per-channel tables (channel j its own "group"): W of its group,
+        # S of its group times its calibration, so the calibration costs nothing there (same fills)
+        self._kW = np.ascontiguousarray(self.W[self.group])
+        self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
 
     def stream(self) -> WithHLMState:
         return WithHLMState(self)
@@ -242,7 +253,7 @@ class WithHLMModel(Model):
             T = twin.get(i)
             out, std = np.empty(C), np.empty(C)
             eh, e0, nh = mix_row(F[i], O[i], HO[i], d.frame, d.std, h.frame, h.std, d.frame if T is None else T,
-                                 T is not None, self.ang, self.group, self.W, self.S, T_EDGES, bisect_right(self._qe, logq),
+                                 T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, logq),
                                  self._anc, s.k, s.o, out, std)
             if T is not None and nh:
                 s._score(eh, e0)
@@ -270,7 +281,7 @@ class WithHLMModel(Model):
         w = np.where(O, 0.0, self.W[self.group[None, :], tb, np.searchsorted(Q_EDGES, logq, side="right")[:, None]])
         out = np.where(O, F, Df + w * diff)
         var = (1 - w) * Dsd ** 2 + w * Hsd ** 2 + w * (1 - w) * diff ** 2
-        std = np.where(O, 0.0, self.S[self.group[None, :], tb] * np.sqrt(var))
+        std = np.where(O, 0.0, self.S[self.group[None, :], tb] * np.sqrt(var)) * self.calib[self._rows, tb]
         fills = []
         for i, s in enumerate(states):
             s.k, s.o = K[i].copy(), off[i].copy()
@@ -288,7 +299,7 @@ class WithHLMModel(Model):
     # ---- persistence: both experts' arrays in one file, prefixed d/ and h/ ------------------------
     def save(self, path: str) -> None:
         parts: dict[str, Any] = {}
-        arrays: dict[str, np.ndarray] = {"W": self.W, "S": self.S}
+        arrays: dict[str, np.ndarray] = {"W": self.W, "S": self.S, "calib": self.calib}
         with tempfile.TemporaryDirectory() as tmp:
             for key, m in (("d", self.default), ("h", self.hlm)):
                 p = str(Path(tmp) / f"{key}.npz")
@@ -316,13 +327,14 @@ class WithHLMModel(Model):
         G, TB, QB = len(GROUP_NAMES), len(T_EDGES) + 1, len(Q_EDGES) + 1
         W = modelfile.require(path, arrays, "W", (G, TB, QB))
         S = modelfile.require(path, arrays, "S", (G, TB))
+        cal = modelfile.require(path, arrays, "calib", (len(d.channels), TB)) if "calib" in arrays else None   # older: 1
         if list(meta["channels"]) != list(d.channels):
             raise modelfile.ModelFileError(f"{path}: channel list does not match its experts'")
         tau = meta.get("tau", ANCHOR_TAU)
         if not isinstance(tau, int | float) or tau < 0:
             raise modelfile.ModelFileError(f"{path}: {METHOD} 'tau' must be a number >= 0 (got {tau!r})")
         return cls(d, h, W, S, {k: v for k, v in meta.items() if k not in ("experts", "bins", "channels", "method", "tau")},
-                   float(tau))
+                   float(tau), cal)
 
 
 class WithHLMState(FillerState):
@@ -441,4 +453,6 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
     meta = {"training": {"default": names, "hlm": [names[i] for i in loco],
                          "seconds": round(time.perf_counter() - t0, 2)},
             "weights": {"shipped": SHIPPED.name, **chosen} if W is None else {"given": True}}
-    return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau)
+    cal = calib.from_json(json.loads(SHIPPED.read_text()).get("calib") if SHIPPED.exists() else None, list(ch),
+                          group_index(list(ch)), GROUP_NAMES, len(T_EDGES) + 1)
+    return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal)
