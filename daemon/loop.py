@@ -83,7 +83,7 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         # frames a newer one superseded within a burst, answered after the turn's fills (_batch):
         # (session, its last answered seq before the burst, the served frame's Pending,
         #  [(unpacked map, origin, arrived) or None where the served frame came, ...])
-        self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
+        self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []  # (daemon/aside.py)
         self._out: list[tuple[Origin, wire.Message]] = []  # the dispatcher's answers not yet handed over
         self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` and `overdue` drops, sent after its fills
         self._drop_overdue = self.cfg.overdue == "drop"

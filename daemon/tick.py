@@ -133,7 +133,9 @@ class Tick(BlockTick):
         except Exception:  # noqa: BLE001, S110 - a failing send must not keep the frames below unanswered
             pass
         owed: list[tuple[Any, str, int | None]] = list(self.sessions.abandon())
-        owed += [(origin, s.sid, k[1] if isinstance(m, dict) and (k := wire.frame_key(m)) else None)
+        # (a chain item: a kept head (seq, t, width), or the unpacked map, see daemon/aside.py)
+        owed += [(origin, s.sid, m[0] if type(m) is tuple else
+                  k[1] if isinstance(m, dict) and (k := wire.frame_key(m)) else None)
                  for s, _, _, chain in todo for m, origin, _ in filter(None, chain)]
         for origin, sid, seq in owed:
             try:
