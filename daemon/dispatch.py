@@ -213,10 +213,8 @@ class Dispatch(Parts):
             p = s.pending
             if p is not None and p.frame.seq == keys[i][1]:  # type: ignore[index]
                 # with None where the served frame came
-                # (each kept as its head, see daemon/aside.py: not decoded again when answered)
-                self._superseded.append((s, s.last_seq, p, [
-                    None if d == i else aside.keep(maps[d], s, items[d][1], principal(items[d][1]), items[d][2])
-                    for d in order]))
+                # (kept as heads, see daemon/aside.py: not decoded again when answered)
+                self._superseded.append((s, s.last_seq, p, aside.chain_of(maps, items, order, i, s, principal)))
             else:  # the newest frame was refused and changed nothing: the rest count as usual
                 for d in order:
                     if d != i:
@@ -251,28 +249,28 @@ class Dispatch(Parts):
         self._conflated = []
         return out
 
-    def _take_aside(self, s: Any, item: aside.Item) -> None:
-        """One frame of ``s`` set aside by :meth:`dispatch`, taken in the replay: a kept head
-        straight into the session (as :meth:`_dispatch` would, minus the decode and the checks
-        it passed when kept), anything else decoded and dispatched."""
-        h, origin, arrived = item
-        if type(h) is not tuple:
-            self._handle_map(h, origin, arrived)
+    def _take_aside(self, s: Any, item: Any) -> None:
+        """An item of a chain :meth:`dispatch` set aside for ``s`` (daemon/aside.py), taken in the
+        replay: a run of kept heads straight into the session (as :meth:`_dispatch` of each would,
+        minus the decode and the checks they passed when kept), a map decoded and dispatched."""
+        if type(item) is not list:
+            self._handle_map(*item)
             return
-        who = principal(origin)
-        if (s.owner != who and who is not None) or h[2] != s.mapping.n_in:
-            # (not within one turn: owner and width are what they were when it was kept)
-            self._dispatch(aside.frame(s.sid, h, full=True), origin, arrived)
+        who = principal(item[0][2])
+        if s.owner != who and who is not None:  # (not within one turn: the owner is the one they were kept for)
+            for seq, t, origin, arrived in item:
+                self._dispatch(wire.Frame(s.sid, seq, t, aside.missing(s.mapping.n_in)), origin, arrived)
             return
-        self.metrics.inc("frames_in")
+        self.metrics.inc("frames_in", len(item))
         sessions = self.sessions
         if sessions.blocks:
             sessions.materialize()
         try:
-            if out := sessions.take(s, aside.frame(s.sid, h), origin, arrived, []):
+            if out := sessions.take_run(s, item):
                 self._frame_answers(out)
-        except Exception as e:  # noqa: BLE001 - a bug must cost one message, never the loop
-            self._internal("handle", e, origin, s.sid, h[0])
+        except Exception as e:  # noqa: BLE001 - a bug must cost these messages, never the loop
+            for seq, _, origin, _ in item:
+                self._internal("handle", e, origin, s.sid, seq)
 
     def _dispatch(self, msg: Any, origin: Origin, arrived: float) -> None:
         try:

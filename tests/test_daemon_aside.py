@@ -165,3 +165,24 @@ def test_head_is_only_given_for_what_the_decoder_takes_and_agrees_with_it():
         assert h is None or h == (f.seq, f.t, f.angles.shape[0]), name
     assert aside.head(good) == (7, 1.5, 3) and aside.head(masked) == (7, 1.5, 3)
     assert aside.head(variants["t int"]) is None  # (valid, but off the fast path: kept as its map, decoded)
+
+
+def test_a_failed_turn_answers_every_set_aside_frame_with_an_error(monkeypatch):
+    """When the turn's step fails, each frame waiting or set aside (a run of heads or a map kept
+    to be decoded) is answered with an ``internal`` error carrying its seq."""
+    clock = Clock()
+    d, sent = _daemon(clock, False)
+    v = np.arange(C, dtype=np.float32)
+    m = wire.to_map(wire.Frame("a", 4, 0.0, v))
+    m["t"] = 0  # valid, off the fast path: kept as its map
+    items = [(_frame("a", s, v), _peer("a"), clock()) for s in (1, 2, 3, 5, 6)]
+    items.insert(3, (msgpack.packb(m, use_bin_type=True), _peer("a"), clock()))
+
+    def fail() -> None:
+        raise RuntimeError("a step that fails")
+
+    monkeypatch.setattr(d, "_serve", fail)
+    assert d.turn(clock(), items=items) == 5
+    answers = [wire.decode(b.split(b" ", 2)[-1]) for b in sent]
+    assert sorted((type(m).__name__, m.seq, m.reason) for m in answers) == \
+        [("ErrorMsg", s, "internal") for s in (1, 2, 3, 4, 5, 6)]
