@@ -266,13 +266,6 @@ class SessionTable:
         if f.angles.shape[0] != s.mapping.n_in:
             raise SessionError("width", f"stream {f.stream!r} has {s.mapping.n_in} channels, the frame has "
                                         f"{f.angles.shape[0]} (send a hello to change the channel list)")
-        return self.take(s, f, origin, arrived, out)
-
-    def take(self, s: Session, f: wire.Frame, origin: Origin, arrived: float, out: Out) -> Out:
-        """The rest of :meth:`frame` once ``f`` is known to be its owner's and of its width:
-        activity, delivery delay, then late/duplicate, or into the pending slot (superseding
-        the frame waiting there).  A set-aside frame's replay comes in here directly
-        (daemon/aside.py); ``f.angles`` is not looked at."""
         s.last_active = self.clock()
         self.recent.move_to_end(f.stream)
         if s.delivered(arrived - f.t):
@@ -298,9 +291,9 @@ class SessionTable:
         return out
 
     def take_run(self, s: Session, run: list[tuple[int, float, Origin, float]]) -> Out:
-        """:meth:`take` of each frame of ``run`` in turn, frames of ``s``'s owner and width set
-        aside by daemon/dispatch.py and kept as (seq, capture time, origin, arrival) (daemon/aside.py),
-        in one loop: the same state after, the same answers in the same order."""
+        """What :meth:`frame` does with each frame of ``run`` in turn, in one loop: the same state
+        after, the same answers in the same order.  ``run``: frames of ``s``'s owner and width set
+        aside by daemon/dispatch.py, kept as (seq, capture time, origin, arrival) (daemon/aside.py)."""
         sid, counts, count = s.sid, s.counts, self.count
         out: Out = []
         p = s.pending
@@ -337,7 +330,8 @@ class SessionTable:
         daemon/dispatch.py, ``chain`` in arrival order, None where the served frame came), taken
         now, after the fills, as they would have been in arrival order: against the stream as it
         was before the burst (``last_seq``, no frame waiting), the served frame waiting from its
-        place in the chain on.  ``take(s, item)`` takes one (daemon/aside.py);
+        place in the chain on.  ``take(s, item)`` takes an item (a run of kept heads, or a map to
+        decode: daemon/aside.py);
         ``answer`` gets the ``conflated`` drop of the frame waiting when the served one came.
         The stream's state afterwards is what it was before the call."""
         # (the burst held no hello or reset, so the session is the same object; a SIGHUP swap
