@@ -5,7 +5,8 @@ starved process, a stall), through the public ``Daemon.turn`` of the pass-throug
 newest frame of each stream is served, the K - 1 before it are set aside as superseded and
 answered ``conflated`` after the fills (daemon/dispatch.py, daemon/aside.py).  Reported: process
 CPU microseconds per frame read (each answer encoded to bytes as the transport would), median
-of the repeats, each tree in its own process (``PYTHONPATH`` = the tree), the trees alternating.
+of the repeats, and the Python and C calls per frame of one such turn (a count, free of the
+machine's load), each tree in its own process (``PYTHONPATH`` = the tree), the trees alternating.
 
 It also plays one fixed mixed burst sequence (interleaved streams, duplicates, late frames,
 malformed ones: infinity, a wrong width, not msgpack) in each tree and prints a sha256 of every
@@ -83,6 +84,17 @@ for items in msgs[20:]:
     aside += d.turn(clock(), items=items)
     out.clear()
 cpu = time.process_time() - c0
+# Python and C calls of one more such turn, per frame (a count: no timing noise)
+ncalls = {"call": 0, "c_call": 0}
+def prof(frame, event, arg):
+    if event in ncalls:
+        ncalls[event] += 1
+extra = turn_items()
+clock.t += K / 120
+sys.setprofile(prof)
+d.turn(clock(), items=extra)
+sys.setprofile(None)
+out.clear()
 
 # the mixed burst sequence, on a fresh daemon: its answers' digest
 clock2 = Clock()
@@ -119,6 +131,7 @@ for t in range(30):
         items.append((data, peer(i), clock2()))
     answers_aside += d2.turn(clock2(), items=items)
 print(json.dumps({"cpu_us_per_frame": 1e6 * cpu / (TURNS * K * N), "set_aside": aside, "frames": TURNS * K * N,
+                  "py_calls_per_frame": ncalls["call"] / (K * N), "c_calls_per_frame": ncalls["c_call"] / (K * N),
                   "digest": h.hexdigest(), "digest_set_aside": answers_aside}))
 '''
 
@@ -147,6 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     a, b = (str(t) for t in trees[:2]) if len(trees) > 1 else (str(trees[0]),) * 2
     print(f"CPU us per frame, {args.behind} frames of each of 64 streams a turn, median of {args.repeats}: "
           + ", ".join(f"{Path(t).name} {m:.2f}" for t, m in med.items()) + f"; ratio {med[b] / med[a]:.2f}")
+    calls = {Path(t).name: (v[0]["py_calls_per_frame"], v[0]["c_calls_per_frame"]) for t, v in runs.items()}
+    print(f"calls per frame (Python, C), one turn: {calls}")
     digests = {Path(t).name: {x["digest"] for x in v} for t, v in runs.items()}
     print(f"answer digests: {digests}; {'equal' if len({d for s in digests.values() for d in s}) == 1 else 'DIFFERENT'}")
     if args.json_out:
