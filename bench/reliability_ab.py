@@ -5,6 +5,8 @@ first), under ``nice``:
 
 * the overload soak, ``bench/reliability_soak.py --repeats 1`` (section 3: served/offered,
   drops, proc_us p50/p99, RSS);
+* ``starved`` (not in the default jobs): that soak for 10 s with its daemon starved,
+  ``--starved 0.2``, and the daemon's CPU per frame sent (served + dropped + lost);
 * the fuzz test (section 1: 100,600 malformed messages, time until all are counted, msg/s,
   daemon RSS), ``pytest -s tests/test_reliability_fuzz.py``, its printed line parsed;
 * the SIGKILL restart and slow-consumer fault tests (section 2: time until three streams are
@@ -53,6 +55,20 @@ def soak(tree: Path, py: str) -> dict:
         "tail": "" if med else out[-800:]}
 
 
+def starved(tree: Path, py: str) -> dict:
+    """The soak with its daemon starved (``--starved 0.2``, 10 s): its CPU per frame sent, where
+    nearly every frame is answered ``overdue`` or ``conflated`` (bench/notebook/replay-4.md)."""
+    with tempfile.NamedTemporaryFile(suffix=".json") as fh:
+        rc, out, wall, l0, l1 = run(tree, [py, "bench/reliability_soak.py", "--repeats", "1", "--seconds", "10",
+                                           "--starved", "0.2", "--json", fh.name], 600)
+        got = json.loads(Path(fh.name).read_text() or "{}") if rc in (0, 1) else {}
+    med = got.get("median", {})
+    frames = sum(med.get(k) or 0 for k in ("served", "dropped", "lost"))
+    return {"rc": rc, "wall_s": wall, "load": [l0, l1], **{k: med.get(k) for k in (
+        "served", "dropped", "lost", "daemon_cpu_s", "rss_max_kib")},
+        "cpu_us_per_frame": 1e6 * med["daemon_cpu_s"] / frames if frames else None, "tail": "" if med else out[-800:]}
+
+
 def fuzz(tree: Path, py: str) -> dict:
     rc, out, wall, l0, l1 = run(tree, [py, "-m", "pytest", "-q", "-s", "-p", "no:cacheprovider",
                                        "tests/test_reliability_fuzz.py"], 900)
@@ -94,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     trees = [Path(t).resolve() for t in args.trees]
     py = sys.executable
-    jobs = {"soak": soak, "fuzz": fuzz, "faults": faults, "reject": reject}
+    jobs = {"soak": soak, "starved": starved, "fuzz": fuzz, "faults": faults, "reject": reject}
     rounds = []
     for r in range(args.rounds):
         order = trees[r % len(trees):] + trees[:r % len(trees)]  # each tree first in turn

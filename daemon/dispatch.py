@@ -5,15 +5,15 @@ origin it came from) into what it means: a frame handed to its session (which ke
 per stream, see daemon/session.py), a hello, a bundle, a control request (daemon/control.py),
 or a refusal.  It touches no socket: :meth:`Dispatch.dispatch` returns the answers (to whom,
 what), and the loop hands them to the transport (daemon/loop.py).  Under a backlog, frames a newer frame of their
-stream superseded within the burst are set aside undecoded and answered after the fills
-(``_batch``, ``_answer_superseded``).
+stream superseded within the burst are set aside undecoded, kept as what their answer needs
+(daemon/aside.py), and answered after the fills (``superseded_answers``).
 """
 from __future__ import annotations
 
 from collections.abc import Generator
 from typing import Any
 
-from daemon import blockpath, osc, wire
+from daemon import aside, blockpath, osc, wire
 from daemon import budget as budgets
 from daemon.parts import Parts
 from daemon.session import Origin, SessionError, principal
@@ -187,16 +187,16 @@ class Dispatch(Parts):
                 else:  # not newer than the newest so far: answered late/duplicate with the chain
                     chains.setdefault(sid, []).append(i)
             heads = {newest[sid]: sid for sid in chains}
-            aside = {i for c in chains.values() for i in c}
+            skip = {i for c in chains.values() for i in c}
         else:
-            heads, aside = {}, set()
+            heads, skip = {}, set()
         # a burst of costly requests (hellos, controls: that is what makes it a barrier) must not
         # hold up the frames read with it: every SLICE messages, once a quarter of the budget is
         # spent, the frames taken so far are served (as if the rest had come in the next turn)
         slice_at, t_slice = (SLICE if barrier else len(maps) + 1), self.clock()
         frames_seen = self.metrics.counters.get("frames_in", 0)
         for i, (m, (_, origin, arrived)) in enumerate(zip(maps, items)):
-            if i in aside:
+            if i in skip:
                 continue
             if i and not i % slice_at and self.clock() - t_slice > self.sched.budget_s / 4:
                 if self.metrics.counters.get("frames_in", 0) != frames_seen:
@@ -213,8 +213,8 @@ class Dispatch(Parts):
             p = s.pending
             if p is not None and p.frame.seq == keys[i][1]:  # type: ignore[index]
                 # with None where the served frame came
-                self._superseded.append((s, s.last_seq, p, [None if d == i else (maps[d], items[d][1], items[d][2])
-                                                            for d in order]))
+                # (kept as heads, see daemon/aside.py: not decoded again when answered)
+                self._superseded.append((s, s.last_seq, p, aside.chain_of(maps, items, order, i, s, principal)))
             else:  # the newest frame was refused and changed nothing: the rest count as usual
                 for d in order:
                     if d != i:
@@ -236,17 +236,41 @@ class Dispatch(Parts):
 
     def superseded_answers(self) -> Answers:
         """After the turn's fills: the ``conflated`` and ``overdue`` drops of the turn, and the
-        answers to the frames :meth:`dispatch` set aside, each decoded and taken by its session
+        answers to the frames :meth:`dispatch` set aside, each taken by its session (a kept head
+        without decoding it, daemon/aside.py; anything else decoded)
         as it would have been in arrival order (``SessionTable.replay``), so it gets the answer
         it would have had then (``drop`` conflated, late or duplicate, or an ``error``)."""
         out, self._conflated = self._conflated, []
         todo, self._superseded = self._superseded, []
         for s, last_seq, served, chain in todo:
-            self.sessions.replay(s, last_seq, served, chain, self._handle_map, self._frame_answers)
+            self.sessions.replay(s, last_seq, served, chain, self._take_aside, self._frame_answers)
         out += self._take_out()
         out += self._conflated
         self._conflated = []
         return out
+
+    def _take_aside(self, s: Any, item: Any) -> None:
+        """An item of a chain :meth:`dispatch` set aside for ``s`` (daemon/aside.py), taken in the
+        replay: a run of kept heads straight into the session (as :meth:`_dispatch` of each would,
+        minus the decode and the checks they passed when kept), a map decoded and dispatched."""
+        if type(item) is not list:
+            self._handle_map(*item)
+            return
+        who = principal(item[0][2])
+        if s.owner != who and who is not None:  # (not within one turn: the owner is the one they were kept for)
+            for seq, t, origin, arrived in item:
+                self._dispatch(wire.Frame(s.sid, seq, t, aside.missing(s.mapping.n_in)), origin, arrived)
+            return
+        self.metrics.inc("frames_in", len(item))
+        sessions = self.sessions
+        if sessions.blocks:
+            sessions.materialize()
+        try:
+            if out := sessions.take_run(s, item):
+                self._frame_answers(out)
+        except Exception as e:  # noqa: BLE001 - a bug must cost these messages, never the loop
+            for seq, _, origin, _ in item:
+                self._internal("handle", e, origin, s.sid, seq)
 
     def _dispatch(self, msg: Any, origin: Origin, arrived: float) -> None:
         try:

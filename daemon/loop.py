@@ -82,8 +82,8 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         self._last_rx = 0.0  # perf_counter of the last poll that found a message (busy_poll_ms)
         # frames a newer one superseded within a burst, answered after the turn's fills (_batch):
         # (session, its last answered seq before the burst, the served frame's Pending,
-        #  [(unpacked map, origin, arrived) or None where the served frame came, ...])
-        self._superseded: list[tuple[Any, int | None, Any, list[tuple[Any, Origin, float] | None]]] = []
+        #  [a run of kept heads (daemon/aside.py), (map, origin, arrived), or None: the served one])
+        self._superseded: list[tuple[Any, int | None, Any, list[Any]]] = []
         self._out: list[tuple[Origin, wire.Message]] = []  # the dispatcher's answers not yet handed over
         self._conflated: list[tuple[Origin, wire.Message]] = []  # this turn's `conflated` and `overdue` drops, sent after its fills
         self._drop_overdue = self.cfg.overdue == "drop"
@@ -232,7 +232,8 @@ class Daemon(Dispatch, Tick, Control, Reloading):
                 net.receive(ready)  # (-> _batch)
             if items:
                 self._batch(items)
-            aside = sum(item is not None for *_, chain in self._superseded for item in chain)
+            aside = sum(len(item) if type(item) is list else 1  # (a run of kept heads: daemon/aside.py)
+                        for *_, chain in self._superseded for item in chain if item is not None)
             self._serve()
             if self._superseded or self._conflated:
                 self._send_held()  # what came since the fills (they are out already)

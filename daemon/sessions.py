@@ -10,6 +10,7 @@ from itertools import islice
 from typing import Any
 
 from daemon import positions, wire
+from daemon.aside import NO_ANGLES as _NO_ANGLES
 from daemon.session import (
     Mapping,
     Origin,
@@ -289,13 +290,48 @@ class SessionTable:
         self.waiting[id(s)] = s
         return out
 
+    def take_run(self, s: Session, run: list[tuple[int, float, Origin, float]]) -> Out:
+        """What :meth:`frame` does with each frame of ``run`` in turn, in one loop: the same state
+        after, the same answers in the same order.  ``run``: frames of ``s``'s owner and width set
+        aside by daemon/dispatch.py, kept as (seq, capture time, origin, arrival) (daemon/aside.py)."""
+        sid, counts, count = s.sid, s.counts, self.count
+        out: Out = []
+        p = s.pending
+        last = s.last_seq
+        top = p.frame.seq if p is not None else None  # (the waiting frame's seq)
+        for seq, t, origin, arrived in run:
+            if s.delivered(arrived - t):
+                count("frames_waited", sid)
+            if last is not None and seq <= last:
+                why = "duplicate" if seq == last else "late"
+            elif top is not None and seq <= top:
+                why = "duplicate" if seq == top else "late"
+            else:
+                if p is not None:
+                    counts["dropped_conflated"] += 1
+                    count("dropped_conflated", sid)
+                    out.append((p.origin, wire.Drop(sid, top, "conflated")))  # type: ignore[arg-type]
+                p, top = Pending(wire.Frame(sid, seq, t, _NO_ANGLES), origin, arrived), seq
+                continue
+            counts[f"dropped_{why}"] += 1
+            count(f"dropped_{why}", sid)
+            out.append((origin, wire.Drop(sid, seq, why)))
+        counts["frames_in"] += len(run)
+        s.last_active = self.clock()
+        self.recent.move_to_end(sid)
+        if p is not s.pending:
+            s.pending = p
+            self.waiting[id(s)] = s
+        return out
+
     def replay(self, s: Session, last_seq: int | None, served: Pending, chain: list[Any],
                take: Callable[..., None], answer: Callable[[Out], None]) -> None:
         """The frames of a burst that a newer frame of ``s`` superseded (set aside by
         daemon/dispatch.py, ``chain`` in arrival order, None where the served frame came), taken
         now, after the fills, as they would have been in arrival order: against the stream as it
         was before the burst (``last_seq``, no frame waiting), the served frame waiting from its
-        place in the chain on.  ``take(*item)`` takes one (decode -> :meth:`frame`);
+        place in the chain on.  ``take(s, item)`` takes an item (a run of kept heads, or a map to
+        decode: daemon/aside.py);
         ``answer`` gets the ``conflated`` drop of the frame waiting when the served one came.
         The stream's state afterwards is what it was before the call."""
         # (the burst held no hello or reset, so the session is the same object; a SIGHUP swap
@@ -308,7 +344,7 @@ class SessionTable:
                     answer(self.conflate(s))
                     s.pending = served  # (frames after it are late or duplicates against it)
                 else:
-                    take(*item)
+                    take(s, item)
         finally:
             s.last_seq = now_seq
             s.pending = None

@@ -133,8 +133,12 @@ class Tick(BlockTick):
         except Exception:  # noqa: BLE001, S110 - a failing send must not keep the frames below unanswered
             pass
         owed: list[tuple[Any, str, int | None]] = list(self.sessions.abandon())
-        owed += [(origin, s.sid, k[1] if isinstance(m, dict) and (k := wire.frame_key(m)) else None)
-                 for s, _, _, chain in todo for m, origin, _ in filter(None, chain)]
+        # (a chain item: a run of kept heads (seq, t, origin, arrived), or (map, origin, arrived),
+        # see daemon/aside.py)
+        owed += [(r[2], s.sid, r[0]) if type(item) is list else
+                 (item[1], s.sid, k[1] if isinstance(item[0], dict) and (k := wire.frame_key(item[0])) else None)
+                 for s, _, _, chain in todo for item in filter(None, chain)
+                 for r in (item if type(item) is list else [item])]
         for origin, sid, seq in owed:
             try:
                 self._refuse(origin, "internal", why, sid, seq)
