@@ -96,7 +96,8 @@ class BlockTick(Parts):
             st, phs, dgr = bf.style, bf.phase, bf.degraded
             if isinstance(st, np.ndarray):  # (n, K) posteriors: as the bytes daemon/pack.py writes, a row each
                 a = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
-                styles = [a[i].tobytes() for i in range(n)]
+                yb, k4 = a.tobytes(), 4 * a.shape[1]  # (slices of one bytes object: no array view a row)
+                styles = [yb[i * k4:(i + 1) * k4] for i in range(n)]
             elif st is not None:
                 styles = _styles(st if ident else [st[j] for j in pos], n)
             if phs is not None:
