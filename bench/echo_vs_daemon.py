@@ -242,7 +242,7 @@ def summarise(rows: list[dict[str, Any]], roots: list[str], models: list[str], c
                 s["dropped"] = [r["dropped"] for r in mine]
                 for q in ("p50_ms", "p99_ms"):
                     s[f"{q}_over_echo"] = _med([_div(r[q], echo[r["repeat"]][q]) for r in mine])
-                    if model != "floor":
+                    if model != "floor" and floor:  # (none: --models without floor)
                         s[f"{q}_over_passthrough"] = _med([_div(r[q], floor[r["repeat"]][q]) for r in mine])
                 cs[f"{name}:{model}"] = s
         ech = [r for r in rows if r["case"] == case and r["target"] == "echo"]

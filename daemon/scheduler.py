@@ -276,27 +276,8 @@ class Scheduler:
         s.held(out, seq)
         return s, Fill(out, std, filled, {}, True), "degraded"
 
-    def run_rows(self, model: Model, group: list[Session], seqs: list[int], arrived: float, frames: np.ndarray,
-                 observed: np.ndarray) -> list[tuple[int, tuple[Session, Fill, str]]]:
-        """:meth:`run` for one group (at most max_batch streams) of a bundle served as arrays
-        (daemon/blockpath.py): the streams' frames are ``seqs`` and the (n, C) model inputs;
-        returns (row, (session, fill, status)) in the order :meth:`run` gives them."""
-        plan = self.plan(model, group, self.clock(), arrived, seqs)
-        out: list[tuple[int, tuple[Session, Fill, str]]] = []
-        pos = {id(s): i for i, s in enumerate(group)} if plan.hold else None
-        if plan.hold:
-            idx = [pos[id(s)] for s in plan.hold]  # type: ignore[index]
-            t0 = self.clock()
-            out.extend(zip(idx, self._hold_many(plan.hold, ([seqs[i] for i in idx], frames[idx], observed[idx]))))
-            self.hold_cost.observe(len(plan.hold), self.clock() - t0)
-        if plan.step:
-            idx = list(range(len(group))) if pos is None else [pos[id(s)] for s in plan.step]
-            rows = ([seqs[i] for i in idx], frames[idx], observed[idx]) if pos is not None else (seqs, frames, observed)
-            out.extend(zip(idx, self._step(model, plan, rows)))
-        return out
-
     def passthrough_rows(self, model: Model, group: list[Session], seqs: list[int], frames: np.ndarray) -> None:
-        """What :meth:`run_rows` does to the streams of a pass-through model (whose fill is the
+        """What daemon.stepblock.run_block does to the streams of a pass-through model (whose fill is the
         frame, NaN where missing: ``frames`` itself), without a fill object per stream."""
         t0 = self.clock()
         gaps = [0 if s.model_seq is None else q - s.model_seq - 1 for s, q in zip(group, seqs)]

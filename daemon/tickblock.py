@@ -18,12 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from daemon import blockpath, wire
+from daemon import blockpath, stepblock, wire
 from daemon.blockpath import BlockWait
 from daemon.parts import Parts
-from daemon.session import Pending, Session, filled_rows
-
-_NONE: dict[str, Any] = {}
+from daemon.session import Pending, filled_rows
+from lacuna.filler import BlockFill, FillsDoNotStack
 
 
 class BlockTick(Parts):
@@ -72,22 +71,40 @@ class BlockTick(Parts):
             order = sorted(range(n), key=lambda k: -S[k].late_streak) if any(late) else None
             frames = mf if order is None else mf[order]
         else:
-            got = sched.run_rows(model, S, seqs, arrived, mf, mo)
-            if n > 1:
-                got.sort(key=_late)
-            order = [g[0] for g in got]
-            fills = [g[1][1] for g in got]
-            statuses = [g[1][2] for g in got]
-            try:
-                frames, std, filled = _stack(fills, n, mf.shape[1])
-            except Exception:  # noqa: BLE001 - fills that do not stack: the row path's tail names the one
-                for k in order:
+            idx, got, sts = stepblock.run_block(sched, model, S, seqs, arrived, mf, mo)
+            fills = got if isinstance(got, list) else None
+            bf: BlockFill | None = None if fills is not None else got  # type: ignore[assignment]
+            if fills is not None:  # (held streams, or fills that do not stack)
+                try:
+                    bf = BlockFill.of(fills, mf.shape[1])
+                except FillsDoNotStack:
+                    pass
+            # answered oldest first, then the streams dropped `overdue` most (Tick._serve's sort)
+            pos = sorted(range(n), key=lambda j: -S[idx[j]].late_streak) if n > 1 else [0]
+            ident = pos == idx == list(range(n))
+            order = None if ident else [idx[j] for j in pos]
+            if bf is None:  # fills that do not stack: the row path's tail names the one
+                assert fills is not None
+                for k in (order or range(n)):
                     S[k].pending = _pending(bw, k if rows is None else rows[k])
-                self._answer([g[1] for g in got], t0)
+                self._answer([(S[idx[j]], fills[j], sts[j]) for j in pos], t0)
                 return True
-            exs = [f.extras or _NONE for f in fills]
-            styles, phases, held = _styles([ex.get("style") for ex in exs], n), [ex.get("phase") for ex in exs], \
-                [f.degraded for f in fills]
+            if ident:
+                frames, std, filled, statuses = bf.frame, bf.std, bf.filled, sts
+            else:
+                frames, std, filled, statuses = bf.frame[pos], bf.std[pos], bf.filled[pos], [sts[j] for j in pos]
+            st, phs, dgr = bf.style, bf.phase, bf.degraded
+            if isinstance(st, np.ndarray):  # (n, K) posteriors: as the bytes daemon/pack.py writes, a row each
+                a = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
+                yb, k4 = a.tobytes(), 4 * a.shape[1]  # (slices of one bytes object: no array view a row)
+                styles = [yb[i * k4:(i + 1) * k4] for i in range(n)]
+            elif st is not None:
+                styles = _styles(st if ident else [st[j] for j in pos], n)
+            if phs is not None:
+                phases = (phs if ident else phs[pos]).tolist() if isinstance(phs, np.ndarray) else \
+                    (phs if ident else [phs[j] for j in pos])
+            if dgr is not None:
+                held = dgr if ident else [dgr[j] for j in pos]
         if order is None:  # (answer order = table order)
             so, qo, ro, sent = S, seqs, rows, mo
         else:
@@ -138,7 +155,7 @@ class BlockTick(Parts):
             {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
              "status": status if statuses is None else statuses[k], "model": name, "proc_us": proc_us}
             for k, s, q, t, a, f, d in zip(ks, out, qk, *cols)]
-        if styles is not None or any(gaps):
+        if styles is not None or phases is not None or any(gaps):
             for k, m in zip(ks, maps):
                 if styles is not None and styles[k] is not None:
                     m["style"] = styles[k]
@@ -168,19 +185,6 @@ class BlockTick(Parts):
                 s.count("over_budget")
             self.metrics.inc("over_budget", len(out))
         return True
-
-
-def _late(g: tuple[int, tuple[Session, Any, str]]) -> int:
-    return -g[1][0].late_streak
-
-
-def _stack(fills: list[Any], n: int, C: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    frames = np.array([f.frame for f in fills], dtype=np.float32)
-    std = np.array([f.std for f in fills], dtype=np.float32)
-    filled = np.array([f.filled for f in fills], dtype=bool)
-    if not (frames.shape == std.shape == filled.shape == (n, C)):
-        raise ValueError(f"fills do not stack to ({n}, {C})")
-    return frames, std, filled
 
 
 def _styles(styles: list[Any], n: int) -> list[Any]:

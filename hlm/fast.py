@@ -438,6 +438,15 @@ def step_rows(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observe
     ``mocap.feature_model.StatePool`` of an HLM): frames (n, C) float64, observed (n, C) bool.
     Updates the rows in place; returns (completed (n, C), std (n, C), extras per stream), what
     ``step_slot`` returns stream by stream.  ``tables``: ``slot_tables``'s."""
+    out, sd, style, phase = step_rows_arrays(tables, pool, prow, frames, observed, live, live_stats, cond)
+    return out, sd, _extras(style, phase)
+
+
+def step_rows_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observed: np.ndarray,
+                     live: float = 1e-10, live_stats: float = 1e-4, cond=None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`step_rows` with the extras as the arrays the kernel writes them in: (completed
+    (n, C), std (n, C), style posteriors (n, K), phases (n,)), no dict per stream."""
     rt, ht, zero = tables
     rp, cp = pool.repr, pool.core
     n, C = frames.shape
@@ -457,4 +466,4 @@ def step_rows(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observe
     _step_rows(prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"],
                rp["root_st"], rt, cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, phase,
                *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)))
-    return out, sd, _extras(style, phase)
+    return out, sd, style, phase

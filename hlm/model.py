@@ -133,13 +133,18 @@ class HLMModel(FeatureModel):
     def step_rows(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple | None:
         # a batch's encoders, compiled filters and decoders in one call (hlm.fast.step_rows), where
         # step_one's would serve
+        got = self.step_rows_arrays(slots, frames, observed)
+        return None if got is None else (got[0], got[1], fast._extras(got[2], got[3]))
+
+    def step_rows_arrays(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple | None:
+        # step_rows's call with the style posteriors and phases as the kernel's arrays (step_block)
         rep = self.representation
         if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative"):
             return None
         tabs = self.__dict__.get("_slot_tables")
         if tabs is None:
             tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, self.representation)
-        return fast.step_rows(tabs, self.pool, slots, frames, observed, online.LIVE, LIVE_STATS, self.cond)
+        return fast.step_rows_arrays(tabs, self.pool, slots, frames, observed, online.LIVE, LIVE_STATS, self.cond)
 
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
                   rows: np.ndarray | None = None) -> CoreOut:

@@ -51,6 +51,54 @@ class Fill:
     degraded: bool = False
 
 
+@dataclass
+class BlockFill:
+    """n filled frames as arrays (:meth:`Model.step_block`): what n :class:`Fill` objects hold,
+    a row each, without an object per stream.
+
+    frame : (n, C) float64; std : (n, C); filled : (n, C) bool.
+    style : (n, K) style posteriors, or a list of n (each None or a posterior), or None: no
+        stream has one.
+    phase : (n,) floats (NaN: none), or a list of n (each None or a float), or None: none.
+    degraded : list of n bools (``Fill.degraded``), or None: none degraded.
+    """
+
+    frame: np.ndarray
+    std: np.ndarray
+    filled: np.ndarray
+    style: np.ndarray | list[Any] | None = None
+    phase: np.ndarray | list[Any] | None = None
+    degraded: list[bool] | None = None
+
+    @classmethod
+    def of(cls, fills: Sequence[Fill], C: int) -> BlockFill:
+        """The n Fills (each of C channels) as one block; raises :class:`FillsDoNotStack` (which
+        keeps them) where they are not n rows of C."""
+        n = len(fills)
+        try:
+            frame = np.array([f.frame for f in fills], dtype=np.float64)
+            std = np.array([f.std for f in fills], dtype=np.float64)
+            filled = np.array([f.filled for f in fills], dtype=bool)
+        except (ValueError, TypeError) as e:
+            raise FillsDoNotStack(list(fills), str(e)) from e
+        if not (frame.shape == std.shape == filled.shape == (n, C)):
+            raise FillsDoNotStack(list(fills), f"fills do not stack to ({n}, {C})")
+        exs = [f.extras or _NONE for f in fills]
+        return cls(frame, std, filled, [ex.get("style") for ex in exs], [ex.get("phase") for ex in exs],
+                   [f.degraded for f in fills])
+
+
+class FillsDoNotStack(ValueError):
+    """Fills that are not n rows of C channels (:meth:`BlockFill.of`); ``fills`` keeps them."""
+
+    def __init__(self, fills: list[Fill], why: str):
+        super().__init__(why)
+        self.fills = fills
+
+
+_NONE: dict[str, Any] = {}
+
+
 def check_frame(frame: Any, observed: Any, n_channels: int) -> tuple[np.ndarray, np.ndarray]:
     """Validate one frame and its mask; returns float64 frame and bool mask copies.
 
@@ -121,6 +169,16 @@ class Model(abc.ABC):
         one of :meth:`quality_levels` for this step only (None: full quality); the model is not
         changed by it."""
         return [s.step(f, o) for s, f, o in zip(states, frames, observed)]
+
+    def step_block(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
+                   level: int | None = None) -> BlockFill:
+        """:meth:`step_batch` with the fills as (n, C) arrays (the daemon's bundle path).  This
+        default stacks ``step_batch``'s Fills (:meth:`BlockFill.of`: raises
+        :class:`FillsDoNotStack` where they do not stack); a model that can write its fills
+        straight into arrays overrides it with the same results."""
+        fills = self.step_batch(states, frames, observed) if level is None else \
+            self.step_batch(states, frames, observed, level=level)
+        return BlockFill.of(fills, np.shape(observed)[1])
 
     def fill_offline(self, frames: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Fill a whole recording.  frames, observed: (n_frames, n_channels).

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from lacuna import jit
-from lacuna.filler import Fill, FillerState, Model, check_frame
+from lacuna.filler import BlockFill, Fill, FillerState, Model, check_frame
 from mocap import fastrepr
 from mocap.representation import Representation, ReprState
 
@@ -163,6 +163,31 @@ class FeatureModel(Model):
         observed (n, C) bool) in one compiled call on the pool rows in place, the same arithmetic
         as ``step_arrays``.  Returns (completed, std, extras) or None: this core has none here."""
         return None
+
+    def step_rows_arrays(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None] | None:
+        """Optional: :meth:`step_rows` with the extras as arrays: (completed (n, C), std (n, C),
+        style posteriors (n, K) or None, phases (n,) or None), or None: this core has none here."""
+        return None
+
+    def step_block(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
+                   level: int | None = None) -> BlockFill:
+        """``step_batch``'s fills as arrays: for n > 1 streams of this model at full quality,
+        straight from the core's one-call step (:meth:`step_rows_arrays`), no Fill per stream;
+        otherwise ``step_batch``'s Fills stacked (``Model.step_block``)."""
+        n = len(states)
+        if n > 1 and level is None and all(isinstance(s, FeatureStream) and s.model is self for s in states):
+            slots = np.fromiter((s.slot for s in states), dtype=np.intp, count=n)  # type: ignore[attr-defined]
+            srt = np.sort(slots)
+            if (srt[1:] == srt[:-1]).any():
+                raise ValueError("step_batch was given the same stream twice")
+            frames = _writable(np.asarray(frames, dtype=np.float64))
+            observed = _writable(np.asarray(observed, dtype=bool))
+            got = self.step_rows_arrays(slots, frames, observed)
+            if got is not None:
+                done, std, style, phase = got
+                return BlockFill(done, std, ~observed, style, phase)
+        return super().step_block(states, frames, observed, level)
 
     def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
                    level: int | None = None) -> list[Fill]:

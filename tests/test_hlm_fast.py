@@ -221,7 +221,7 @@ def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_t
 @pytest.mark.parametrize("options", [dict(), dict(kappa=0.0, kappa_global=0.0)], ids=["default", "faithful"])
 def test_a_batch_in_one_call_equals_each_stream_alone(walk, monkeypatch, options):
     """A tick of several streams runs encoder, filter and decoder of all of them in one compiled
-    call on their pool rows (``hlm.fast.step_rows``), sharing the filter's working arrays; each
+    call on their pool rows (``hlm.fast.step_rows_arrays``, under ``step_rows``), sharing the filter's working arrays; each
     stream stepped alone (``step_batch`` of one: ``step_slot``, its own arrays) is its reference.
     Streams handed over in a scrambled order, on pool rows that are not contiguous (every other
     row of a pool that grows mid-take): the same bits, every stream, every frame; and the rows
@@ -235,8 +235,8 @@ def test_a_batch_in_one_call_equals_each_stream_alone(walk, monkeypatch, options
     alone = [m.stream() for _ in offs]
     order = [3, 0, 4, 1, 2]                                  # handed over out of slot order
     calls = []
-    orig = fast.step_rows
-    monkeypatch.setattr(fast, "step_rows", lambda *a, **k: calls.append(list(a[2])) or orig(*a, **k))
+    orig = fast.step_rows_arrays
+    monkeypatch.setattr(fast, "step_rows_arrays", lambda *a, **k: calls.append(list(a[2])) or orig(*a, **k))
     for t in range(150):
         rows = (offs + t) % T
         f = np.where(obs[rows], frames[rows], np.nan)
@@ -257,6 +257,41 @@ def test_a_batch_in_one_call_equals_each_stream_alone(walk, monkeypatch, options
     arm = [i for i, c in enumerate(m.channels) if c.split(".")[0] in ("lhumerus", "lradius")]
     assert np.isfinite(got[0].frame).all()
     assert ((got[0].std[arm] > 0) == ~obs[(offs[order[0]] + 149) % T][arm]).all()
+
+
+def test_step_block_is_step_batch_as_arrays(walk, monkeypatch):
+    """``step_block`` (the daemon's bundle path) returns what ``step_batch`` returns, as arrays
+    written by the one compiled call: the same bits in every fill, std, filled mask, style
+    posterior and phase, streams on scrambled, non-contiguous rows; one stream, and a level,
+    go through step_batch's Fills stacked."""
+    model, frames, obs = walk
+    a, b = model.with_options(), model.with_options()      # two models: two pools, one the reference
+    offs = np.array([0, 91, 37, 203, 150])
+    order = [3, 0, 4, 1, 2]
+    sa = [a.stream() for _ in range(2 * len(offs))][::2]
+    sb = [b.stream() for _ in range(2 * len(offs))][::2]
+    calls = []
+    orig = fast.step_rows_arrays
+    monkeypatch.setattr(fast, "step_rows_arrays", lambda *x, **k: calls.append(1) or orig(*x, **k))
+    T = frames.shape[0]
+    for t in range(120):
+        rows = (offs + t) % T
+        f, o = np.where(obs[rows], frames[rows], np.nan)[order], obs[rows][order]
+        ref = a.step_batch([sa[i] for i in order], f, o)
+        got = b.step_block([sb[i] for i in order], f, o)
+        assert isinstance(got.style, np.ndarray) and isinstance(got.phase, np.ndarray) and got.degraded is None
+        for j, fl in enumerate(ref):
+            np.testing.assert_array_equal(got.frame[j], fl.frame)
+            np.testing.assert_array_equal(got.std[j], fl.std)
+            np.testing.assert_array_equal(got.filled[j], fl.filled)
+            assert got.style[j].tolist() == fl.extras["style"] and got.phase[j] == fl.extras["phase"]
+    assert len(calls) == 2 * 120                              # each path one compiled call a tick
+    one = b.step_block([sb[0]], f[:1], o[:1])                 # one stream: step_batch's Fill, stacked
+    ref1 = a.step_batch([sa[0]], f[:1], o[:1])[0]
+    np.testing.assert_array_equal(one.frame[0], ref1.frame)
+    assert one.style == [ref1.extras["style"]] and one.degraded == [False]
+    with pytest.raises(ValueError, match="same stream twice"):
+        b.step_block([sb[0], sb[0]], f[:2], o[:2])
 
 
 def test_a_batch_refuses_rows_outside_the_pool_and_a_stream_twice(walk):
