@@ -99,6 +99,16 @@ def _step_batch(model: Model, states: list[Any], frames: np.ndarray, observed: n
     return model.step_batch(states, frames, observed, level=level)
 
 
+def predict_gaps(model: Model, group: list[Session], gaps: list[int], C: int, level: int | None) -> None:
+    """The frames that never arrived before each stream's frame (``gaps[i]`` of them): prediction
+    steps with every channel missing, batched by round; the row path and the block path both."""
+    for r in range(max(gaps, default=0)):
+        who = [s for s, g in zip(group, gaps) if g > r]
+        _step_batch(model, [s.state for s in who], np.full((len(who), C), np.nan), np.zeros((len(who), C), bool), level)
+        for s in who:
+            s.count("predicted")
+
+
 Rows = tuple[list[int], np.ndarray, np.ndarray]  # (seqs, (n, C) frames, (n, C) observed) of a bundle's streams
 
 
@@ -314,13 +324,7 @@ class Scheduler:
         level = plan.iterations if plan.iterations != levels[0] else None  # (None: full quality)
         t0 = self.clock()
         try:
-            # frames that never arrived: prediction steps, all channels missing (batched by round)
-            for r in range(max(gaps, default=0)):
-                who = [s for s, g in zip(group, gaps) if g > r]
-                _step_batch(model, [s.state for s in who], np.full((len(who), C), np.nan), np.zeros((len(who), C), bool),
-                            level)
-                for s in who:
-                    s.count("predicted")
+            predict_gaps(model, group, gaps, C, level)   # frames that never arrived
             mf, mo = model_inputs(group, C) if rows is None else rows[1:]
             fills = _step_batch(model, [s.state for s in group], mf, mo, level)
         except Exception as e:  # noqa: BLE001 - a model bug must not stop the daemon: pass the frames through

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.scheduler import Scheduler, StepPlan, _step_batch, levels_of
+from daemon.scheduler import Scheduler, StepPlan, levels_of, predict_gaps
 from daemon.session import Session, stepped_rows
 from lacuna.filler import BlockFill, Fill, FillsDoNotStack, Model
 
@@ -51,13 +51,7 @@ def _step(sched: Scheduler, model: Model, plan: StepPlan, seqs: list[int], frame
     t0 = sched.clock()
     fills: list[Fill] | None = None
     try:
-        # frames that never arrived: prediction steps, all channels missing (batched by round)
-        for r in range(max(gaps, default=0)):
-            who = [s for s, g in zip(group, gaps) if g > r]
-            _step_batch(model, [s.state for s in who], np.full((len(who), C), np.nan), np.zeros((len(who), C), bool),
-                        level)
-            for s in who:
-                s.count("predicted")
+        predict_gaps(model, group, gaps, C, level)   # frames that never arrived
         states: list[Any] = [s.state for s in group]
         try:
             got: BlockFill | None = model.step_block(states, frames, observed, level)
