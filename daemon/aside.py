@@ -4,43 +4,32 @@ Under a backlog most frames of a burst are superseded by a newer frame of their 
 answered after the turn's fills (daemon/dispatch.py, ``SessionTable.replay``).  Their answer
 (``drop`` conflated, late or duplicate) depends only on the frame's stream, seq, capture time
 and width, so a well-formed one is kept as ``(seq, t)``, read once from its unpacked map
-(:func:`head`, under exactly the conditions of daemon/decode.py's fast path, which builds the
-``Frame``), and replayed without decoding it, a run of them in one loop (``SessionTable.take_run``).  Anything else (a frame
+(:func:`head`, by daemon/decode.py's fast-path check ``well_formed``, which builds the
+``Frame`` there), and replayed without decoding it, a run of them in one loop (``SessionTable.take_run``).  Anything else (a frame
 the fast path would not take, one of another sender or width) keeps its map and is decoded and
 taken at its turn in the replay as before, so its answer (an ``error``, say) is the same.
 """
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 
-from daemon.block import no_inf
-from daemon.schema import F32, MAX_CHANNELS, MAX_SEQ, MAX_STREAM_ID, SCHEMA_VERSION
+from daemon.decode import well_formed
+from daemon.schema import F32, SCHEMA_VERSION
 
 Head = tuple[int, float, int]  # (seq, t, width) of a well-formed frame
 NO_ANGLES = np.empty(0, F32)  # a replayed frame's angles: SessionTable.take_run does not read them
-_ADD = np.add.reduce
 
 
 def head(m: dict[str, Any]) -> Head | None:
-    """(seq, t, width) of a frame map that daemon/decode.py's ``_decode_frame`` takes on its fast
-    path (the same checks, in the same order; keep the two alike), else None."""
-    v, sid, seq, t, b, ob = m.get("v"), m.get("stream"), m.get("seq"), m.get("t"), m.get("angles"), m.get("observed")
-    if not (m.get("type") == "frame" and type(v) is int and v == SCHEMA_VERSION
-            and type(sid) is str and 0 < len(sid) <= MAX_STREAM_ID and type(seq) is int and 0 <= seq <= MAX_SEQ
-            and type(t) is float and math.isfinite(t) and type(b) is bytes and 0 < len(b) <= 4 * MAX_CHANNELS
-            and not len(b) % 4 and sid.isprintable()):
+    """(seq, t, width) of a frame map of this schema version that daemon/decode.py takes on its
+    fast path (``well_formed``), else None."""
+    v = m.get("v")
+    if not (m.get("type") == "frame" and type(v) is int and v == SCHEMA_VERSION):
         return None
-    if ob is None:
-        if no_inf(b) or not np.isinf(np.frombuffer(b, dtype=F32)).any():
-            return seq, t, len(b) // 4
-    elif type(ob) is bytes and 4 * len(ob) == len(b) and not ob.translate(None, b"\x00\x01"):
-        if math.isfinite(_ADD(np.frombuffer(b, dtype=F32), where=np.frombuffer(ob, dtype=np.bool_),
-                              dtype=np.float64)):
-            return seq, t, len(b) // 4
-    return None
+    got = well_formed(m)
+    return None if got is None else (got[1], got[2], got[3].size)
 
 
 def keep(m: Any, s: Any, who: Any) -> Head | None:

@@ -142,9 +142,10 @@ def _number(m: Map, key: str, what: str) -> float:
 _ADD = np.add.reduce
 
 
-def _decode_frame(m: Map) -> Frame:
-    # fast path for the common, well-formed frame (the daemon's hot path); anything unusual
-    # goes through the checked path below, which names what is wrong
+def well_formed(m: Map) -> tuple[str, int, float, np.ndarray, np.ndarray | None] | None:
+    """(stream, seq, t, angles, observed) of a common, well-formed frame map (the daemon's hot
+    path, and daemon/aside.py's set-aside frames), else None: anything unusual goes through the
+    checked path, which names what is wrong."""
     sid, seq, t, b, ob = m.get("stream"), m.get("seq"), m.get("t"), m.get("angles"), m.get("observed")
     if (type(sid) is str and 0 < len(sid) <= MAX_STREAM_ID and type(seq) is int and 0 <= seq <= MAX_SEQ
             and type(t) is float and math.isfinite(t) and type(b) is bytes and 0 < len(b) <= 4 * MAX_CHANNELS
@@ -152,15 +153,20 @@ def _decode_frame(m: Map) -> Frame:
         angles = np.frombuffer(b, dtype=F32)
         if ob is None:
             if no_inf(b) or not np.isinf(angles).any():
-                return Frame(sid, seq, t, angles, None)
+                return sid, seq, t, angles, None
         # a mask of one 0/1 byte per channel (translate deletes those bytes: nothing may be left)
         elif type(ob) is bytes and 4 * len(ob) == len(b) and not ob.translate(None, b"\x00\x01"):
             observed = np.frombuffer(ob, dtype=np.bool_)
             # one reduction: the float64 sum of the observed values is finite exactly when all of them
             # are (float32 values cannot overflow it; NaN and +-inf propagate)
             if math.isfinite(_ADD(angles, where=observed, dtype=np.float64)):
-                return Frame(sid, seq, t, angles, observed)
-    return _decode_frame_checked(m)
+                return sid, seq, t, angles, observed
+    return None
+
+
+def _decode_frame(m: Map) -> Frame:
+    got = well_formed(m)
+    return Frame(*got) if got is not None else _decode_frame_checked(m)
 
 
 def _decode_frame_checked(m: Map) -> Frame:
