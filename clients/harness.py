@@ -170,13 +170,18 @@ class DaemonProcess:
             self.proc.wait(STOP_TIMEOUT_S)
 
     def stop(self, sig: int = _signal.SIGTERM, timeout_s: float = STOP_TIMEOUT_S) -> int | None:
-        """Signal (SIGTERM: the daemon drains and exits), SIGKILL after ``timeout_s``; the exit status."""
+        """Signal (SIGTERM: the daemon drains and exits), SIGKILL after ``timeout_s``; the exit status.
+        A daemon held stopped (SIGSTOP: a starved soak, a debugger) is continued after the signal, so
+        it drains and exits rather than waiting out ``timeout_s`` for its SIGKILL; without that, a
+        run interrupted while its daemon was stopped left a stopped ``lacuna serve`` behind."""
         p = self.proc
         if p is None:
             return None
         if p.poll() is None:
             try:
                 p.send_signal(sig)
+                if sig != _signal.SIGSTOP:
+                    p.send_signal(_signal.SIGCONT)  # a no-op for a running daemon
                 p.wait(timeout_s)
             except subprocess.TimeoutExpired:
                 p.kill()

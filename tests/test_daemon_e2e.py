@@ -692,6 +692,27 @@ def test_sigterm_drains_and_sd_notify_messages(tmp_path, daemons, ctx):
         ns.close()
 
 
+def test_stop_drains_a_daemon_that_is_held_stopped(tmp_path, daemons, ctx):
+    """A daemon held stopped (SIGSTOP: the starved soak, a debugger) when its harness stops it
+    drains and exits 0: the harness continues it after SIGTERM.  Before, SIGTERM stayed pending on
+    the stopped process until the SIGKILL fallback (exit -9), and a run interrupted there left a
+    stopped ``lacuna serve`` on the machine."""
+    d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}}))
+    s = dealer(ctx, d)
+    s.send(frame("t", 0, np.zeros(len(CH))))
+    assert isinstance(recv(s), wire.FillMsg)
+    d.signal(signal.SIGSTOP)
+    wait_until(lambda: _proc_state(d.proc.pid) == "T", 10, "the daemon stopped (state T)")
+    assert d.stop(timeout_s=60) == 0
+    stopped = d.wait_for("stopped", 5)
+    assert stopped["frames_in"] == 1 and stopped["frames_out"] == 1
+
+
+def _proc_state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as fh:
+        return fh.read().rsplit(")", 1)[1].split()[0]
+
+
 # ---- degrade --------------------------------------------------------------------------------------
 def test_over_budget_steps_degrade_to_hold_and_say_so(tmp_path, daemons, ctx):
     rng = np.random.default_rng(1)
