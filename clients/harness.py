@@ -11,6 +11,10 @@ The one daemon harness of ``lacuna bench --serve``/``replay --serve``/``demo``, 
   process must drain: a daemon that logs 10^5 rejections costs the sender nothing.
   ``wait_for(event, **fields)`` returns the next such record not returned before.
 * ``stop()`` sends SIGTERM (the daemon drains), SIGKILL after ``STOP_TIMEOUT_S``: never hangs.
+* Every child carries its owner in its environment (``OWNER_ENV``: the starting process's pid and
+  start time).  A harness process that dies without stopping its daemon (SIGKILL, a CI timeout)
+  leaves the daemon behind, stopped forever if it was held stopped; ``sweep_orphans()`` finds such
+  children of harnesses no longer alive and kills them (the test suite calls it at start).
 """
 from __future__ import annotations
 
@@ -33,6 +37,7 @@ from lacuna.errors import LacunaError
 START_TIMEOUT_S = 60.0  # loading big models takes a while on a busy 2-core machine
 STOP_TIMEOUT_S = 10.0  # SIGTERM drains; after this, SIGKILL
 POLL_S = 0.01
+OWNER_ENV = "LACUNA_HARNESS_OWNER"  # "<pid>:<start time in clock ticks>" of the process that started the daemon
 
 
 class DaemonStartError(LacunaError, RuntimeError):
@@ -68,6 +73,7 @@ class DaemonProcess:
         self.env = dict(os.environ, PYTHONUNBUFFERED="1")
         self.env.pop("NOTIFY_SOCKET", None)  # not ours to notify, unless the caller says so
         self.env.update(env or {})
+        self.env[OWNER_ENV] = _owner_tag(os.getpid())
         self.python = python
         self._cfg: Config | None = None
         if isinstance(config, Mapping):
@@ -316,3 +322,66 @@ def rss_bytes(pid: int) -> int | None:
             return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except OSError:
         return None
+
+
+# ---- orphans --------------------------------------------------------------------------------------
+def _start_ticks(pid: int) -> str | None:
+    """A process's start time (field 22 of /proc/PID/stat), None if there is no such process: with
+    the pid it names one process, whatever pid reuse does later."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def _owner_tag(pid: int) -> str:
+    return f"{pid}:{_start_ticks(pid)}"
+
+
+def _owner_of(pid: int) -> str | None:
+    """The OWNER_ENV tag in a lacuna serve's environment, None for any other process (or one not ours
+    to read)."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            argv = fh.read().split(b"\0")
+        if b"lacuna.cli" not in argv or b"serve" not in argv:
+            return None
+        with open(f"/proc/{pid}/environ", "rb") as fh:
+            env = fh.read().split(b"\0")
+    except OSError:
+        return None
+    key = OWNER_ENV.encode() + b"="
+    for kv in env:
+        if kv.startswith(key):
+            return kv[len(key):].decode(errors="replace")
+    return None
+
+
+def orphans() -> list[int]:
+    """Pids of ``lacuna serve`` processes started by a harness whose process is gone."""
+    found = []
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        tag = _owner_of(int(name))
+        if tag is None:
+            continue
+        owner, _, ticks = tag.partition(":")
+        if not owner.isdigit() or _start_ticks(int(owner)) != ticks:
+            found.append(int(name))
+    return found
+
+
+def sweep_orphans() -> list[int]:
+    """SIGKILL every orphaned harness daemon (``orphans()``; SIGKILL ends a stopped process too);
+    the pids killed.  A daemon started by a live process, or by hand without the harness, is never
+    touched."""
+    killed = []
+    for pid in orphans():
+        try:
+            os.kill(pid, _signal.SIGKILL)
+            killed.append(pid)
+        except ProcessLookupError:
+            pass
+    return killed

@@ -13,7 +13,16 @@ from mocap.datasets import data_dir
 
 
 def pytest_report_header(config):
-    return [f"lacuna data dir: {data_dir()}", f"LACUNA_TEST_SEED={_seed()}"]
+    return [f"lacuna data dir: {data_dir()}", f"LACUNA_TEST_SEED={_seed()}", _swept()]
+
+
+def _swept() -> str:
+    """Daemons left behind by an earlier run's harness that died without stopping them (stopped ones
+    never exit on their own, and all of them hold CPU or ports): killed before this run starts."""
+    from clients.harness import sweep_orphans
+
+    killed = sweep_orphans()
+    return f"orphaned harness daemons killed: {killed}" if killed else "orphaned harness daemons: none"
 
 
 def _seed() -> int:
