@@ -86,10 +86,19 @@ class DefaultState(FillerState):
         return self.step_numpy(f, obs)
 
     def _step_fast(self, f: np.ndarray, obs: np.ndarray) -> Fill:
+        C = self.m.n_channels
+        out = np.empty(C)
+        std = np.empty(C)
+        self._step_into(f, obs, out, std)
+        return Fill(out, std, ~obs)
+
+    def _step_into(self, f: np.ndarray, obs: np.ndarray, out: np.ndarray, std: np.ndarray) -> None:
+        """:meth:`_step_fast` writing the fill and its std into ``out`` and ``std`` (C float64
+        each, contiguous: a row of the caller's (n, C) arrays), with no Fill (blend/withhlm.py's
+        ``step_block``)."""
         from blend.fast import reg_missing, step_kernel
 
         m = self.m
-        C = m.n_channels
         miss_reg = self.mreg
         if reg_missing(obs, m.reg_idx, miss_reg):
             key = miss_reg.tobytes()
@@ -100,15 +109,12 @@ class DefaultState(FillerState):
         else:
             self.miss_key = None
             mm, O, B, changed, has = m._none_i, m._none_i, m._none_B, False, False
-        out = np.empty(C)
-        std = np.empty(C)
         step_kernel(f, obs, m.ang, m.group, m.mean_, m.std_, m.reg_idx, m.mu_, m.knots, m.weights.wv, m.weights.wl,
                     m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, has, changed, self.last, self.h, self.vel,
                     self.v0, self.k, self.R, self.off, self.amean, self.avar, self.lstd, self.hist, self.sv, out, std,
                     self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH,
                     m.guard_h, m.guard_hf, m.guard_par, m.guard_cols_flat, m.guard_cols_ptr, m.guard_sh, m.guard_pos,
                     self.vk, self.vh, self.vv, self.voff, self.GS, self.GL, self.gbuf, m.guard_bin)
-        return Fill(out, std, ~obs)
 
     def _shadow(self, f: np.ndarray, obs: np.ndarray) -> None:
         """Predict one observed regression group from the others, as if it were missing."""

@@ -74,7 +74,7 @@ from blend import calib
 from blend.model import DefaultModel, checked_batch
 from blend.withhlm_fast import mix_row, observed_finite, shadow_counts
 from lacuna import jit, modelfile
-from lacuna.filler import Fill, FillerError, FillerState, Model, check_frame
+from lacuna.filler import BlockFill, Fill, FillerError, FillerState, Model, check_frame
 from mocap.representation import is_angle
 from mocap.rootrot import wrap180 as wrap
 
@@ -182,6 +182,58 @@ class WithHLMModel(Model):
             return self._step(states, frames, observed)   # checked as checked_batch does, compiled
         F, O = checked_batch(len(states), self.n_channels, frames, observed)
         return self._step(states, F, O)
+
+    def step_block(self, states, frames, observed, level=None):
+        """``step_batch``'s fills as (n, C) arrays (the daemon's bundle path): where the compiled
+        mixing serves (``_step_compiled``'s case), each stream's fill and std are written by
+        ``mix_row`` straight into rows of the block, the blend's own into scratch rows
+        (``_step_into``), the HLM's by its ``step_block``: no Fill per stream (``_step_block``).
+        Otherwise ``step_batch``'s Fills stacked (``Model.step_block``).  Same numbers either way
+        (tests/test_default_step_block.py)."""
+        n = len(states)
+        if level is None and n and self.compiled and self._direct and self.default.compiled \
+                and all(type(s) is WithHLMState and s.m is self and not s.collect and not s.ds.collect for s in states) \
+                and _ready(frames, np.float64, (n, self.n_channels)) and _ready(observed, np.bool_, frames.shape) \
+                and observed_finite(frames, observed):
+            return self._step_block(states, frames, observed)
+        return super().step_block(states, frames, observed, level)
+
+    def _step_block(self, states: list[WithHLMState], F: np.ndarray, O: np.ndarray) -> BlockFill:
+        """_step_compiled into arrays, in its order: stream by stream the plan and the blend's
+        step (a window's twin copied first, then stepped after the stream's own), the HLM's
+        block, the compiled mixing a row each."""
+        n, C = F.shape
+        HO = O
+        D, Dsd = np.empty((n, C)), np.empty((n, C))
+        T = Tsd = None
+        tw: list[int] = []
+        for i, s in enumerate(states):
+            nm = shadow_counts(O[i], self._nonpos, self._sgroup, s.gm)
+            g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
+            if g >= 0:
+                HO = O.copy() if HO is O else HO
+                HO[i, self._cols[g]] = False
+                if s.twin is None:
+                    s.twin = _copy_state(s.ds)
+            s.ds._step_into(F[i], O[i], D[i], Dsd[i])   # type: ignore[attr-defined]
+            if g >= 0:
+                if T is None:
+                    T, Tsd = np.empty((n, C)), np.empty((n, C))
+                s.twin._step_into(F[i], HO[i], T[i], Tsd[i])   # type: ignore[union-attr]
+                tw.append(i)
+        hb = self.hlm.step_block([s.hs for s in states], F, HO)
+        H, Hsd = hb.frame, hb.std
+        out, std = np.empty((n, C)), np.empty((n, C))
+        j = 0
+        for i, s in enumerate(states):
+            has = j < len(tw) and tw[j] == i
+            j += has
+            eh, e0, nh = mix_row(F[i], O[i], HO[i], D[i], Dsd[i], H[i], Hsd[i], T[i] if has else D[i],   # type: ignore[index]
+                                 has, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, s.logq),
+                                 self._anc, s.k, s.o, out[i], std[i])
+            if has and nh:
+                s._score(eh, e0)
+        return BlockFill(out, std, ~O, hb.style, hb.phase)
 
     def _step(self, states: list[WithHLMState], F: np.ndarray, O: np.ndarray) -> list[Fill]:
         """Every stream of the batch at once: plan the shadow masks, step each expert (the twins of

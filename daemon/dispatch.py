@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Generator
 from typing import Any
 
-from daemon import aside, blockpath, osc, wire
+from daemon import aside, blockpath, osc, oscblock, wire
 from daemon import budget as budgets
 from daemon.parts import Parts
 from daemon.session import Origin, SessionError, principal
@@ -42,8 +42,9 @@ class Dispatch(Parts):
             self._handle_map(m, origin, arrived)
         elif data.startswith(osc.BUNDLE_PREFIX):  # several messages of one instant
             self._osc_in, self._osc_errs = len(data), []
-            try:
-                self._take(self._osc_bundle, data, origin, arrived)
+            try:  # (a bundle of frames: as arrays where it can, daemon/oscblock.py)
+                if not oscblock.take(self, data, origin, arrived):
+                    self._take(self._osc_bundle, data, origin, arrived)
             finally:
                 errs, self._osc_errs = self._osc_errs, None
                 if errs:

@@ -157,8 +157,7 @@ def decode_bundle(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES, depth: i
     while i < n:
         size = int.from_bytes(data[i:i + 4], "big", signed=True) if n - i >= 4 else -1
         if size <= 0 or size % 4 or i + 4 + size > n:
-            out.append(wire.WireError("malformed", f"OSC bundle element at byte {i} declares {size} bytes with "
-                                                   f"{n - i - 4} left: the rest of the bundle cannot be read"))
+            out.append(element_error(i, size, n))
             break
         el = data[i + 4:i + 4 + size]
         i += 4 + size
@@ -174,6 +173,12 @@ def decode_bundle(data: bytes, max_bytes: int = wire.MAX_MESSAGE_BYTES, depth: i
         if len(out) > wire.MAX_BUNDLE:
             raise wire.WireError("too_large", f"an OSC bundle of more than {wire.MAX_BUNDLE} messages")
     return out
+
+
+def element_error(i: int, size: int, n: int) -> wire.WireError:
+    """A bundle's element at byte ``i`` of ``n`` whose size field (``size``) is wrong."""
+    return wire.WireError("malformed", f"OSC bundle element at byte {i} declares {size} bytes with "
+                                       f"{n - i - 4} left: the rest of the bundle cannot be read")
 
 
 def _via_wire(d: dict[str, Any]) -> wire.Message:

@@ -1,18 +1,17 @@
 """Transports: the daemon's sockets (ZeroMQ ROUTER/PULL/SUB/PUB, OSC over UDP) behind one poller.
 
-``receive(ready)`` drains what arrived (bounded per socket and tick) and hands the turn's
-messages (ZeroMQ, then OSC datagrams), each socket's in arrival order, to
-``on_batch([(bytes, origin, arrival time), ...])`` (by default ``on_message`` for each);
-``send(origin, message, publish)`` answers on the transport the message came from and, for
-filled frames, also publishes on PUB.  Between ``hold()`` and ``flush()`` ZeroMQ answers are queued and then sent together; answers to the
-frames of a ``frames`` bundle (origin ``("router", envelope, "bundle")``) are joined, per peer,
-into one ``replies`` message at the flush.  Sends never block: a peer over its high-water mark
-loses that answer and the loss is counted.
+``receive(ready)`` drains what arrived (bounded per socket and tick) and hands the turn's messages
+(ZeroMQ, then OSC datagrams), each socket's in arrival order, to ``on_batch([(bytes, origin, arrival time),
+...])`` (by default ``on_message`` for each); ``send(origin, message, publish)`` answers on the transport the
+message came from and, for filled frames, also publishes on PUB.  Between ``hold()`` and ``flush()`` ZeroMQ
+answers are queued and then sent together; answers to the frames of a ``frames`` bundle (origin ``("router",
+envelope, "bundle")``) are joined, per peer, into one ``replies`` message at the flush.  Sends never block: a
+peer over its high-water mark loses that answer and the loss is counted.
 
-``receive`` reads everything waiting (up to DRAIN_MAX a socket) before it handles any of it, so
-the sessions see the newest frame of every stream and conflate the rest.  Reading less per turn
-does not shorten a frame's wait, it moves part of it into the socket where nothing sees it or
-conflates it (tried and reverted; docs/BENCHMARKS.md, the overload paragraph).
+``receive`` reads everything waiting (up to DRAIN_MAX a socket) before it handles any of it, so the sessions
+see the newest frame of every stream and conflate the rest.  Reading less per turn does not shorten a frame's
+wait, it moves part of it into the socket where nothing sees it or conflates it (tried and reverted;
+docs/BENCHMARKS.md, the overload paragraph).
 """
 from __future__ import annotations
 
@@ -25,7 +24,7 @@ from typing import Any
 import msgpack
 import zmq
 
-from daemon import osc, security, wire
+from daemon import osc, oscblock, security, wire
 from daemon.config import Config
 from daemon.metrics import Metrics
 
@@ -312,8 +311,9 @@ class Transports:
             self._zmq(self.pub, [msg.stream.encode(), body or self._encode(msg)], "pub")  # type: ignore[union-attr]
 
     def send_fill_maps(self, origin: Origin, maps: list[dict[str, Any]]) -> None:
-        """:meth:`send` with ``publish`` for each of a bundle's fills given as maps (origin
-        ``("router", envelope, "bundle")`` or PULL's, daemon/tickblock.py): the same messages, in order."""
+        """:meth:`send` with ``publish`` for each of a bundle's fills given as maps (daemon/tickblock.py), in order."""
+        if origin[0] == "osc":  # (each fill's datagram, then PUB: daemon/oscblock.py)
+            return oscblock.send_fills(self, origin, maps)
         pub, pack = self.pub, self._pack
         router, envelope = (self.router, tuple(origin[1])) if origin[0] == "router" else (None, ())
         for m in maps:

@@ -8,8 +8,8 @@ fuzzed turns of bundles of 35_08's frames (the left arm lost in bursts, streams 
 offsets of the take; bundles reordered, cut short, with gaps, duplicates and late frames, single
 frames beside them, re-handshakes, masks, frames overdue before and after the step): the reply
 bytes must be the same, in the same order, and so must every session's state and its rows of
-the model's state pool.  The same for blend's ``default`` (trained small on 35_01/06), a model
-with no array step of its own: ``Model.step_block``'s stacked Fills; tests/test_daemon_wire_block.py
+the model's state pool.  The same for blend's ``default`` (trained small on 35_01/06), whose own
+``step_block`` (blend/withhlm.py) must have stepped the served bundles; tests/test_daemon_wire_block.py
 fuzzes those with a generic styled model, and the pass-through."""
 from __future__ import annotations
 
@@ -125,12 +125,16 @@ def _turns(rng, sids, channels, frames, n_turns, clock, peer):
 
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("case", ["drop", "serve", "drop-pull", "default-drop"])
-def test_hlm_bundles_as_arrays_equal_the_row_path_bytes(hlm, case, seed):
+def test_hlm_bundles_as_arrays_equal_the_row_path_bytes(hlm, case, seed, monkeypatch):
     model, frames, channels = hlm
+    arrays = {"default": 0}  # default's own step_block (blend/withhlm.py) steps the served bundles
     if case.startswith("default-"):
         case = case.split("-", 1)[1]
         pair = (_default(), _default())
         assert pair[0] is not pair[1] and list(pair[0].channels) == channels
+        orig = type(pair[0])._step_block
+        monkeypatch.setattr(type(pair[0]), "_step_block", lambda self, *a: arrays.__setitem__(
+            "default", arrays["default"] + (self is pair[0]) - (self is pair[1]) * 1000) or orig(self, *a))
     else:
         pair = (model.with_options(), model.with_options())
     rng = np.random.default_rng(100 + seed)
@@ -155,6 +159,7 @@ def test_hlm_bundles_as_arrays_equal_the_row_path_bytes(hlm, case, seed):
     assert fast.sessions.block_served > 0 and ref.sessions.block_served == 0
     # the HLM's style posteriors and phases went out, and byte for byte alike
     assert styled > 0 or pair[0].method != "hlm"
+    assert arrays["default"] > 0 or pair[0].method == "hlm"
     assert fast.sched.step_errors == ref.sched.step_errors == 0
 
 
