@@ -186,13 +186,22 @@ def _via_wire(d: dict[str, Any]) -> wire.Message:
     return wire.decode(msgpack.packb({"v": 1, **d}, use_bin_type=True), 1 << 30)
 
 
+I32_MAX = 2**31 - 1
+
+
+def i32(v: int) -> int:
+    """An int for an OSC "i" argument: saturated to int32 (a fill's gap after a seq that jumped by
+    2^40, a proc_us after a stall), where python-osc would raise inside the tick."""
+    return max(-I32_MAX - 1, min(I32_MAX, int(v)))
+
+
 def encode(msg: wire.Message) -> bytes:
     """A daemon answer -> one OSC datagram."""
     if isinstance(msg, wire.FillMsg):
         bb = OscBundleBuilder(IMMEDIATELY)
         sid, seq = (msg.stream, "s"), (msg.seq, "h")
         bb.add_content(_msg("/lacuna/fill", [sid, seq, (msg.t, "d"), (msg.status, "s"), (msg.model, "s"),
-                                             (int(msg.proc_us), "i"), (int(msg.gap), "i")]
+                                             (i32(msg.proc_us), "i"), (i32(msg.gap), "i")]
                             + [(float(v), "f") for v in msg.angles]).build())
         bb.add_content(_msg("/lacuna/std", [sid, seq] + [(float(v), "f") for v in msg.std]).build())
         bb.add_content(_msg("/lacuna/filled", [sid, seq, (np.asarray(msg.filled, np.uint8).tobytes(), "b")]).build())

@@ -233,7 +233,7 @@ def fill_datagram(m: dict[str, Any]) -> bytes:
     ids = sid + struct.pack(">q", m["seq"])
     C = len(m["angles"]) // 4
     parts = [b"/lacuna/fill\0\0\0\0" + _tags(",shdssii", C) + ids + struct.pack(">d", m["t"]) + _s(m["status"])
-             + _s(m["model"]) + struct.pack(">ii", int(m["proc_us"]), int(m.get("gap", 0))) + _floats(m["angles"]),
+             + _s(m["model"]) + struct.pack(">ii", osc.i32(m["proc_us"]), osc.i32(m.get("gap", 0))) + _floats(m["angles"]),
              b"/lacuna/std\0" + _tags(",sh", C) + ids + _floats(m["std"])]
     fb = m["filled"]
     parts.append(b"/lacuna/filled\0\0" + b",shb\0\0\0\0" + ids + struct.pack(">i", len(fb)) + fb + b"\0" * (-len(fb) % 4))

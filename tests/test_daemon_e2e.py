@@ -1170,3 +1170,34 @@ def test_cpu_latency_request_mechanics_on_real_files(tmp_path):
         p.write_text(f"[daemon]\ncpu_latency_us = {bad}\n[models.m]\nbuiltin = \"passthrough\"\n")
         with pytest.raises(config_mod.ConfigError, match=f"daemon.cpu_latency_us {needle}"):
             config_mod.load(str(p))
+
+
+def test_osc_fill_whose_gap_overflows_int32_is_answered_saturated_and_the_daemon_serves_on(tmp_path, daemons):
+    """OSC's fill carries the gap (frames skipped since the last one served) as an int32; a peer
+    whose seq jumps by 2^40 made the encoder raise inside the tick, and the turn was lost for every
+    stream in it.  The gap saturates at 2^31 - 1 instead; the same stream and another go on."""
+    d = daemons(write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", -4.0)}}, osc=True))
+    host, port = d.endpoints["osc"].rsplit(":", 1)
+    u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    u.bind(("127.0.0.1", 0))
+    u.settimeout(5.0)
+
+    def frame64(sid, seq):
+        b = OscMessageBuilder("/lacuna/frame")
+        b.add_arg(sid, "s")
+        b.add_arg(seq, "h")
+        b.add_arg(0.0, "d")
+        for v in [1.0, float("nan"), 2.5, 0.0, 1.0, 2.0, 3.0, 4.0]:
+            b.add_arg(v, "f")
+        return b.build().dgram
+
+    def fill_of(data):
+        return {m.address: m.params for m in OscBundle(data)}["/lacuna/fill"]
+
+    try:
+        for sid, seq, gap in [("far", 0, 0), ("far", 1 << 40, 2**31 - 1), ("far", (1 << 40) + 1, 0), ("near", 0, 0)]:
+            u.sendto(frame64(sid, seq), (host, int(port)))
+            fill = fill_of(u.recv(65535))
+            assert fill[:2] == [sid, seq] and fill[6] == gap and fill[3] == "ok"
+    finally:
+        u.close()
