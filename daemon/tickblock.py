@@ -62,6 +62,7 @@ class BlockTick(Parts):
         statuses: list[str] | None = None
         styles: list[Any] | None = None
         phases: list[Any] | None = None
+        rowwise = False  # (True: every row has a style's bytes and a finite phase: both go in each map's literal)
         held: list[bool] | None = None
         std: np.ndarray | None = None
         filled: np.ndarray | None = None
@@ -103,6 +104,7 @@ class BlockTick(Parts):
             if phs is not None:
                 phases = (phs if ident else phs[pos]).tolist() if isinstance(phs, np.ndarray) else \
                     (phs if ident else [phs[j] for j in pos])
+                rowwise = isinstance(st, np.ndarray) and isinstance(phs, np.ndarray) and bool(np.isfinite(phs).all())
             if dgr is not None:
                 held = dgr if ident else [dgr[j] for j in pos]
         if order is None:  # (answer order = table order)
@@ -151,11 +153,20 @@ class BlockTick(Parts):
         name = S[0].model_name
         status = "passthrough"
         cols: list[list[Any]] = [stamps, ab, fb, sb] if whole else [[c[k] for k in ks] for c in (stamps, ab, fb, sb)]
-        maps: list[dict[str, Any]] = [
-            {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
-             "status": status if statuses is None else statuses[k], "model": name, "proc_us": proc_us}
-            for k, s, q, t, a, f, d in zip(ks, out, qk, *cols)]
-        if styles is not None or phases is not None or any(gaps):
+        maps: list[dict[str, Any]]
+        if rowwise and not any(gaps):  # (the HLM's bundle: the maps of the loop below, built in one pass)
+            assert styles is not None and phases is not None and statuses is not None
+            yk, pk = (styles, phases) if whole else ([styles[k] for k in ks], [phases[k] for k in ks])
+            maps = [{"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
+                     "status": u, "model": name, "proc_us": proc_us, "style": y, "phase": ph}
+                    for s, q, t, a, f, d, u, y, ph in zip(out, qk, *cols, statuses if whole else [statuses[k] for k in ks],
+                                                          yk, pk)]
+        else:
+            maps = [
+                {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
+                 "status": status if statuses is None else statuses[k], "model": name, "proc_us": proc_us}
+                for k, s, q, t, a, f, d in zip(ks, out, qk, *cols)]
+        if not (rowwise and not any(gaps)) and (styles is not None or phases is not None or any(gaps)):
             for k, m in zip(ks, maps):
                 if styles is not None and styles[k] is not None:
                     m["style"] = styles[k]

@@ -256,8 +256,11 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
     # the styles' weights (style_weights)
     C = CM // M
     pc = np.zeros(C)
-    for s in range(CM):
-        pc[s // M] += post[s]
+    s = 0
+    for c in range(C):  # pc[s // M] += post[s] for ascending s: the same sums, no integer division a state
+        for _ in range(M):
+            pc[c] += post[s]
+            s += 1
     cmax = 0.0
     for c in range(C):
         if pc[c] > cmax:
