@@ -9,8 +9,10 @@ reference the compiled code is tested against.
 """
 from __future__ import annotations
 
+import hashlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any
 
 try:  # without numba the numpy path serves every stream
@@ -56,6 +58,48 @@ def _probe_wx() -> bool:
             libc.munmap(page, n)
     except (OSError, AttributeError):  # not a POSIX libc (Windows): nothing forbids the JIT there
         return True
+
+
+_ROOT = Path(__file__).resolve().parents[1]
+JIT_PACKAGES = ("lacuna", "mocap", "hlm", "blend")  # the packages whose modules compile with ``jit``
+
+
+def refresh_stale_caches(package_dirs: Iterable[Path], stamp: Path) -> bool:
+    """Delete numba's on-disk caches (``__pycache__/*.nbi``, ``*.nbc``) of ``package_dirs`` when the
+    source of any module there that compiles with this module's ``jit`` has changed since
+    ``stamp`` was written; True if it did.  numba checks a cached kernel only against the
+    timestamp of the file that defines it, so a kernel that calls a compiled function of another
+    file (hlm.fast's step calls hlm.condfill's ``correct1``) kept running the old callee after an
+    edit or an upgrade, until the cache was removed by hand.  Best effort: a read-only install
+    keeps what it has (it never wrote a cache either)."""
+    dirs = sorted(Path(d) for d in package_dirs)
+    h = hashlib.sha1()
+    for d in dirs:
+        for f in sorted(d.glob("*.py")):
+            src = f.read_bytes()
+            if b"jit" in src:
+                h.update(f.name.encode() + b"\0" + src + b"\0")
+    digest = h.hexdigest()
+    try:
+        if stamp.read_text() == digest:
+            return False
+    except OSError:
+        pass
+    try:
+        for d in dirs:
+            for f in list((d / "__pycache__").glob("*.nb[ic]")):
+                f.unlink(missing_ok=True)
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        tmp = stamp.with_name(f"{stamp.name}.{os.getpid()}")
+        tmp.write_text(digest)
+        os.replace(tmp, stamp)
+    except OSError:
+        return False
+    return True
+
+
+if numba is not None:
+    refresh_stale_caches([_ROOT / p for p in JIT_PACKAGES], _ROOT / "lacuna" / "__pycache__" / "jit-sources.sha1")
 
 
 def jit(fn: Callable[..., Any], **options: Any) -> Callable[..., Any]:
