@@ -29,7 +29,8 @@ def add_commands(cli) -> None:
                         "relative where the skeleton has root.tx..rz")
     p.add_argument("--root-tau", type=float, default=None, metavar="FRAMES",
                    help="relative root: the fixed part of the damping of the root's motion over a root dropout, "
-                        "1/FRAMES per frame; 0 = none (see docs/BENCHMARKS.md, HLM root representation)")
+                        "1/FRAMES per frame (with --root-turn > 0: the heading's alone); 0 = none "
+                        "(see docs/BENCHMARKS.md, HLM root representation)")
     p.add_argument("--root-turn", type=float, default=None, metavar="B",
                    help="relative root: the damping's rate grows by B x the yaw rate (rad/frame) seen before the "
                         "dropout: a straight walker keeps walking, a turning one is held (default 8; 0 = off)")

@@ -42,11 +42,12 @@ DEFAULTS: dict[str, Any] = {
     # the root heading-relative (Taylor et al. 2006) where the skeleton has root.tx..rz, its motion
     # over a root dropout damped by exp(-(g r)^2 / 2) after g frames, r = 8 |w|, w the yaw rate
     # (rad/frame) observed before the gap averaged over 60 frames: a straight walker keeps walking,
-    # a turning one is held.  Chosen on VALIDATION (bench/notebook/root-5.md; it replaced a fixed
-    # tau of 40 frames, r = 1/40, worse than hold on the validation turns with the root erased)
+    # a turning one is held; the heading's r has 1/40 added.  Chosen on VALIDATION
+    # (bench/notebook/root-5.md; it replaced r = 1/40 for both, worse than hold on the validation
+    # turns with the root erased)
     "root_mode": "auto",
     "normalize": False,
-    "root_tau": 0.0,        # frames: the damping's fixed part, r += 1 / root_tau (0: none)
+    "root_tau": 40.0,       # frames: the damping's fixed part, r += 1 / root_tau (0: none); with root_turn > 0 the heading's alone
     "root_power": 2.0,      # its shape: 1 exponential, 2 Gaussian (mocap.representation)
     "root_turn": 8.0,       # b: r += b |observed yaw rate| (0: the fixed damping alone)
     "root_turn_frames": 60.0,  # frames of the yaw rate's exponential average

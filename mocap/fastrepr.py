@@ -146,18 +146,22 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         v = Fv[df[k]]
         out[dr[k]] = _wrap(v) if dang[k] else v
     kd = 1.0
+    rate = 0.0
     if relative and root_turn > 0:
-        rate = (1.0 / root_tau if root_tau > 0 else 0.0) + root_turn * abs(_rad(root_st[3]))
+        rate = root_turn * abs(_rad(root_st[3]))
         kd = math.exp(-((root_st[0] * rate) ** root_power) / root_power)
     elif relative and root_tau > 0:
         kd = math.exp(-((root_st[0] / root_tau) ** root_power) / root_power)
+    kh = kd                                  # the heading's (ReprState._damping)
+    if relative and root_turn > 0 and root_tau > 0:
+        kh = math.exp(-((root_st[0] * (rate + 1.0 / root_tau)) ** root_power) / root_power)
     speed, turn = 0.0, 0.0
     if relative:
         side, height, fwd = Fv[rootf[0]], Fv[rootf[1]], Fv[rootf[2]]
         dyaw, pitch, roll = Fv[rootf[3]], Fv[rootf[4]], Fv[rootf[5]]
         speed, turn = math.hypot(side, fwd), abs(dyaw)
         if damped:
-            side, fwd, dyaw = side * kd, fwd * kd, dyaw * kd
+            side, fwd, dyaw = side * kd, fwd * kd, dyaw * kh
         yaw = prev_yaw + _rad(dyaw) if started else prev_yaw
         cy, sy = math.cos(prev_yaw), math.sin(prev_yaw)
         dx = cy * side + sy * fwd
@@ -204,7 +208,7 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         if s0 != s0 or s2 != s2:
             mx = np.nan                      # np.maximum's NaN
         sp = root_st[1] + kd * mx + (1.0 - kd) * speed
-        sy = root_st[2] + kd * s3 + (1.0 - kd) * turn
+        sy = root_st[2] + kh * s3 + (1.0 - kh) * turn
         for i in (0, 2):
             if not observed[pos[i]]:
                 sd[pos[i]] = sp

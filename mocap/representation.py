@@ -21,7 +21,8 @@ first erased frame), damped by exp(-(g / ``root_tau``)^q / q) after g missing fr
 ``root_power``: 1 an exponential decay, 2 a Gaussian one that keeps the motion of short gaps and
 stops that of long ones; ``root_tau`` = 0: undamped), so a long root gap falls back toward
 holding the last root.  With ``root_turn`` b > 0 the damping's rate follows how the performer
-was turning when the root went missing: tau = 1 / (1 / ``root_tau`` + b |w|), w the yaw rate
+was turning when the root went missing: tau = 1 / (b |w|) for the ground motion and
+1 / (1 / ``root_tau`` + b |w|) for the heading (``root_tau`` then damps the heading alone), w the yaw rate
 (radians per frame) observed before the gap, an exponential average over ``root_turn_frames``
 frames of the frames whose yaw rate was observed (frozen over the gap).  A performer walking
 straight keeps walking (on straight walks undamped integration is 7x better than tau 40); one
@@ -428,14 +429,19 @@ class ReprState:
         observed = np.asarray(observed, dtype=bool)
         return np.where(observed, frames, out)
 
-    def _damping(self) -> np.ndarray:
-        """exp(-(g / root_tau)^q / q) for a root missing g frames before this one (1 without damping);
-        with root_turn b > 0, exp(-(g r)^q / q), r = 1 / root_tau + b |yaw rate| (module doc)."""
+    def _damping(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ground motion's, heading's) damping for a root missing g frames before this one:
+        exp(-(g / root_tau)^q / q) both (1 without damping); with root_turn b > 0, exp(-(g r)^q / q)
+        with r = b |yaw rate| for the ground motion and r = b |yaw rate| + 1 / root_tau for the
+        heading (module doc)."""
         tau, q, b = self.rep.root_tau, self.rep.root_power, self.rep.root_turn
         if b > 0:
-            rate = (1.0 / tau if tau > 0 else 0.0) + b * np.abs(np.deg2rad(self.root_st[:, 3]))
-            return np.exp(-((self.root_st[:, 0] * rate) ** q) / q)
-        return np.exp(-((self.root_st[:, 0] / tau) ** q) / q) if tau > 0 else np.ones(self.n)
+            rate = b * np.abs(np.deg2rad(self.root_st[:, 3]))
+            ks = np.exp(-((self.root_st[:, 0] * rate) ** q) / q)
+            kh = np.exp(-((self.root_st[:, 0] * (rate + 1.0 / tau)) ** q) / q) if tau > 0 else ks
+            return ks, kh
+        k = np.exp(-((self.root_st[:, 0] / tau) ** q) / q) if tau > 0 else np.ones(self.n)
+        return k, k
 
     def _damped(self) -> bool:
         return self.rep.root_tau > 0 or self.rep.root_turn > 0
@@ -443,8 +449,8 @@ class ReprState:
     def _decode_root(self, rf: np.ndarray, out: np.ndarray, p: dict[str, Any]) -> None:
         side, height, fwd, dyaw, pitch, roll = (rf[:, i] for i in range(6))
         if self._damped():
-            k = self._damping()
-            side, fwd, dyaw = side * k, fwd * k, dyaw * k
+            k, kh = self._damping()
+            side, fwd, dyaw = side * k, fwd * k, dyaw * kh
         yaw = np.where(self.started, self.prev_yaw + np.deg2rad(dyaw), self.prev_yaw)
         cy, sy = np.cos(self.prev_yaw), np.sin(self.prev_yaw)
         dx = cy * side + sy * fwd
@@ -475,11 +481,11 @@ class ReprState:
         if rep.root_mode == "relative":
             rf = fsd[:, p["rootf"]]
             rv = (rep.denormalize_features(feats) if norm else np.asarray(feats, dtype=np.float64))[:, p["rootf"]]
-            k = self._damping()
+            k, kh = self._damping()
             # the damped increments' own std, and the motion the damping dropped (the performer may
             # well keep moving: the spread between holding and integrating)
             sp = self.root_st[:, 1] + k * np.maximum(rf[:, 0], rf[:, 2]) + (1.0 - k) * np.hypot(rv[:, 0], rv[:, 2])
-            sy = self.root_st[:, 2] + k * rf[:, 3] + (1.0 - k) * np.abs(rv[:, 3])
+            sy = self.root_st[:, 2] + kh * rf[:, 3] + (1.0 - kh) * np.abs(rv[:, 3])
             pos, rot = p["pos"][[0, 2]], p["rot"]
             std[:, pos] = np.where(observed[:, pos], 0.0, sp[:, None])
             std[:, rot] = np.where(observed[:, rot], 0.0, np.maximum(std[:, rot], sy[:, None]))
