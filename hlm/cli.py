@@ -28,8 +28,12 @@ def add_commands(cli) -> None:
                    help="root as raw angles/positions (the paper) or heading-relative motion; auto (the default): "
                         "relative where the skeleton has root.tx..rz")
     p.add_argument("--root-tau", type=float, default=None, metavar="FRAMES",
-                   help="relative root: how fast the root's motion is damped over a root dropout "
+                   help="relative root: the fixed part of the damping of the root's motion over a root dropout, "
+                        "1/FRAMES per frame (with --root-turn > 0: the heading's alone); 0 = none "
                         "(see docs/BENCHMARKS.md, HLM root representation)")
+    p.add_argument("--root-turn", type=float, default=None, metavar="B",
+                   help="relative root: the damping's rate grows by B x the yaw rate (rad/frame) seen before the "
+                        "dropout: a straight walker keeps walking, a turning one is held (default 8; 0 = off)")
     p.add_argument("--normalize", action=argparse.BooleanOptionalAction, default=False,
                    help="scale features to unit variance before training (default off, as the paper)")
     p.add_argument("--fps", type=float, help="resample every file to this rate first")
@@ -104,7 +108,8 @@ def _run_train(args: argparse.Namespace) -> int:
         model = train_model(seqs, ch, [os.path.basename(p) for p in args.data], progress=not args.quiet,
                             styles=args.styles, cycle_frames=args.cycle_frames, n_states=args.states, jumps=args.jumps,
                             n_iter=args.iterations, n_var=args.sweeps, restarts=args.restarts, seed=args.seed,
-                            root_mode=args.root_mode, root_tau=args.root_tau, normalize=args.normalize, kappa=args.kappa,
+                            root_mode=args.root_mode, root_tau=args.root_tau, root_turn=args.root_turn,
+                            normalize=args.normalize, kappa=args.kappa,
                             width=args.width, kappa_global=args.kappa_global, style_switch=args.style_switch,
                             lag=args.lag, skeleton=args.skeleton, cond_shrink=args.cond_shrink)
     model.meta["training"]["fps"] = fps

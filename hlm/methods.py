@@ -40,12 +40,17 @@ DEFAULTS: dict[str, Any] = {
     "screen_iters": 2,
     "seed": 0,
     # the root heading-relative (Taylor et al. 2006) where the skeleton has root.tx..rz, its motion
-    # over a root dropout damped by exp(-(g / 40)^2 / 2) after g frames: chosen on VALIDATION
-    # (docs/BENCHMARKS.md, "HLM root representation")
+    # over a root dropout damped by exp(-(g r)^2 / 2) after g frames, r = 8 |w|, w the yaw rate
+    # (rad/frame) observed before the gap averaged over 60 frames: a straight walker keeps walking,
+    # a turning one is held; the heading's r has 1/40 added.  Chosen on VALIDATION
+    # (bench/notebook/root-5.md; it replaced r = 1/40 for both, worse than hold on the validation
+    # turns with the root erased)
     "root_mode": "auto",
     "normalize": False,
-    "root_tau": 40.0,       # frames: damping of the root's motion over a root gap (relative mode)
+    "root_tau": 40.0,       # frames: the damping's fixed part, r += 1 / root_tau (0: none); with root_turn > 0 the heading's alone
     "root_power": 2.0,      # its shape: 1 exponential, 2 Gaussian (mocap.representation)
+    "root_turn": 8.0,       # b: r += b |observed yaw rate| (0: the fixed damping alone)
+    "root_turn_frames": 60.0,  # frames of the yaw rate's exponential average
     "eta": 0.1,
     "lam_s": 0.1,
     "zbar_frac": 0.01,
@@ -73,7 +78,8 @@ FAITHFUL = {"kappa": 0.0, "kappa_global": 0.0, "style_switch": 0.0, "cond_shrink
 MIN_COND_TAKES = 3
 # the faithful methods' training defaults: the paper's representation (raw root angles and
 # positions, not normalised) and C = 4, whatever ``hlm``'s defaults become
-FAITHFUL_TRAIN = {"root_mode": "raw", "normalize": False, "root_tau": 0.0, "root_power": 1.0, "styles": 4}
+FAITHFUL_TRAIN = {"root_mode": "raw", "normalize": False, "root_tau": 0.0, "root_power": 1.0, "root_turn": 0.0,
+                  "styles": 4}
 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
@@ -85,7 +91,8 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
         o["root_mode"] = "relative" if has_root_channels(channels, o["skeleton"]) else "raw"
     t0 = time.perf_counter()
     rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]),
-                             skeleton=o["skeleton"], root_tau=float(o["root_tau"]), root_power=float(o["root_power"]))
+                             skeleton=o["skeleton"], root_tau=float(o["root_tau"]), root_power=float(o["root_power"]),
+                             root_turn=float(o["root_turn"]), root_turn_frames=float(o["root_turn_frames"]))
     feats = [rep.transform(s) for s in sequences]
     res = fit(feats, int(o["styles"]), int(o["cycle_frames"]), n_restarts=int(o["restarts"]), seed=int(o["seed"]),
               n_iter=int(o["n_iter"]), n_var=int(o["n_var"]), progress=progress,

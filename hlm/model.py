@@ -104,13 +104,14 @@ class HLMModel(FeatureModel):
 
     def with_options(self, **kw) -> HLMModel:
         """A copy with other inference options (the learned parameters are shared, read-only);
-        ``root_tau`` (frames) and ``root_power`` change the representation's root damping, which nothing learned
-        depends on."""
+        ``root_tau`` (frames), ``root_power``, ``root_turn`` and ``root_turn_frames`` change the
+        representation's root damping, which nothing learned depends on."""
         rep = self.representation
-        if "root_tau" in kw or "root_power" in kw:
+        if any(k in kw for k in ("root_tau", "root_power", "root_turn", "root_turn_frames")):
             tau, q = float(kw.pop("root_tau", rep.root_tau)), float(kw.pop("root_power", rep.root_power))
-            if (tau, q) != (rep.root_tau, rep.root_power):
-                rep = rep.with_root_damping(tau, q)
+            b, w = float(kw.pop("root_turn", rep.root_turn)), float(kw.pop("root_turn_frames", rep.root_turn_frames))
+            if (tau, q, b, w) != (rep.root_tau, rep.root_power, rep.root_turn, rep.root_turn_frames):
+                rep = rep.with_root_damping(tau, q, b, w)
         o = HLMOptions(**{**self.options.__dict__, **kw})
         return HLMModel(rep, self.params, o, self.meta, self.cond_cov)
 

@@ -127,10 +127,14 @@ def _to_rxyz(R, p0, p1, p2, out, i0, i1, i2):  # pragma: no cover - compiled
 
 @_jit
 def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, const, dr, df, dang,
-            relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power, out, sd):  # pragma: no cover - compiled
+            relative, rot, pos, rootf, rsrc, normalize, mean, std, root_damp, root_power, out, sd):  # pragma: no cover - compiled
     """ReprState.finish (decode + the raw std + commit), for one stream.  Writes the completed raw
     frame to out, its std (0 where observed) to sd, and the new previous-frame state (prev_u,
-    prev_raw, root_st in place); returns the new prev_yaw."""
+    prev_raw, root_st in place); returns the new prev_yaw.  root_damp: (root_tau, root_turn,
+    root_turn_frames) of the representation (``tables``' "root_tau")."""
+    root_tau, root_turn, turn_frames = root_damp[0], root_damp[1], root_damp[2]
+    damped = root_tau > 0 or root_turn > 0
+    rate_seen = False
     C = frame.shape[0]
     nF = z.shape[0]
     Fv = np.empty(nF)
@@ -142,15 +146,22 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         v = Fv[df[k]]
         out[dr[k]] = _wrap(v) if dang[k] else v
     kd = 1.0
-    if relative and root_tau > 0:
+    rate = 0.0
+    if relative and root_turn > 0:
+        rate = root_turn * abs(_rad(root_st[3]))
+        kd = math.exp(-((root_st[0] * rate) ** root_power) / root_power)
+    elif relative and root_tau > 0:
         kd = math.exp(-((root_st[0] / root_tau) ** root_power) / root_power)
+    kh = kd                                  # the heading's (ReprState._damping)
+    if relative and root_turn > 0 and root_tau > 0:
+        kh = math.exp(-((root_st[0] * (rate + 1.0 / root_tau)) ** root_power) / root_power)
     speed, turn = 0.0, 0.0
     if relative:
         side, height, fwd = Fv[rootf[0]], Fv[rootf[1]], Fv[rootf[2]]
         dyaw, pitch, roll = Fv[rootf[3]], Fv[rootf[4]], Fv[rootf[5]]
         speed, turn = math.hypot(side, fwd), abs(dyaw)
-        if root_tau > 0:
-            side, fwd, dyaw = side * kd, fwd * kd, dyaw * kd
+        if damped:
+            side, fwd, dyaw = side * kd, fwd * kd, dyaw * kh
         yaw = prev_yaw + _rad(dyaw) if started else prev_yaw
         cy, sy = math.cos(prev_yaw), math.sin(prev_yaw)
         dx = cy * side + sy * fwd
@@ -197,7 +208,7 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         if s0 != s0 or s2 != s2:
             mx = np.nan                      # np.maximum's NaN
         sp = root_st[1] + kd * mx + (1.0 - kd) * speed
-        sy = root_st[2] + kd * s3 + (1.0 - kd) * turn
+        sy = root_st[2] + kh * s3 + (1.0 - kh) * turn
         for i in (0, 2):
             if not observed[pos[i]]:
                 sd[pos[i]] = sp
@@ -209,6 +220,7 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         for i in range(3):
             if not (observed[rot[i]] and observed[pos[i]]):
                 seen = False
+        rate_seen = seen and root_st[0] == 0.0 and started
         if seen:
             root_st[0], root_st[1], root_st[2] = 0.0, 0.0, 0.0
         else:
@@ -224,6 +236,9 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         _rxyz(_rad(out[rot[0]]), _rad(out[rot[1]]), _rad(out[rot[2]]), R2)
         yaw2 = math.atan2(R2[0, 2], R2[2, 2])
         new_yaw = prev_yaw + _rad(_wrap(_deg(yaw2 - prev_yaw)))
+        if rate_seen:
+            # the observed yaw rate's exponential average (ReprState.commit)
+            root_st[3] = root_st[3] + (_deg(new_yaw - prev_yaw) - root_st[3]) / turn_frames
     return new_yaw
 
 
@@ -237,11 +252,11 @@ def encode_many(frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, 
 
 @_jit
 def finish_many(z, zstd, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, const, dr, df, dang,
-                relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power, out, sd):  # pragma: no cover - compiled
+                relative, rot, pos, rootf, rsrc, normalize, mean, std, root_damp, root_power, out, sd):  # pragma: no cover - compiled
     for i in range(frames.shape[0]):
         prev_yaw[i] = finish1(z[i], zstd[i], frames[i], observed[i], prev_u[i], prev_raw[i], prev_yaw[i], started[i],
                               root_st[i], center, const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize,
-                              mean, std, root_tau, root_power, out[i], sd[i])
+                              mean, std, root_damp, root_power, out[i], sd[i])
         started[i] = True
 
 
@@ -269,7 +284,9 @@ def tables(rep: Any) -> dict[str, Any]:
             "normalize": bool(rep.normalize),
             "mean": np.ascontiguousarray(p["mean"], np.float64),
             "std": np.ascontiguousarray(p["std"], np.float64),
-            "root_tau": float(rep.root_tau),
+            # (root_tau, root_turn, root_turn_frames): one array, so the kernels that pass it on
+            # (hlm.fast's) keep their signatures
+            "root_tau": np.array([rep.root_tau, rep.root_turn, rep.root_turn_frames], np.float64),
             "root_power": float(rep.root_power),
         }
     return t

@@ -20,7 +20,15 @@ integrates the filled displacement and yaw rate from the last completed frame (n
 first erased frame), damped by exp(-(g / ``root_tau``)^q / q) after g missing frames (q =
 ``root_power``: 1 an exponential decay, 2 a Gaussian one that keeps the motion of short gaps and
 stops that of long ones; ``root_tau`` = 0: undamped), so a long root gap falls back toward
-holding the last root; the reported std of the
+holding the last root.  With ``root_turn`` b > 0 the damping's rate follows how the performer
+was turning when the root went missing: tau = 1 / (b |w|) for the ground motion and
+1 / (1 / ``root_tau`` + b |w|) for the heading (``root_tau`` then damps the heading alone), w the yaw rate
+(radians per frame) observed before the gap, an exponential average over ``root_turn_frames``
+frames of the frames whose yaw rate was observed (frozen over the gap).  A performer walking
+straight keeps walking (on straight walks undamped integration is 7x better than tau 40); one
+who was turning, whose heading the gap makes a guess, is held (a turning walk's future is not in
+its past).  The heading uncertainty reading: heading spread sigma(g) = g / tau, and the mean of
+cos(sigma) is exp(-sigma^2 / 2), the Gaussian damping (q = 2).  The reported std of the
 ground position and of the heading is summed over the gap (the errors of successive increments
 are taken as fully correlated), each frame adding its damped increment's std and the part of
 the increment the damping dropped, not one frame's std.
@@ -80,12 +88,15 @@ class Representation:
     root_tau: float = 0.0                 # frames; damping of root motion over a root gap (0 = none)
     root_power: float = 1.0               # shape of that damping (1 exponential, 2 Gaussian)
     unwrap: bool = True                   # False: angles as captured (Taylor's released code's input)
+    root_turn: float = 0.0                # b: the damping's rate grows by b |observed yaw rate| (0 = off)
+    root_turn_frames: float = 60.0        # frames of the exponential average of that yaw rate
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
     def fit(cls, sequences: Sequence[np.ndarray], channels: Sequence[str], root_mode: str = "relative",
             normalize: bool = True, drop_constant: bool = True, skeleton: Any = None,
-            root_tau: float = 0.0, root_power: float = 1.0, unwrap: bool = True) -> Representation:
+            root_tau: float = 0.0, root_power: float = 1.0, unwrap: bool = True, root_turn: float = 0.0,
+            root_turn_frames: float = 60.0) -> Representation:
         """sequences: list of (n_frames, n_channels) raw frames.  ``skeleton``: a skeleton map
         (name, file or ``mocap.skelmap.SkeletonMap``) naming the root; else recognised from the
         channel names."""
@@ -93,6 +104,8 @@ class Representation:
             raise ValueError(f"root_mode must be 'relative' or 'raw' (got {root_mode!r})")
         if not (np.isfinite(root_tau) and root_tau >= 0 and np.isfinite(root_power) and root_power > 0):
             raise ValueError(f"root_tau must be >= 0 frames and root_power > 0 (got {root_tau}, {root_power})")
+        if not (np.isfinite(root_turn) and root_turn >= 0 and np.isfinite(root_turn_frames) and root_turn_frames >= 1):
+            raise ValueError(f"root_turn must be >= 0 and root_turn_frames >= 1 (got {root_turn}, {root_turn_frames})")
         channels = list(channels)
         allf = np.vstack([np.asarray(s, dtype=np.float64) for s in sequences])
         if allf.shape[1] != len(channels):
@@ -110,7 +123,8 @@ class Representation:
                 keep[channels.index(c)] = True
         center = np.where(ang, circular_mean_deg(allf), 0.0)
         rep = cls(channels, keep.tolist(), allf[0].tolist(), center.tolist(), root_mode, normalize, root=root,
-                  root_tau=float(root_tau), root_power=float(root_power), unwrap=bool(unwrap))
+                  root_tau=float(root_tau), root_power=float(root_power), unwrap=bool(unwrap),
+                  root_turn=float(root_turn), root_turn_frames=float(root_turn_frames))
         rep.features = rep._feature_names()
         rep.mean = [0.0] * len(rep.features)
         rep.std = [1.0] * len(rep.features)
@@ -149,7 +163,8 @@ class Representation:
 
     def to_dict(self) -> dict[str, Any]:
         d = {k: getattr(self, k) for k in ("channels", "keep", "const_value", "center", "root_mode",
-                                            "normalize", "mean", "std", "features", "root_tau", "root_power", "unwrap")}
+                                            "normalize", "mean", "std", "features", "root_tau", "root_power", "unwrap",
+                                            "root_turn", "root_turn_frames")}
         if self.root is not None:
             d["root"] = dict(self.root)
         return d
@@ -159,7 +174,8 @@ class Representation:
         rep = cls(**{k: d[k] for k in ("channels", "keep", "const_value", "center", "root_mode", "normalize",
                                         "mean", "std", "features")}, root=d.get("root"),
                   root_tau=float(d.get("root_tau", 0.0)), root_power=float(d.get("root_power", 1.0)),
-                  unwrap=bool(d.get("unwrap", True)))
+                  unwrap=bool(d.get("unwrap", True)), root_turn=float(d.get("root_turn", 0.0)),
+                  root_turn_frames=float(d.get("root_turn_frames", 60.0)))
         n, f = len(rep.channels), len(rep.features)
         for k, want in (("keep", n), ("const_value", n), ("center", n), ("mean", f), ("std", f)):
             if len(getattr(rep, k)) != want:
@@ -173,12 +189,21 @@ class Representation:
         if not (np.isfinite(rep.root_tau) and rep.root_tau >= 0 and np.isfinite(rep.root_power) and rep.root_power > 0):
             raise ValueError(f"representation root_tau must be >= 0 and root_power > 0 "
                              f"(got {rep.root_tau}, {rep.root_power})")
+        if not (np.isfinite(rep.root_turn) and rep.root_turn >= 0 and np.isfinite(rep.root_turn_frames)
+                and rep.root_turn_frames >= 1):
+            raise ValueError(f"representation root_turn must be >= 0 and root_turn_frames >= 1 "
+                             f"(got {rep.root_turn}, {rep.root_turn_frames})")
         return rep
 
-    def with_root_damping(self, root_tau: float, root_power: float) -> Representation:
-        """A copy with another root damping (not learned, so no refit)."""
+    def with_root_damping(self, root_tau: float, root_power: float, root_turn: float | None = None,
+                          root_turn_frames: float | None = None) -> Representation:
+        """A copy with another root damping (not learned, so no refit); None keeps that setting."""
         d = self.to_dict()
         d["root_tau"], d["root_power"] = float(root_tau), float(root_power)
+        if root_turn is not None:
+            d["root_turn"] = float(root_turn)
+        if root_turn_frames is not None:
+            d["root_turn_frames"] = float(root_turn_frames)
         return Representation.from_dict(d)
 
     # ---- index plumbing -----------------------------------------------------------------------
@@ -304,8 +329,9 @@ class Representation:
 
 class ReprState:
     """Causal encoder/decoder state for n streams: the previous completed frame's unwrapped angles,
-    root position and yaw, and of the root's dropout (``root_st`` (n, 3): frames the root has been
-    missing before this frame, and the std summed over them of the ground position and the yaw)."""
+    root position and yaw, and of the root's dropout (``root_st`` (n, 4): frames the root has been
+    missing before this frame, the std summed over them of the ground position and the yaw, and the
+    exponential average of the observed yaw rate, degrees per frame, that ``root_turn`` reads)."""
 
     def __init__(self, rep: Representation, n: int):
         self.rep = rep
@@ -315,18 +341,18 @@ class ReprState:
         self.prev_raw = np.tile(np.asarray(rep.const_value, dtype=np.float64), (n, 1))
         self.prev_yaw = np.zeros(n)          # radians, unwrapped
         self.started = np.zeros(n, bool)     # has a completed frame been committed
-        self.root_st = np.zeros((n, 3))      # [frames missing, position std, yaw std (degrees)]
+        self.root_st = np.zeros((n, 4))      # [frames missing, position std, yaw std (degrees), yaw rate]
         self._C = C
 
     @classmethod
     def of(cls, rep: Representation, prev_u: np.ndarray, prev_raw: np.ndarray, prev_yaw: np.ndarray,
            started: np.ndarray, root_st: np.ndarray | None = None) -> ReprState:
-        """A state over existing arrays (n, C), (n, C), (n,), (n,), (n, 3): writes go to them (views
+        """A state over existing arrays (n, C), (n, C), (n,), (n,), (n, 4): writes go to them (views
         of a model's state pool, see ``mocap.feature_model``)."""
         st = cls.__new__(cls)
         st.rep, st.n, st._C = rep, started.shape[0], len(rep.channels)
         st.prev_u, st.prev_raw, st.prev_yaw, st.started = prev_u, prev_raw, prev_yaw, started
-        st.root_st = np.zeros((st.n, 3)) if root_st is None else root_st
+        st.root_st = np.zeros((st.n, 4)) if root_st is None else root_st
         return st
 
     def reset(self, i: int) -> None:
@@ -403,16 +429,28 @@ class ReprState:
         observed = np.asarray(observed, dtype=bool)
         return np.where(observed, frames, out)
 
-    def _damping(self) -> np.ndarray:
-        """exp(-(g / root_tau)^q / q) for a root missing g frames before this one (1 without damping)."""
-        tau, q = self.rep.root_tau, self.rep.root_power
-        return np.exp(-((self.root_st[:, 0] / tau) ** q) / q) if tau > 0 else np.ones(self.n)
+    def _damping(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ground motion's, heading's) damping for a root missing g frames before this one:
+        exp(-(g / root_tau)^q / q) both (1 without damping); with root_turn b > 0, exp(-(g r)^q / q)
+        with r = b |yaw rate| for the ground motion and r = b |yaw rate| + 1 / root_tau for the
+        heading (module doc)."""
+        tau, q, b = self.rep.root_tau, self.rep.root_power, self.rep.root_turn
+        if b > 0:
+            rate = b * np.abs(np.deg2rad(self.root_st[:, 3]))
+            ks = np.exp(-((self.root_st[:, 0] * rate) ** q) / q)
+            kh = np.exp(-((self.root_st[:, 0] * (rate + 1.0 / tau)) ** q) / q) if tau > 0 else ks
+            return ks, kh
+        k = np.exp(-((self.root_st[:, 0] / tau) ** q) / q) if tau > 0 else np.ones(self.n)
+        return k, k
+
+    def _damped(self) -> bool:
+        return self.rep.root_tau > 0 or self.rep.root_turn > 0
 
     def _decode_root(self, rf: np.ndarray, out: np.ndarray, p: dict[str, Any]) -> None:
         side, height, fwd, dyaw, pitch, roll = (rf[:, i] for i in range(6))
-        if self.rep.root_tau > 0:
-            k = self._damping()
-            side, fwd, dyaw = side * k, fwd * k, dyaw * k
+        if self._damped():
+            k, kh = self._damping()
+            side, fwd, dyaw = side * k, fwd * k, dyaw * kh
         yaw = np.where(self.started, self.prev_yaw + np.deg2rad(dyaw), self.prev_yaw)
         cy, sy = np.cos(self.prev_yaw), np.sin(self.prev_yaw)
         dx = cy * side + sy * fwd
@@ -443,11 +481,11 @@ class ReprState:
         if rep.root_mode == "relative":
             rf = fsd[:, p["rootf"]]
             rv = (rep.denormalize_features(feats) if norm else np.asarray(feats, dtype=np.float64))[:, p["rootf"]]
-            k = self._damping()
+            k, kh = self._damping()
             # the damped increments' own std, and the motion the damping dropped (the performer may
             # well keep moving: the spread between holding and integrating)
             sp = self.root_st[:, 1] + k * np.maximum(rf[:, 0], rf[:, 2]) + (1.0 - k) * np.hypot(rv[:, 0], rv[:, 2])
-            sy = self.root_st[:, 2] + k * rf[:, 3] + (1.0 - k) * np.abs(rv[:, 3])
+            sy = self.root_st[:, 2] + kh * rf[:, 3] + (1.0 - kh) * np.abs(rv[:, 3])
             pos, rot = p["pos"][[0, 2]], p["rot"]
             std[:, pos] = np.where(observed[:, pos], 0.0, sp[:, None])
             std[:, rot] = np.where(observed[:, rot], 0.0, np.maximum(std[:, rot], sy[:, None]))
@@ -460,7 +498,9 @@ class ReprState:
         """Make the completed raw frames (n, C) the new previous frame.  With ``observed`` (n, C)
         (relative mode) the root's dropout is counted: a frame with any root channel missing adds
         one to the gap (and ``sums``, the stds summed so far, are kept), a fully observed root
-        resets it.  Without it (a recording with everything observed) the count does not move."""
+        resets it, and the yaw rate of a frame whose root and previous root were observed enters
+        the yaw rate's average (``root_st[:, 3]``).  Without it (a recording with everything
+        observed) neither moves."""
         rep, p = self.rep, self.rep._plan()
         completed = np.asarray(completed, dtype=np.float64)
         sel = slice(None) if rows is None else rows
@@ -471,15 +511,19 @@ class ReprState:
             r = np.deg2rad(completed[:, p["rot"]])
             yaw, _, _ = _matrix_to_ypr(p["frame"].matrix(r))
             yaw_u = self.prev_yaw + np.deg2rad(wrap180(np.rad2deg(yaw - self.prev_yaw)))
+            dyaw = np.rad2deg(yaw_u - self.prev_yaw)
             self.prev_yaw[sel] = yaw_u[sel] if rows is not None else yaw_u
             if observed is not None:
                 o = np.asarray(observed, dtype=bool)
                 seen = o[:, p["rot"]].all(1) & o[:, p["pos"]].all(1)
                 st = self.root_st.copy()
+                rate = np.where(seen & (st[:, 0] == 0) & self.started,
+                                st[:, 3] + (dyaw - st[:, 3]) / rep.root_turn_frames, st[:, 3])
                 st[:, 0] += 1.0
                 if sums is not None:
                     st[:, 1], st[:, 2] = sums
-                st[seen] = 0.0
+                st[seen, :3] = 0.0
+                st[:, 3] = rate
                 self.root_st[sel] = st[sel] if rows is not None else st
         self.started[sel] = True
 

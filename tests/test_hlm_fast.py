@@ -173,19 +173,22 @@ print("enabled", fast.enabled(), "finite", bool(np.isfinite(fill.frame).all()))
     assert r.stdout.split() == ["enabled", "False", "finite", "True"]
 
 
-@pytest.mark.parametrize("root_mode,normalize,root_tau,root_power",
-                         [("relative", True, 0.0, 1.0), ("relative", False, 0.0, 1.0), ("relative", False, 60.0, 1.0),
-                          ("relative", True, 7.5, 2.0), ("raw", True, 0.0, 1.0), ("raw", False, 0.0, 1.0)])
-def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_tau, root_power):
+@pytest.mark.parametrize("root_mode,normalize,root_tau,root_power,root_turn",
+                         [("relative", True, 0.0, 1.0, 0.0), ("relative", False, 0.0, 1.0, 0.0),
+                          ("relative", False, 60.0, 1.0, 0.0), ("relative", True, 7.5, 2.0, 0.0),
+                          ("relative", False, 0.0, 2.0, 200.0), ("relative", True, 40.0, 2.0, 200.0),
+                          ("raw", True, 0.0, 1.0, 0.0), ("raw", False, 0.0, 1.0, 0.0)])
+def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_tau, root_power, root_turn):
     """encode -> (a model's fill) -> decode -> commit, frame by frame over a real walk whose root and
     arm drop out: the compiled single-stream code and ReprState agree to 1e-9 in the features, the
     feature mask, the completed frame, the raw std and the carried state (unwrapped angles, yaw,
-    the root's dropout count and summed stds), with and without the root damping."""
+    the root's dropout count, summed stds and averaged yaw rate), with and without the root damping
+    (fixed, and growing with the observed turning: root_turn)."""
     from mocap.datasets import load_trial
 
     walks = [load_trial(t) for t in ("35_01", "35_06")]
     rep = Representation.fit([m.frames for m in walks], walks[0].channels, root_mode=root_mode, normalize=normalize,
-                             root_tau=root_tau, root_power=root_power)
+                             root_tau=root_tau, root_power=root_power, root_turn=root_turn, root_turn_frames=30.0)
     frames = load_trial("35_08").frames[:300]
     C, F = frames.shape[1], rep.n_features
     obs = np.ones(frames.shape, bool)
@@ -197,6 +200,7 @@ def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_t
     obs[240:260, root[:2]] = False        # part of the root: tx, ty
     rng = np.random.default_rng(1)
     a, b = rep.new_state(1), rep.new_state(1)
+    rate_before = 0.0
     for t in range(frames.shape[0]):
         f, o = np.where(obs[t], frames[t], np.nan)[None], obs[t][None]
         za, oa = a.encode(f, o)
@@ -215,6 +219,11 @@ def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_t
         assert a.started[0] and b.started[0]
         if root_mode == "relative" and 120 <= t < 150:
             assert a.root_st[0, 0] == t - 119     # the root's gap is counted
+        if root_mode == "relative" and t == 119:
+            assert a.root_st[0, 3] != 0.0          # the yaw rate is averaged while the root is seen
+            rate_before = float(a.root_st[0, 3])
+        if root_mode == "relative" and 120 <= t < 150:
+            assert a.root_st[0, 3] == rate_before  # and frozen over its gap
     assert C == len(walks[0].channels)
 
 
