@@ -185,7 +185,7 @@ class _ScriptedState(FillerState):
         return Fill(out, np.where(obs, 0.0, 5.0), ~obs, {})
 
 
-def _mixed_vs_blend(model, err, take="walking_24", T=1200):
+def _mixed_vs_blend(model, err, take="walking_24", T=1200, closes=None):
     """One stream of ``default`` whose HLM is scripted, on TEST take ``take`` (a turning walk of
     another performer): a limb group erased for 0.75 s every 1.6 s, the first from frame 5 (before
     any window of the check can close).  Per gap (in order of onset) the squared errors of the mix and
@@ -200,8 +200,12 @@ def _mixed_vs_blend(model, err, take="walking_24", T=1200):
     ang = np.array([is_angle(ch) for ch in model.channels])
     onset = np.full(len(ang), -1)       # each channel's gap onset frame, -1 while observed
     per: dict[int, list[float]] = {}
+    n_win = 0
     for t in range(T):
         a, b = st.step(truth[t], obs[t]).frame, ds.step(truth[t], obs[t]).frame
+        if closes is not None and st.n_win > n_win:
+            n_win = st.n_win
+            closes.append((t, float(np.exp(st.logq))))
         miss = ~obs[t] & ang
         onset = np.where(obs[t], -1, np.where(onset < 0, t, onset))
         for j in np.flatnonzero(miss):
@@ -238,11 +242,39 @@ def test_an_hlm_that_is_right_gets_its_share_once_scored(model):
     assert first[:, 0].sum() <= first[:, 1].sum()
 
 
+def test_an_hlm_right_for_seconds_then_wrong_loses_its_share_at_the_first_window_that_sees_it(model):
+    """The second expert is the truth for the stream's first 600 frames (its windows score it far better
+    than the blend), then 20-30 deg off (a performer who stops walking).  The first window that sees it
+    wrong revokes its share (SHADOW_REVOKE): every gap opening after that window closed is filled as
+    the blend fills it (within 1%), and the stream over all its gaps is no worse than the blend's.  The
+    decayed bound alone (SHADOW_REVOKE 0) keeps q+ under 0.4 after that window: the good windows
+    outweigh the bad one, and the HLM keeps its share for seconds."""
+    rng = np.random.default_rng(1)
+    off = rng.uniform(20, 30, len(model.channels)) * rng.choice([-1, 1], len(model.channels))
+    closes: list[tuple[int, float]] = []
+    T, turn = 1310, 600
+    truth = splits.load_take("walking_24").frames[:T]
+    gaps, st = _mixed_vs_blend(model, lambda t: 0.0 if t < turn else off * np.sin(2 * np.pi * t / 90.0 + 1.0),
+                               T=T, closes=closes)
+    assert truth.shape[0] == T
+    seen = [t for t, _ in closes if t - 60 >= turn]       # windows wholly after the turn
+    assert seen and dict(closes)[seen[0]] > 1.1           # the first one that saw it wrong: the HLM yields
+    onsets = list(range(5, T - 90, 190))
+    after = [g for t0, g in zip(onsets, gaps, strict=True) if t0 > seen[0]]
+    assert len(after) >= 2
+    for mix, blend in after:
+        assert mix <= 1.01 * blend + 1e-9
+    tot = np.array(gaps).sum(0)
+    assert tot[0] <= tot[1]
+
+
 def test_the_shipped_weights_were_fitted_under_the_check_the_code_runs():
     """blend/withhlm.json's W and S are only right for the policy they were fitted under: the policy
     it records is the module's."""
     from blend import withhlm
 
     pol = shipped()[2]["policy"]
-    assert (pol["Q_Z"], pol["SHADOW_SKIP"], pol["SHADOW_MAX_MISS"], pol["SHADOW_WARM"], pol["SHADOW_EAGER"]) == \
-        (withhlm.Q_Z, withhlm.SHADOW_SKIP, withhlm.SHADOW_MAX_MISS, withhlm.SHADOW_WARM, withhlm.SHADOW_EAGER)
+    assert (pol["Q_Z"], pol["SHADOW_SKIP"], pol["SHADOW_MAX_MISS"], pol["SHADOW_WARM"], pol["SHADOW_EAGER"],
+            pol["Q_PRIOR_N"], pol["SHADOW_REVOKE"]) == \
+        (withhlm.Q_Z, withhlm.SHADOW_SKIP, withhlm.SHADOW_MAX_MISS, withhlm.SHADOW_WARM, withhlm.SHADOW_EAGER,
+         withhlm.Q_PRIOR_N, withhlm.SHADOW_REVOKE)
