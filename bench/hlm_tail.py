@@ -20,7 +20,7 @@ model it prints percentiles of each part, and for HLM's slowest frames (the roun
 what they had in common: a rehearsal running when the frame was read (collision), how long
 before it the last rehearsal ended, a collection during the frame.
 
-    OPENBLAS_NUM_THREADS=1 nice -n 5 .venv/bin/python bench/hlm_tail.py --seconds 8 --repeats 3 \\
+    OPENBLAS_NUM_THREADS=1 nice -n 5 .venv/bin/python bench/hlm_tail.py [--root new=. --root old=DIR] --seconds 8 --repeats 2 \\
         --json bench/results/hlm_tail.json
 """
 from __future__ import annotations

@@ -5,8 +5,7 @@ costs 3-4 times what it costs right after one, and not because the thread slept:
 spent spinning costs as much.  What the CPU cached of the daemon's code and data (the
 interpreter's, numpy's, the model's tables) is gone after a few milliseconds of other work on the
 machine; after 1 ms most of it is still there.  A capture system sends on a fixed clock, so the
-daemon knows when the next frame is due (the earliest of the recent frames' clock phases: a
-receipt is only ever late).  Shortly before that (the lead, plus what a rehearsal takes) it rehearses: the last frame it
+daemon knows when the next frame is due.  Shortly before that it rehearses: the last frame it
 served goes once more through decoding, the scheduler's plan, the model's step, the fill message
 and its encoding, on a shadow of the stream (its own filter state, one per model, answering
 nobody).  The real frame then finds that path warm.
@@ -37,7 +36,6 @@ MIN_GAP_S = 0.0015    # turns closer than this are one burst, not the stream's p
 MAX_STEP_S = 0.001    # a model whose step is estimated above this is not rehearsed (a rehearsal
                       # running when the frame lands delays it by what is left of it)
 GAPS = 8              # the period is the median of the last GAPS gaps between frames
-EARLY_S = 0.001       # the next frame is expected at most this much before the last one's receipt + period
 
 
 class Prewarm:
@@ -47,8 +45,6 @@ class Prewarm:
         self._last: tuple[Session, wire.Frame] | None = None
         self._arrived: float | None = None       # receipt of the last frame served
         self._gaps: list[float] = []
-        self._times: list[float] = []            # receipts of the last GAPS + 1 frames served
-        self.rehearsal_s = 0.0                   # what a rehearsal takes (the whole path), smoothed; 0: none yet
         self._shadows: dict[int, tuple[Model, FillerState]] = {}  # id(model) -> (model, shadow state)
         self.count = 0
         self.errors = 0
@@ -71,8 +67,6 @@ class Prewarm:
                 self._gaps.append(gap)
                 del self._gaps[:-GAPS]
         self._arrived = arrived
-        self._times.append(arrived)
-        del self._times[:-(GAPS + 1)]
         self._last = (s, frame)
         per = self.period()
         self.due = None
@@ -82,22 +76,12 @@ class Prewarm:
         step = cm.estimate(1) if cm.seen else 0.0
         if step > MAX_STEP_S:
             return
-        # The frames come on the sender's clock and a receipt is only ever late (the daemon woke
-        # late, or was busy): the next frame is expected at the earliest of the recent frames'
-        # clock phases, at most EARLY_S before the last receipt + period.  Anchored on the last
-        # receipt alone, a frame after one read late came "early" and found no rehearsal (13% of
-        # them on a quiet machine, bench/notebook/hlm1-5.md).  The rehearsal (the whole path, cold:
-        # several times the step) is to END lead_s before that.
-        nxt = arrived + per
-        for a in self._times[:-1]:
-            nxt = min(nxt, a + (round((arrived - a) / per) + 1) * per)
-        nxt = max(nxt, arrived + per - EARLY_S)
-        self.due = nxt - self.lead_s - min(max(step, self.rehearsal_s), MAX_STEP_S)
+        # rehearse lead_s (and the step's own time) before the frame is due
+        self.due = arrived + per - self.lead_s - step
 
     def forget_models(self) -> None:
         """Models were swapped (a reload): their shadows go with them."""
         self._shadows.clear()
-        self.rehearsal_s = 0.0
         self._last = None
         self.due = None
 
@@ -125,10 +109,6 @@ class Prewarm:
             fill = model.step_batch([sh.state], mf, mo)[0]
             encode(fill_message(sh, fill, "ok", time.perf_counter()))
             self.count += 1
-            took = time.perf_counter() - t0
-            old = self.rehearsal_s
-            # (smoothed, and one stretched by the OS clipped, as the scheduler's cost estimates are)
-            self.rehearsal_s = took if old == 0.0 else 0.9 * old + 0.1 * min(took, 4.0 * old)
         except Exception as e:  # noqa: BLE001 - a rehearsal must never cost a frame: count it and go on
             self.errors += 1
             self.last_error = f"{type(e).__name__}: {e}"[:300]
@@ -140,5 +120,4 @@ class Prewarm:
         per = self.period()
         return {"lead_ms": round(self.lead_s * 1000, 3), "rehearsals": self.count, "errors": self.errors,
                 "last_error": self.last_error, "period_ms": None if per is None else round(per * 1000, 3),
-                "spent_ms": round(self.spent_s * 1000, 3),
-                "rehearsal_us": round(self.rehearsal_s * 1e6, 1)}
+                "spent_ms": round(self.spent_s * 1000, 3)}

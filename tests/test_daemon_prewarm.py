@@ -153,34 +153,6 @@ def test_a_rehearsal_is_planned_only_for_a_regular_stream_fast_enough_to_gain(hl
     assert d.prewarm.due is None
 
 
-def test_a_frame_read_late_does_not_move_the_next_rehearsal_late(hlm_walk):
-    """Frames come on the sender's clock and a receipt is only ever late (the daemon woke late):
-    the next frame is expected at the earliest recent clock phase, at most EARLY_S before the
-    last receipt + period, and the rehearsal is to end the lead (and what a rehearsal takes)
-    before it."""
-    path, channels, test = hlm_walk
-    d = _daemon(path, 0.5)
-    d.sessions.hello(wire.Hello("walk", channels))
-    _modest_cost(d, "walk")
-    t0 = time.perf_counter()
-    for t in range(5):
-        _serve(d, "walk", t, test[t], t0 + t * PERIOD)
-    cm = d.sched.cost(d.sessions.sessions["walk"].model, None)
-    _serve(d, "walk", 5, test[5], t0 + 5 * PERIOD + 0.0004)  # read 0.4 ms late
-    step = cm.estimate(1)  # (each step served refines it)
-    assert d.prewarm.due == pytest.approx(t0 + 6 * PERIOD - 0.0005 - step, abs=1e-9)
-    # much later than EARLY_S (the sender paused, or changed its clock): at most EARLY_S earlier
-    _serve(d, "walk", 6, test[6], t0 + 6 * PERIOD + 0.003)
-    step = cm.estimate(1)
-    assert d.prewarm.due == pytest.approx(t0 + 7 * PERIOD + 0.003 - prewarm.EARLY_S - 0.0005 - step, abs=1e-9)
-    # once rehearsals were timed, the longer of them and the step is allowed for
-    d.prewarm.rehearsal_s = 0.0003
-    _serve(d, "walk", 7, test[7], t0 + 7 * PERIOD + 0.003)
-    step = cm.estimate(1)
-    assert d.prewarm.due == pytest.approx(t0 + 8 * PERIOD + 0.003 - prewarm.EARLY_S - 0.0005 - max(step, 0.0003),
-                                          abs=1e-9)
-
-
 def test_a_stream_gone_since_is_not_rehearsed_and_a_failing_rehearsal_costs_no_frame(hlm_walk, monkeypatch):
     path, channels, test = hlm_walk
     d = _daemon(path, 0.5)
