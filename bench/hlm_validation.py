@@ -45,7 +45,7 @@ from mocap.representation import ROOT_POS, is_angle, wrap180
 
 CM_PER_UNIT = 2.54 / 0.45
 INFER_KEYS = ("kappa", "width", "kappa_global", "style_switch", "adapt_rate", "root_tau", "root_power", "cond_shrink",
-               "root_turn", "root_turn_frames")
+               "root_turn", "root_turn_frames", "root_std")
 LOCO = ("walk", "turn", "run")
 
 

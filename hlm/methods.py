@@ -51,6 +51,11 @@ DEFAULTS: dict[str, Any] = {
     "root_power": 2.0,      # its shape: 1 exponential, 2 Gaussian (mocap.representation)
     "root_turn": 8.0,       # b: r += b |observed yaw rate| (0: the fixed damping alone)
     "root_turn_frames": 60.0,  # frames of the yaw rate's exponential average
+    # the std of a missing root's ground position, a g^(p-1) (Q + c g) after g frames, Q the filled
+    # speed summed over the gap, its part the damping kept weighted w ([a, p, c, w]; c in the
+    # training data's units per frame, CMU's here): the Gaussian NLL's minimum on VALIDATION's
+    # root-erased cases (bench/hlm_root_std_fit.py, bench/notebook/rootstd-5.md); [] = the summed std
+    "root_std": [0.39006, 0.9749, 0.070261, 0.45049],
     "eta": 0.1,
     "lam_s": 0.1,
     "zbar_frac": 0.01,
@@ -79,7 +84,7 @@ MIN_COND_TAKES = 3
 # the faithful methods' training defaults: the paper's representation (raw root angles and
 # positions, not normalised) and C = 4, whatever ``hlm``'s defaults become
 FAITHFUL_TRAIN = {"root_mode": "raw", "normalize": False, "root_tau": 0.0, "root_power": 1.0, "root_turn": 0.0,
-                  "styles": 4}
+                  "root_std": [], "styles": 4}
 
 
 def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names: Sequence[str] = (),
@@ -92,7 +97,8 @@ def train_model(sequences: Sequence[np.ndarray], channels: Sequence[str], names:
     t0 = time.perf_counter()
     rep = Representation.fit(sequences, channels, root_mode=o["root_mode"], normalize=bool(o["normalize"]),
                              skeleton=o["skeleton"], root_tau=float(o["root_tau"]), root_power=float(o["root_power"]),
-                             root_turn=float(o["root_turn"]), root_turn_frames=float(o["root_turn_frames"]))
+                             root_turn=float(o["root_turn"]), root_turn_frames=float(o["root_turn_frames"]),
+                             root_std=[float(v) for v in (o["root_std"] or [])])
     feats = [rep.transform(s) for s in sequences]
     res = fit(feats, int(o["styles"]), int(o["cycle_frames"]), n_restarts=int(o["restarts"]), seed=int(o["seed"]),
               n_iter=int(o["n_iter"]), n_var=int(o["n_var"]), progress=progress,

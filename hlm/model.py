@@ -105,13 +105,16 @@ class HLMModel(FeatureModel):
     def with_options(self, **kw) -> HLMModel:
         """A copy with other inference options (the learned parameters are shared, read-only);
         ``root_tau`` (frames), ``root_power``, ``root_turn`` and ``root_turn_frames`` change the
-        representation's root damping, which nothing learned depends on."""
+        representation's root damping, which nothing learned depends on, and ``root_std`` its
+        root-position std rule."""
         rep = self.representation
         if any(k in kw for k in ("root_tau", "root_power", "root_turn", "root_turn_frames")):
             tau, q = float(kw.pop("root_tau", rep.root_tau)), float(kw.pop("root_power", rep.root_power))
             b, w = float(kw.pop("root_turn", rep.root_turn)), float(kw.pop("root_turn_frames", rep.root_turn_frames))
             if (tau, q, b, w) != (rep.root_tau, rep.root_power, rep.root_turn, rep.root_turn_frames):
                 rep = rep.with_root_damping(tau, q, b, w)
+        if "root_std" in kw:
+            rep = rep.with_root_std(kw.pop("root_std") or [])
         o = HLMOptions(**{**self.options.__dict__, **kw})
         return HLMModel(rep, self.params, o, self.meta, self.cond_cov)
 

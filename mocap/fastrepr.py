@@ -131,8 +131,10 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
     """ReprState.finish (decode + the raw std + commit), for one stream.  Writes the completed raw
     frame to out, its std (0 where observed) to sd, and the new previous-frame state (prev_u,
     prev_raw, root_st in place); returns the new prev_yaw.  root_damp: (root_tau, root_turn,
-    root_turn_frames) of the representation (``tables``' "root_tau")."""
+    root_turn_frames, root_std a, p, c, w; a 0 = no root_std) of the representation (``tables``'
+    "root_tau")."""
     root_tau, root_turn, turn_frames = root_damp[0], root_damp[1], root_damp[2]
+    std_a, std_p, std_c, std_w = root_damp[3], root_damp[4], root_damp[5], root_damp[6]
     damped = root_tau > 0 or root_turn > 0
     rate_seen = False
     C = frame.shape[0]
@@ -207,7 +209,14 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         mx = s0 if s0 > s2 else s2
         if s0 != s0 or s2 != s2:
             mx = np.nan                      # np.maximum's NaN
-        sp = root_st[1] + kd * mx + (1.0 - kd) * speed
+        if std_a > 0:
+            # Representation.root_std's rule (ReprState.finish): root_st[1] sums the filled speed
+            g1 = root_st[0] + 1.0
+            acc = root_st[1] + (std_w * kd + (1.0 - kd)) * speed
+            sp = std_a * g1 ** (std_p - 1.0) * (acc + std_c * g1)
+        else:
+            sp = root_st[1] + kd * mx + (1.0 - kd) * speed
+            acc = sp
         sy = root_st[2] + kh * s3 + (1.0 - kh) * turn
         for i in (0, 2):
             if not observed[pos[i]]:
@@ -224,7 +233,7 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         if seen:
             root_st[0], root_st[1], root_st[2] = 0.0, 0.0, 0.0
         else:
-            root_st[0], root_st[1], root_st[2] = root_st[0] + 1.0, sp, sy
+            root_st[0], root_st[1], root_st[2] = root_st[0] + 1.0, acc, sy
     # commit: the completed frame becomes the previous one
     for c in range(C):
         ref = prev_u[c] if started else center[c]
@@ -284,9 +293,10 @@ def tables(rep: Any) -> dict[str, Any]:
             "normalize": bool(rep.normalize),
             "mean": np.ascontiguousarray(p["mean"], np.float64),
             "std": np.ascontiguousarray(p["std"], np.float64),
-            # (root_tau, root_turn, root_turn_frames): one array, so the kernels that pass it on
-            # (hlm.fast's) keep their signatures
-            "root_tau": np.array([rep.root_tau, rep.root_turn, rep.root_turn_frames], np.float64),
+            # (root_tau, root_turn, root_turn_frames, root_std's a, p, c, w): one array, so the kernels
+            # that pass it on (hlm.fast's) keep their signatures
+            "root_tau": np.array([rep.root_tau, rep.root_turn, rep.root_turn_frames,
+                                  *(rep.root_std or (0.0, 1.0, 0.0, 1.0))], np.float64),
             "root_power": float(rep.root_power),
         }
     return t

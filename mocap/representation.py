@@ -31,7 +31,11 @@ its past).  The heading uncertainty reading: heading spread sigma(g) = g / tau, 
 cos(sigma) is exp(-sigma^2 / 2), the Gaussian damping (q = 2).  The reported std of the
 ground position and of the heading is summed over the gap (the errors of successive increments
 are taken as fully correlated), each frame adding its damped increment's std and the part of
-the increment the damping dropped, not one frame's std.
+the increment the damping dropped, not one frame's std.  With ``root_std`` [a, p, c, w] the
+ground position's std is instead a g^(p-1) (Q(g) + c g) after g missing frames, Q the filled
+speed summed over the gap (the part the damping kept weighted w, the part it dropped 1): fitted
+on VALIDATION (``bench/hlm_root_std_fit.py``), where the summed std was 1.00 within 2 std on walks
+and turns and 0.70 on the run.
 
 The encoder/decoder pair is a *stream*: arrays of shape (n_streams, ...) so the daemon can
 code many streams in one call.  ``encode`` maps frame t to features using the previous
@@ -90,13 +94,17 @@ class Representation:
     unwrap: bool = True                   # False: angles as captured (Taylor's released code's input)
     root_turn: float = 0.0                # b: the damping's rate grows by b |observed yaw rate| (0 = off)
     root_turn_frames: float = 60.0        # frames of the exponential average of that yaw rate
+    # [a, p, c, w]: a missing root's ground-position std a g^(p-1) (Q(g) + c g) after g frames, Q the
+    # filled speed summed over the gap, the part the damping kept weighted w and the part it dropped
+    # 1 (fitted on VALIDATION, bench/notebook/rootstd-5.md); [] = the older summed std
+    root_std: list[float] = field(default_factory=list)
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
     def fit(cls, sequences: Sequence[np.ndarray], channels: Sequence[str], root_mode: str = "relative",
             normalize: bool = True, drop_constant: bool = True, skeleton: Any = None,
             root_tau: float = 0.0, root_power: float = 1.0, unwrap: bool = True, root_turn: float = 0.0,
-            root_turn_frames: float = 60.0) -> Representation:
+            root_turn_frames: float = 60.0, root_std: Sequence[float] = ()) -> Representation:
         """sequences: list of (n_frames, n_channels) raw frames.  ``skeleton``: a skeleton map
         (name, file or ``mocap.skelmap.SkeletonMap``) naming the root; else recognised from the
         channel names."""
@@ -106,6 +114,7 @@ class Representation:
             raise ValueError(f"root_tau must be >= 0 frames and root_power > 0 (got {root_tau}, {root_power})")
         if not (np.isfinite(root_turn) and root_turn >= 0 and np.isfinite(root_turn_frames) and root_turn_frames >= 1):
             raise ValueError(f"root_turn must be >= 0 and root_turn_frames >= 1 (got {root_turn}, {root_turn_frames})")
+        _check_root_std(root_std)
         channels = list(channels)
         allf = np.vstack([np.asarray(s, dtype=np.float64) for s in sequences])
         if allf.shape[1] != len(channels):
@@ -124,7 +133,8 @@ class Representation:
         center = np.where(ang, circular_mean_deg(allf), 0.0)
         rep = cls(channels, keep.tolist(), allf[0].tolist(), center.tolist(), root_mode, normalize, root=root,
                   root_tau=float(root_tau), root_power=float(root_power), unwrap=bool(unwrap),
-                  root_turn=float(root_turn), root_turn_frames=float(root_turn_frames))
+                  root_turn=float(root_turn), root_turn_frames=float(root_turn_frames),
+                  root_std=[float(v) for v in root_std])
         rep.features = rep._feature_names()
         rep.mean = [0.0] * len(rep.features)
         rep.std = [1.0] * len(rep.features)
@@ -167,6 +177,8 @@ class Representation:
                                             "root_turn", "root_turn_frames")}
         if self.root is not None:
             d["root"] = dict(self.root)
+        if self.root_std:
+            d["root_std"] = list(self.root_std)  # absent in files written before (the summed std)
         return d
 
     @classmethod
@@ -175,7 +187,9 @@ class Representation:
                                         "mean", "std", "features")}, root=d.get("root"),
                   root_tau=float(d.get("root_tau", 0.0)), root_power=float(d.get("root_power", 1.0)),
                   unwrap=bool(d.get("unwrap", True)), root_turn=float(d.get("root_turn", 0.0)),
-                  root_turn_frames=float(d.get("root_turn_frames", 60.0)))
+                  root_turn_frames=float(d.get("root_turn_frames", 60.0)),
+                  root_std=[float(v) for v in d.get("root_std", [])])
+        _check_root_std(rep.root_std)
         n, f = len(rep.channels), len(rep.features)
         for k, want in (("keep", n), ("const_value", n), ("center", n), ("mean", f), ("std", f)):
             if len(getattr(rep, k)) != want:
@@ -204,6 +218,12 @@ class Representation:
             d["root_turn"] = float(root_turn)
         if root_turn_frames is not None:
             d["root_turn_frames"] = float(root_turn_frames)
+        return Representation.from_dict(d)
+
+    def with_root_std(self, root_std: Sequence[float]) -> Representation:
+        """A copy with another root-position std rule ([a, p, c, w], or [] for the summed std)."""
+        d = self.to_dict()
+        d["root_std"] = [float(v) for v in root_std]
         return Representation.from_dict(d)
 
     # ---- index plumbing -----------------------------------------------------------------------
@@ -484,12 +504,21 @@ class ReprState:
             k, kh = self._damping()
             # the damped increments' own std, and the motion the damping dropped (the performer may
             # well keep moving: the spread between holding and integrating)
-            sp = self.root_st[:, 1] + k * np.maximum(rf[:, 0], rf[:, 2]) + (1.0 - k) * np.hypot(rv[:, 0], rv[:, 2])
             sy = self.root_st[:, 2] + kh * rf[:, 3] + (1.0 - kh) * np.abs(rv[:, 3])
+            if rep.root_std:
+                # the calibrated rule: a g^(p-1) (Q + c g), Q the filled (undamped) speed summed
+                # over the gap, its kept part weighted w, in root_st[:, 1] in place of the summed std
+                a, pw, c, w = rep.root_std
+                g1 = self.root_st[:, 0] + 1.0
+                acc = self.root_st[:, 1] + (w * k + (1.0 - k)) * np.hypot(rv[:, 0], rv[:, 2])
+                sp = a * g1 ** (pw - 1.0) * (acc + c * g1)
+            else:
+                acc = sp = (self.root_st[:, 1] + k * np.maximum(rf[:, 0], rf[:, 2])
+                            + (1.0 - k) * np.hypot(rv[:, 0], rv[:, 2]))
             pos, rot = p["pos"][[0, 2]], p["rot"]
             std[:, pos] = np.where(observed[:, pos], 0.0, sp[:, None])
             std[:, rot] = np.where(observed[:, rot], 0.0, np.maximum(std[:, rot], sy[:, None]))
-            sums = (sp, sy)
+            sums = (acc, sy)
         self.commit(out, observed=observed, sums=sums)
         return out, std
 
@@ -526,6 +555,11 @@ class ReprState:
                 st[:, 3] = rate
                 self.root_st[sel] = st[sel] if rows is not None else st
         self.started[sel] = True
+
+
+def _check_root_std(v: Sequence[float]) -> None:
+    if len(v) not in (0, 4) or not all(np.isfinite(x) for x in v) or (len(v) == 4 and (v[0] <= 0 or min(v[2], v[3]) < 0)):
+        raise ValueError(f"root_std must be [] or [a > 0, p, c >= 0, w >= 0] (got {list(v)})")
 
 
 def has_root_channels(channels: Sequence[str], skeleton: Any = None) -> bool:

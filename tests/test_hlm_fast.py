@@ -47,8 +47,8 @@ def _run(model, frames, obs, monkeypatch, jit: bool, batch: bool = False):
     return out
 
 
-@pytest.mark.parametrize("options", [dict(), dict(kappa_global=0.0), dict(kappa=0.0, kappa_global=0.0)],
-                         ids=["default", "knots-only", "faithful"])
+@pytest.mark.parametrize("options", [dict(), dict(kappa_global=0.0), dict(kappa=0.0, kappa_global=0.0),
+                                     dict(root_std=[])], ids=["default", "knots-only", "faithful", "summed-root-std"])
 def test_compiled_step_equals_numpy_step(walk, monkeypatch, options):
     model, frames, obs = walk
     m = model.with_options(**options)
@@ -173,22 +173,28 @@ print("enabled", fast.enabled(), "finite", bool(np.isfinite(fill.frame).all()))
     assert r.stdout.split() == ["enabled", "False", "finite", "True"]
 
 
-@pytest.mark.parametrize("root_mode,normalize,root_tau,root_power,root_turn",
-                         [("relative", True, 0.0, 1.0, 0.0), ("relative", False, 0.0, 1.0, 0.0),
-                          ("relative", False, 60.0, 1.0, 0.0), ("relative", True, 7.5, 2.0, 0.0),
-                          ("relative", False, 0.0, 2.0, 200.0), ("relative", True, 40.0, 2.0, 200.0),
-                          ("raw", True, 0.0, 1.0, 0.0), ("raw", False, 0.0, 1.0, 0.0)])
-def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_tau, root_power, root_turn):
+STD_RULE = [0.39, 0.97, 0.07, 0.45]   # a root_std rule ([a, p, c, w]) like hlm.methods.DEFAULTS
+
+
+@pytest.mark.parametrize("root_mode,normalize,root_tau,root_power,root_turn,root_std",
+                         [("relative", True, 0.0, 1.0, 0.0, []), ("relative", False, 0.0, 1.0, 0.0, []),
+                          ("relative", False, 60.0, 1.0, 0.0, []), ("relative", True, 7.5, 2.0, 0.0, []),
+                          ("relative", False, 0.0, 2.0, 200.0, []), ("relative", True, 40.0, 2.0, 200.0, []),
+                          ("relative", True, 40.0, 2.0, 200.0, STD_RULE), ("relative", False, 0.0, 1.0, 0.0, STD_RULE),
+                          ("raw", True, 0.0, 1.0, 0.0, []), ("raw", False, 0.0, 1.0, 0.0, [])])
+def test_compiled_representation_equals_numpy(data, root_mode, normalize, root_tau, root_power, root_turn, root_std):
     """encode -> (a model's fill) -> decode -> commit, frame by frame over a real walk whose root and
     arm drop out: the compiled single-stream code and ReprState agree to 1e-9 in the features, the
     feature mask, the completed frame, the raw std and the carried state (unwrapped angles, yaw,
     the root's dropout count, summed stds and averaged yaw rate), with and without the root damping
-    (fixed, and growing with the observed turning: root_turn)."""
+    (fixed, and growing with the observed turning: root_turn), with the summed root std and the
+    fitted rule (root_std)."""
     from mocap.datasets import load_trial
 
     walks = [load_trial(t) for t in ("35_01", "35_06")]
     rep = Representation.fit([m.frames for m in walks], walks[0].channels, root_mode=root_mode, normalize=normalize,
-                             root_tau=root_tau, root_power=root_power, root_turn=root_turn, root_turn_frames=30.0)
+                             root_tau=root_tau, root_power=root_power, root_turn=root_turn, root_turn_frames=30.0,
+                             root_std=root_std)
     frames = load_trial("35_08").frames[:300]
     C, F = frames.shape[1], rep.n_features
     obs = np.ones(frames.shape, bool)
