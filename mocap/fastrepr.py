@@ -131,10 +131,10 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
     """ReprState.finish (decode + the raw std + commit), for one stream.  Writes the completed raw
     frame to out, its std (0 where observed) to sd, and the new previous-frame state (prev_u,
     prev_raw, root_st in place); returns the new prev_yaw.  root_damp: (root_tau, root_turn,
-    root_turn_frames, root_std a, p, c, w; a 0 = no root_std) of the representation (``tables``'
+    root_turn_frames, root_std a, p, c, w, u; a 0 = no root_std) of the representation (``tables``'
     "root_tau")."""
     root_tau, root_turn, turn_frames = root_damp[0], root_damp[1], root_damp[2]
-    std_a, std_p, std_c, std_w = root_damp[3], root_damp[4], root_damp[5], root_damp[6]
+    std_a, std_p, std_c, std_w, std_u = root_damp[3], root_damp[4], root_damp[5], root_damp[6], root_damp[7]
     damped = root_tau > 0 or root_turn > 0
     rate_seen = False
     C = frame.shape[0]
@@ -212,7 +212,7 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         if std_a > 0:
             # Representation.root_std's rule (ReprState.finish): root_st[1] sums the filled speed
             g1 = root_st[0] + 1.0
-            acc = root_st[1] + (std_w * kd + (1.0 - kd)) * speed
+            acc = root_st[1] + (std_w * kd + (1.0 - kd)) * speed + std_u * kd * mx
             sp = std_a * g1 ** (std_p - 1.0) * (acc + std_c * g1)
         else:
             sp = root_st[1] + kd * mx + (1.0 - kd) * speed
@@ -293,10 +293,10 @@ def tables(rep: Any) -> dict[str, Any]:
             "normalize": bool(rep.normalize),
             "mean": np.ascontiguousarray(p["mean"], np.float64),
             "std": np.ascontiguousarray(p["std"], np.float64),
-            # (root_tau, root_turn, root_turn_frames, root_std's a, p, c, w): one array, so the kernels
+            # (root_tau, root_turn, root_turn_frames, root_std's a, p, c, w, u): one array, so the kernels
             # that pass it on (hlm.fast's) keep their signatures
             "root_tau": np.array([rep.root_tau, rep.root_turn, rep.root_turn_frames,
-                                  *(rep.root_std or (0.0, 1.0, 0.0, 1.0))], np.float64),
+                                  *(rep.root_std or (0.0, 1.0, 0.0, 0.0, 1.0))], np.float64),
             "root_power": float(rep.root_power),
         }
     return t

@@ -31,9 +31,10 @@ its past).  The heading uncertainty reading: heading spread sigma(g) = g / tau, 
 cos(sigma) is exp(-sigma^2 / 2), the Gaussian damping (q = 2).  The reported std of the
 ground position and of the heading is summed over the gap (the errors of successive increments
 are taken as fully correlated), each frame adding its damped increment's std and the part of
-the increment the damping dropped, not one frame's std.  With ``root_std`` [a, p, c, w] the
-ground position's std is instead a g^(p-1) (Q(g) + c g) after g missing frames, Q the filled
-speed summed over the gap (the part the damping kept weighted w, the part it dropped 1): fitted
+the increment the damping dropped, not one frame's std.  With ``root_std`` [a, p, c, w, u] the
+ground position's std is instead a g^(p-1) (Q(g) + c g) after g missing frames, Q summed over the
+gap of the filled speed (the part the damping kept weighted w, the part it dropped 1) and of u x
+the damped increments' own std (the summed std is [1, 1, 0, 0, 1]): fitted
 on VALIDATION (``bench/hlm_root_std_fit.py``), where the summed std was 1.00 within 2 std on walks
 and turns and 0.70 on the run.
 
@@ -94,9 +95,10 @@ class Representation:
     unwrap: bool = True                   # False: angles as captured (Taylor's released code's input)
     root_turn: float = 0.0                # b: the damping's rate grows by b |observed yaw rate| (0 = off)
     root_turn_frames: float = 60.0        # frames of the exponential average of that yaw rate
-    # [a, p, c, w]: a missing root's ground-position std a g^(p-1) (Q(g) + c g) after g frames, Q the
-    # filled speed summed over the gap, the part the damping kept weighted w and the part it dropped
-    # 1 (fitted on VALIDATION, bench/notebook/rootstd-5.md); [] = the older summed std
+    # [a, p, c, w, u]: a missing root's ground-position std a g^(p-1) (Q(g) + c g) after g frames, Q
+    # summed over the gap of the filled speed (the part the damping kept weighted w, the part it
+    # dropped 1) and u x the kept part of the model's own std (fitted on VALIDATION,
+    # bench/notebook/rootstd-5.md); [] = the older summed std ([1, 1, 0, 0, 1])
     root_std: list[float] = field(default_factory=list)
 
     # ---- construction -------------------------------------------------------------------------
@@ -221,7 +223,7 @@ class Representation:
         return Representation.from_dict(d)
 
     def with_root_std(self, root_std: Sequence[float]) -> Representation:
-        """A copy with another root-position std rule ([a, p, c, w], or [] for the summed std)."""
+        """A copy with another root-position std rule ([a, p, c, w, u], or [] for the summed std)."""
         d = self.to_dict()
         d["root_std"] = [float(v) for v in root_std]
         return Representation.from_dict(d)
@@ -506,11 +508,12 @@ class ReprState:
             # well keep moving: the spread between holding and integrating)
             sy = self.root_st[:, 2] + kh * rf[:, 3] + (1.0 - kh) * np.abs(rv[:, 3])
             if rep.root_std:
-                # the calibrated rule: a g^(p-1) (Q + c g), Q the filled (undamped) speed summed
-                # over the gap, its kept part weighted w, in root_st[:, 1] in place of the summed std
-                a, pw, c, w = rep.root_std
+                # the calibrated rule: a g^(p-1) (Q + c g), Q summed over the gap in root_st[:, 1]
+                # (in place of the summed std): the filled (undamped) speed, its kept part weighted
+                # w, and u x the kept part of the model's std
+                a, pw, c, w, u = rep.root_std
                 g1 = self.root_st[:, 0] + 1.0
-                acc = self.root_st[:, 1] + (w * k + (1.0 - k)) * np.hypot(rv[:, 0], rv[:, 2])
+                acc = self.root_st[:, 1] + (w * k + (1.0 - k)) * np.hypot(rv[:, 0], rv[:, 2]) + u * k * np.maximum(rf[:, 0], rf[:, 2])
                 sp = a * g1 ** (pw - 1.0) * (acc + c * g1)
             else:
                 acc = sp = (self.root_st[:, 1] + k * np.maximum(rf[:, 0], rf[:, 2])
@@ -558,8 +561,8 @@ class ReprState:
 
 
 def _check_root_std(v: Sequence[float]) -> None:
-    if len(v) not in (0, 4) or not all(np.isfinite(x) for x in v) or (len(v) == 4 and (v[0] <= 0 or min(v[2], v[3]) < 0)):
-        raise ValueError(f"root_std must be [] or [a > 0, p, c >= 0, w >= 0] (got {list(v)})")
+    if len(v) not in (0, 5) or not all(np.isfinite(x) for x in v) or (len(v) == 5 and (v[0] <= 0 or min(v[2:]) < 0)):
+        raise ValueError(f"root_std must be [] or [a > 0, p, c >= 0, w >= 0, u >= 0] (got {list(v)})")
 
 
 def has_root_channels(channels: Sequence[str], skeleton: Any = None) -> bool:

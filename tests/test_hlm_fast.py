@@ -173,7 +173,7 @@ print("enabled", fast.enabled(), "finite", bool(np.isfinite(fill.frame).all()))
     assert r.stdout.split() == ["enabled", "False", "finite", "True"]
 
 
-STD_RULE = [0.39, 0.97, 0.07, 0.45]   # a root_std rule ([a, p, c, w]) like hlm.methods.DEFAULTS
+STD_RULE = [0.5, 0.97, 0.07, 0.45, 0.3]   # a root_std rule ([a, p, c, w, u]) like hlm.methods.DEFAULTS
 
 
 @pytest.mark.parametrize("root_mode,normalize,root_tau,root_power,root_turn,root_std",

@@ -123,14 +123,15 @@ def test_representation_json_round_trip_and_validation(data, walks):
 
 
 def test_root_std_rule_grows_with_the_gap_and_round_trips(data, walks):
-    """The fitted rule for a missing root's ground-position std (``root_std`` [a, p, c, w]): over a
-    real walk's root dropout, undamped (every increment kept, so Q = w x the filled speed summed),
-    the std after g frames is a g^(p-1) (Q + c g), computed here from the fill itself; observed
-    frames carry none; the rule survives the model file's dict, a dict written before it loads with
-    the summed std (another number), and a malformed rule is refused."""
+    """The fitted rule for a missing root's ground-position std (``root_std`` [a, p, c, w, u]): over
+    a real walk's root dropout, undamped (every increment kept, so Q = w x the filled speed + u x the
+    model's std, summed), the std after g frames is a g^(p-1) (Q + c g), computed here from the fill
+    and its std; [1, 1, 0, 0, 1] is the summed std exactly; observed frames carry none; the rule
+    survives the model file's dict, a dict written before it loads with the summed std, and a
+    malformed rule is refused."""
     import json
 
-    rule = [0.39, 0.97, 0.07, 0.45]
+    rule = [0.39, 0.97, 0.07, 0.45, 0.3]
     rep = Representation.fit([m.frames for m in walks], walks[0].channels, normalize=False, root_std=rule)
     truth = load_trial("35_08").frames[:260]
     obs = np.ones(truth.shape, bool)
@@ -139,29 +140,31 @@ def test_root_std_rule_grows_with_the_gap_and_round_trips(data, walks):
     fill = rep.transform(truth, normalized=False)       # a model's fill: the true increments
     rf = rep._plan()["rootf"]
     px = rep.channels.index("root.tx")
-    rng = np.random.default_rng(0)
-    old = Representation.from_dict({k: v for k, v in json.loads(json.dumps(rep.to_dict())).items() if k != "root_std"})
+    zstd = np.random.default_rng(0).uniform(0.1, 1, fill.shape)
+    d0 = json.loads(json.dumps(rep.to_dict()))
+    old = Representation.from_dict({k: v for k, v in d0.items() if k != "root_std"})
     assert old.root_std == []
-    rep2 = Representation.from_dict(json.loads(json.dumps(rep.to_dict())))
+    rep2 = Representation.from_dict(d0)
     assert rep2.root_std == rule
-    sa, sb = rep2.new_state(1), old.new_state(1)
-    got, summed = [], []
+    reps = (rep2, old, rep.with_root_std([1.0, 1.0, 0.0, 0.0, 1.0]))
+    states = [r.new_state(1) for r in reps]
+    out = [[], [], []]
     for t in range(truth.shape[0]):
         f, o = np.where(obs[t], truth[t], np.nan)[None], obs[t][None]
-        sa.encode(f, o)
-        sb.encode(f, o)
-        zstd = np.where(np.isnan(rep.transform(truth[t : t + 1], normalized=False)), 0.0, rng.uniform(0.1, 1, (1, rep.n_features)))
-        got.append(sa.finish(fill[t : t + 1], zstd, f, o)[1][0, px])
-        summed.append(sb.finish(fill[t : t + 1], zstd, f, o)[1][0, px])
-    got, summed = np.array(got), np.array(summed)
-    a, p, c, w = rule
+        for st, acc in zip(states, out):
+            st.encode(f, o)
+            acc.append(st.finish(fill[t : t + 1], zstd[t : t + 1], f, o)[1][0, px])
+    got, summed, nested = (np.array(v) for v in out)
+    a, p, c, w, u = rule
     g = np.arange(1, 121, dtype=float)
-    q = w * np.cumsum(np.hypot(fill[100:220, rf[0]], fill[100:220, rf[2]]))
+    q = np.cumsum(w * np.hypot(fill[100:220, rf[0]], fill[100:220, rf[2]])
+                  + u * np.maximum(zstd[100:220, rf[0]], zstd[100:220, rf[2]]))
     np.testing.assert_allclose(got[100:220], a * g ** (p - 1) * (q + c * g), rtol=1e-12)
     assert (got[:100] == 0).all() and (got[220:] == 0).all()
     assert got[219] > got[110] > 0
+    np.testing.assert_allclose(nested, summed, rtol=1e-12, atol=0)
     assert not np.allclose(summed[100:220], got[100:220])
-    for bad in ([1.0, 1.0, 0.0], [0.0, 1.0, 0.1, 0.5], [0.4, 1.0, -0.1, 0.5], [0.4, float("nan"), 0.1, 0.5]):
+    for bad in ([1.0, 1.0, 0.0, 0.5], [0.0, 1.0, 0.1, 0.5, 0.3], [0.4, 1.0, -0.1, 0.5, 0.3], [0.4, float("nan"), 0.1, 0.5, 0.3]):
         d = rep.to_dict()
         d["root_std"] = bad
         with pytest.raises(ValueError, match="root_std"):
