@@ -181,10 +181,18 @@ def _chol_solve(A, b):  # pragma: no cover - compiled
 
 
 @_jit
-def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
+def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
              cov, prec, shrink, live, style_live):  # pragma: no cover - compiled
     """``correct`` for one stream: post (C M,) its filtered posterior, D, W, G, GW its cycle
-    statistics (ignored when kappa = 0), zf (F,) its fill, corrected in place."""
+    statistics (ignored when kappa = 0), zf (F,) its fill, corrected in place.
+
+    sup: the states to visit, ascending, with post exactly 0 at every state not in it (the
+    filter's support, ``hlm.fast._step_in``'s rows; ``np.arange(C M)`` visits all).  The result
+    is the bits of a pass over all C*M states: each sum below runs over the same states in the
+    same ascending order, and a state left out adds nothing -- its post is +-0, which no
+    ``post > live * pmax`` test lets into ptot or x_hat (live * pmax >= 0), which cannot raise
+    pmax (posts are >= 0), and which added to a style's pc (starting at +0.0, never -0.0) leaves
+    it as it was."""
     F = z.shape[0]
     no = 0
     for f in range(F):
@@ -204,16 +212,17 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
         else:
             mi[b_] = f
             b_ += 1
-    # x_hat at the observed features (the arithmetic of hlm.online.fill / hlm.fast._step's fill)
+    # x_hat at the observed features (the arithmetic of hlm.online.fill / hlm.fast._step_in's fill)
     CM = post.shape[0]
+    ns = sup.shape[0]
     pmax = 0.0
-    for s in range(CM):
-        if post[s] > pmax:
-            pmax = post[s]
+    for i in range(ns):
+        if post[sup[i]] > pmax:
+            pmax = post[sup[i]]
     ptot = 0.0
-    for s in range(CM):
-        if post[s] > live * pmax:
-            ptot += post[s]
+    for i in range(ns):
+        if post[sup[i]] > live * pmax:
+            ptot += post[sup[i]]
     num = np.zeros(no)
     den = np.zeros(no)
     # the knot offsets at the observed features, each knot computed once (live states share a few)
@@ -221,7 +230,8 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
     nbk = max(CB // (CM // M), 1)
     E = np.empty((CB, no))
     done = np.zeros(CB, np.bool_)
-    for s in range(CM):
+    for i in range(ns):
+        s = sup[i]
         p = post[s]
         if not p > live * pmax:
             continue
@@ -256,11 +266,14 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
     # the styles' weights (style_weights)
     C = CM // M
     pc = np.zeros(C)
-    s = 0
-    for c in range(C):  # pc[s // M] += post[s] for ascending s: the same sums, no integer division a state
-        for _ in range(M):
-            pc[c] += post[s]
-            s += 1
+    c = 0
+    top = M
+    for i in range(ns):  # pc[s // M] += post[s] for ascending s: the same sums, no division a state
+        s = sup[i]
+        while s >= top:
+            c += 1
+            top += M
+        pc[c] += post[s]
     cmax = 0.0
     for c in range(C):
         if pc[c] > cmax:
@@ -307,9 +320,10 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
 @_jit
 def _correct_many(post, z, zobs, zf, prow, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
                   cov, prec, shrink, live, style_live):  # pragma: no cover - compiled
+    every = np.arange(post.shape[1])  # (all states: the stream's post is not known zero anywhere)
     for i in range(post.shape[0]):
         r = prow[i]
-        correct1(post[i], z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[r], W[r], G[r], GW[r],
+        correct1(post[i], every, z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[r], W[r], G[r], GW[r],
                  lam_rows, pack, cov, prec, shrink, live, style_live)
 
 
