@@ -373,10 +373,15 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
 @_jit
 def _correct_many(post, z, zobs, zf, prow, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
                   cov, prec, shrink, live, style_live):  # pragma: no cover - compiled
-    every = np.arange(post.shape[1])  # (all states: the stream's post is not known zero anywhere)
+    sup = np.empty(post.shape[1], np.int64)
     for i in range(post.shape[0]):
         r = prow[i]
-        correct1(post[i], every, z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[r], W[r], G[r], GW[r],
+        k = 0
+        for s in range(post.shape[1]):  # (the states with post != 0: correct1's support)
+            if post[i, s] != 0.0:
+                sup[k] = s
+                k += 1
+        correct1(post[i], sup[:k], z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[r], W[r], G[r], GW[r],
                  lam_rows, pack, cov, prec, shrink, live, style_live)
 
 

@@ -151,9 +151,9 @@ def _old_in_new_place(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, k
          live, style_live)
 
 
-def _with_old_kernel(kernel):
-    """A compiled copy of one of hlm.fast's steps whose ``correct1`` is the old kernel."""
-    g = dict(fast.__dict__, correct1=_old_in_new_place)
+def _with_old_kernel(kernel, module=fast):
+    """A compiled copy of one of hlm.fast's steps (or condfill's) whose ``correct1`` is the old kernel."""
+    g = dict(module.__dict__, correct1=_old_in_new_place)
     fn = types.FunctionType(kernel.py_func.__code__, g, kernel.py_func.__name__ + "_old_correct1")
     return numba.njit(nogil=True)(fn)
 
@@ -246,3 +246,25 @@ def test_one_stream_gets_the_old_kernels_bits(walk, monkeypatch):
             sup.append(_support(new, [a]))
         assert max(sup[10:]) < CM // 4, (sup[:12], CM)
     assert missing > 3 * T // 2
+
+
+def test_the_feature_space_path_gets_the_old_kernels_bits(walk, monkeypatch):
+    """``condfill.correct_many`` (a stream's own ``step``: the compiled filter, then the
+    correction on the states with post != 0), 8 streams at scattered offsets."""
+    model, frames, obs = walk
+    new, old = model.with_options(), model.with_options()
+    ref_many = _with_old_kernel(condfill._correct_many, condfill)
+    real_many = condfill._correct_many
+    T = frames.shape[0]
+    for off in (0, 45, 91, 150, 203, 260, 330, 401):
+        a, b = new.stream(), old.stream()
+        for t in range(off, off + T // 2):
+            t %= T
+            f = np.where(obs[t], frames[t], np.nan)
+            fa = a.step(f, obs[t])
+            monkeypatch.setattr(condfill, "_correct_many", ref_many)
+            fb = b.step(f, obs[t])
+            monkeypatch.setattr(condfill, "_correct_many", real_many)
+            np.testing.assert_array_equal(fa.frame, fb.frame)
+            np.testing.assert_array_equal(fa.std, fb.std)
+            assert fa.extras == fb.extras
