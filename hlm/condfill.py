@@ -181,10 +181,49 @@ def _chol_solve(A, b):  # pragma: no cover - compiled
 
 
 @_jit
-def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
+def _chol_solve_in(A, b, L, y, x):  # pragma: no cover - compiled
+    """``_chol_solve`` into the caller's arrays L (n, n), y, x (n,) (``correct1``'s one block; the
+    same operations in the same order, so the same bits): returns x."""
+    n = A.shape[0]
+    for j in range(n):
+        for k in range(n):
+            L[j, k] = 0.0
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        L[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / L[j, j]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+    return x
+
+
+@_jit
+def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
              cov, prec, shrink, live, style_live):  # pragma: no cover - compiled
     """``correct`` for one stream: post (C M,) its filtered posterior, D, W, G, GW its cycle
-    statistics (ignored when kappa = 0), zf (F,) its fill, corrected in place."""
+    statistics (ignored when kappa = 0), zf (F,) its fill, corrected in place.
+
+    sup: the states to visit, ascending, with post exactly 0 at every state not in it (the
+    filter's support, ``hlm.fast._step_in``'s rows; ``np.arange(C M)`` visits all).  The result
+    is the bits of a pass over all C*M states: each sum below runs over the same states in the
+    same ascending order, and a state left out adds nothing -- its post is +-0, which no
+    ``post > live * pmax`` test lets into ptot or x_hat (live * pmax >= 0), which cannot raise
+    pmax (posts are >= 0), and which added to a style's pc (starting at +0.0, never -0.0) leaves
+    it as it was."""
     F = z.shape[0]
     no = 0
     for f in range(F):
@@ -193,8 +232,9 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
     nm = F - no
     if no == 0 or nm == 0:
         return
-    oi = np.empty(no, np.int64)
-    mi = np.empty(nm, np.int64)
+    ii = np.empty(F, np.int64)
+    oi = ii[:no]
+    mi = ii[no:]
     a_ = 0
     b_ = 0
     for f in range(F):
@@ -204,24 +244,46 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
         else:
             mi[b_] = f
             b_ += 1
-    # x_hat at the observed features (the arithmetic of hlm.online.fill / hlm.fast._step's fill)
+    # x_hat at the observed features (the arithmetic of hlm.online.fill / hlm.fast._step_in's fill)
     CM = post.shape[0]
+    ns = sup.shape[0]
     pmax = 0.0
-    for s in range(CM):
-        if post[s] > pmax:
-            pmax = post[s]
+    for i in range(ns):
+        if post[sup[i]] > pmax:
+            pmax = post[sup[i]]
     ptot = 0.0
-    for s in range(CM):
-        if post[s] > live * pmax:
-            ptot += post[s]
-    num = np.zeros(no)
-    den = np.zeros(no)
-    # the knot offsets at the observed features, each knot computed once (live states share a few)
+    for i in range(ns):
+        if post[sup[i]] > live * pmax:
+            ptot += post[sup[i]]
+    # the working arrays in one block (an allocation costs more than the arithmetic on them)
+    C = CM // M
     CB = D.shape[0] if kappa > 0.0 else 1
+    n2 = max(nm, no)
+    ws = np.empty(3 * no + C + nm + CB * no + 2 * n2 * n2 + 3 * n2)
+    num = ws[:no]
+    den = ws[no : 2 * no]
+    r = ws[2 * no : 3 * no]
+    pc = ws[3 * no : 3 * no + C]
+    o = 3 * no + C
+    corr = ws[o : o + nm]
+    o += nm
+    E = ws[o : o + CB * no].reshape((CB, no))
+    o += CB * no
+    Aw = ws[o : o + n2 * n2]
+    o += n2 * n2
+    Lw = ws[o : o + n2 * n2]
+    o += n2 * n2
+    bw = ws[o : o + n2]
+    yw = ws[o + n2 : o + 2 * n2]
+    xw = ws[o + 2 * n2 : o + 3 * n2]
+    for j in range(no):
+        num[j] = 0.0
+        den[j] = 0.0
+    # the knot offsets at the observed features, each knot computed once (live states share a few)
     nbk = max(CB // (CM // M), 1)
-    E = np.empty((CB, no))
     done = np.zeros(CB, np.bool_)
-    for s in range(CM):
+    for i in range(ns):
+        s = sup[i]
         p = post[s]
         if not p > live * pmax:
             continue
@@ -250,17 +312,19 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
                 f = oi[j]
                 num[j] += p * pack[s, f]
                 den[j] += p * pack[s, F + f]
-    r = np.empty(no)
     for j in range(no):
         r[j] = z[oi[j]] - num[j] / den[j]
     # the styles' weights (style_weights)
-    C = CM // M
-    pc = np.zeros(C)
-    s = 0
-    for c in range(C):  # pc[s // M] += post[s] for ascending s: the same sums, no integer division a state
-        for _ in range(M):
-            pc[c] += post[s]
-            s += 1
+    for c in range(C):
+        pc[c] = 0.0
+    c = 0
+    top = M
+    for i in range(ns):  # pc[s // M] += post[s] for ascending s: the same sums, no division a state
+        s = sup[i]
+        while s >= top:
+            c += 1
+            top += M
+        pc[c] += post[s]
     cmax = 0.0
     for c in range(C):
         if pc[c] > cmax:
@@ -271,30 +335,32 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
             csum += pc[c]
         else:
             pc[c] = 0.0
-    corr = np.zeros(nm)
+    for i in range(nm):
+        corr[i] = 0.0
     for c in range(C):
         if pc[c] == 0.0:
             continue
         wc = pc[c] / csum
         if nm <= no:
             # -Q_mm^-1 Q_mo r_o
-            A = np.empty((nm, nm))
-            b = np.zeros(nm)
+            A = Aw[: nm * nm].reshape((nm, nm))
+            b = bw[:nm]
             for i in range(nm):
+                b[i] = 0.0
                 for j in range(nm):
                     A[i, j] = prec[c, mi[i], mi[j]]
                 for j in range(no):
                     b[i] += prec[c, mi[i], oi[j]] * r[j]
-            x = _chol_solve(A, b)
+            x = _chol_solve_in(A, b, Lw[: nm * nm].reshape((nm, nm)), yw[:nm], xw[:nm])
             for i in range(nm):
                 corr[i] -= wc * x[i]
         else:
             # Sigma_mo Sigma_oo^-1 r_o
-            A = np.empty((no, no))
+            A = Aw[: no * no].reshape((no, no))
             for i in range(no):
                 for j in range(no):
                     A[i, j] = cov[c, oi[i], oi[j]]
-            y = _chol_solve(A, r)
+            y = _chol_solve_in(A, r, Lw[: no * no].reshape((no, no)), yw[:no], xw[:no])
             for i in range(nm):
                 acc = 0.0
                 for j in range(no):
@@ -307,9 +373,15 @@ def correct1(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, 
 @_jit
 def _correct_many(post, z, zobs, zf, prow, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
                   cov, prec, shrink, live, style_live):  # pragma: no cover - compiled
+    sup = np.empty(post.shape[1], np.int64)
     for i in range(post.shape[0]):
         r = prow[i]
-        correct1(post[i], z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[r], W[r], G[r], GW[r],
+        k = 0
+        for s in range(post.shape[1]):  # (the states with post != 0: correct1's support)
+            if post[i, s] != 0.0:
+                sup[k] = s
+                k += 1
+        correct1(post[i], sup[:k], z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[r], W[r], G[r], GW[r],
                  lam_rows, pack, cov, prec, shrink, live, style_live)
 
 

@@ -52,15 +52,6 @@ def scratch(CM, F, M):  # pragma: no cover - compiled
     return np.zeros(2 * CM + 7 * F), ix
 
 
-@_jit
-def _step(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
-          D, W, G, GW, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style):  # pragma: no cover - compiled
-    """One stream's step with its own working arrays (``_step_in``)."""
-    fs, ix = scratch(post.shape[0], z.shape[0], M)
-    return _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, D, W, G,
-                    GW, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, fs, ix)
-
-
 @_jit_sums
 def _dot(row, v):  # pragma: no cover - compiled
     """row . v, summed in SIMD lanes (``lacuna.jit.jit_sums``): an emission's log-likelihood
@@ -78,7 +69,9 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
     """The step on the posterior's and the prediction's support only, in the working arrays fs,
     ix (``scratch``; fs[:CM] must be zero and is left zero).  The same operations in the same
     order as a pass over all C*M states: the states are visited ascending, and the terms it
-    would skip (zero mass, a missing feature's zero emission term) add exactly nothing."""
+    would skip (zero mass, a missing feature's zero emission term) add exactly nothing.
+    Returns (the phase, k): the new posterior is exactly 0 outside the k states ix[:k]
+    (ascending), the support ``condfill.correct1`` visits."""
     CM = post.shape[0]
     F = z.shape[0]
     C = CM // M
@@ -251,7 +244,7 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
             style[cof[s]] += p
             sc += p * cos[mof[s]]
             ss += p * sin[mof[s]]
-    return (math.atan2(ss, sc) / (2.0 * math.pi)) % 1.0
+    return (math.atan2(ss, sc) / (2.0 * math.pi)) % 1.0, k
 
 
 def usable(tab) -> bool:
@@ -267,7 +260,7 @@ def _step_many(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, b
         r = prow[i]
         phase[i] = _step_in(post[i], first[i], prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
                             kappa_g, nb, D[r], W[r], G[r], GW[r], lam_rows, var_q, pack, cos, sin, live, live_stats,
-                            out[i], sd[i], style[i], fs, ix)
+                            out[i], sd[i], style[i], fs, ix)[0]
 
 
 def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, rows: np.ndarray | None = None,
@@ -317,7 +310,7 @@ def _extras(style: np.ndarray, phase: np.ndarray) -> list[dict]:
 @_jit
 def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
                live, live_stats, out, sd, style, cond, cov, prec, shrink):  # pragma: no cover - compiled
-    """fastrepr.encode1 -> _step -> fastrepr.finish1 for pool row r: the arithmetic of
+    """fastrepr.encode1 -> _step_in (-> condfill.correct1) -> fastrepr.finish1 for pool row r: the arithmetic of
     ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Writes the
     completed frame to out, its std to sd, the style posterior to style; returns the phase."""
     center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF, root_tau, root_power = rt
@@ -334,11 +327,12 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
     zf = np.empty(nF)
     zsd = np.empty(nF)
     p = post[r].reshape(post.shape[1] * post.shape[2])
-    phase = _step(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
-                  D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style)
+    fs, ix = scratch(p.shape[0], nF, M)
+    phase, k = _step_in(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
+                        D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style, fs, ix)
     t[r] += 1
-    if cond:
-        correct1(p, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows, pack,
+    if cond:  # (on the filter's support: ix[:k])
+        correct1(p, ix[:k], z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows, pack,
                  cov, prec, shrink, live, STYLE_LIVE)
     prev_yaw[r] = finish1(zf, zsd, x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center,
                           const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power,
@@ -417,12 +411,12 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
         r = prow[i]
         q = r if cyc else 0
         p = post[r].reshape(CM)
-        phase[i] = _step_in(p, t[r] == 0, prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g,
-                            nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf[i], zsd[i],
-                            style[i], fs, ix)
+        phase[i], k = _step_in(p, t[r] == 0, prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
+                               kappa_g, nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats,
+                               zf[i], zsd[i], style[i], fs, ix)
         t[r] += 1
-        if cond:
-            correct1(p, z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows,
+        if cond:  # (on the filter's support: ix[:k], until the next stream's _step_in)
+            correct1(p, ix[:k], z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows,
                      pack, cov, prec, shrink, live, STYLE_LIVE)
     for i in range(n):
         r = prow[i]
