@@ -154,7 +154,8 @@ class BlockTick(Parts):
         status = "passthrough"
         cols: list[list[Any]] = [stamps, ab, fb, sb] if whole else [[c[k] for k in ks] for c in (stamps, ab, fb, sb)]
         maps: list[dict[str, Any]]
-        if rowwise and not any(gaps):  # (the HLM's bundle: the maps of the loop below, built in one pass)
+        one_pass = rowwise and not any(gaps)
+        if one_pass:  # (the HLM's bundle: the maps of the loop below, built in one pass)
             assert styles is not None and phases is not None and statuses is not None
             yk, pk = (styles, phases) if whole else ([styles[k] for k in ks], [phases[k] for k in ks])
             maps = [{"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
@@ -166,7 +167,7 @@ class BlockTick(Parts):
                 {"v": 1, "type": "fill", "stream": s.sid, "seq": q, "t": t, "angles": a, "filled": f, "std": d,
                  "status": status if statuses is None else statuses[k], "model": name, "proc_us": proc_us}
                 for k, s, q, t, a, f, d in zip(ks, out, qk, *cols)]
-        if not (rowwise and not any(gaps)) and (styles is not None or phases is not None or any(gaps)):
+        if not one_pass and (styles is not None or phases is not None or any(gaps)):
             for k, m in zip(ks, maps):
                 if styles is not None and styles[k] is not None:
                     m["style"] = styles[k]
