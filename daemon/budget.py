@@ -9,11 +9,11 @@ token bucket of cost units: a hello costs HELLO_COST and, before it is decoded, 
 request CONTROL_COST.  ``RATE`` units a second on average, bursts of ``BURST``; beyond it a
 request is refused ``rate_limited`` (counted) at the cost of a dictionary look-up.  The table of
 buckets is bounded (``MAX_KEYS``; the least recently seen principal is forgotten first, which
-only ever gives it a full bucket back).
+only ever gives it a full bucket back).  Refills run on the daemon's clock (``now``), never
+wall time read here.
 """
 from __future__ import annotations
 
-import time
 from collections import OrderedDict
 from typing import Any
 
@@ -37,8 +37,9 @@ class Budget:
         self._b: OrderedDict[Any, list[float]] = OrderedDict()  # principal -> [tokens, last refill]
         self.refused = 0
 
-    def allow(self, who: Any, units: float = 1.0, now: float | None = None) -> bool:
-        now = time.monotonic() if now is None else now
+    def allow(self, who: Any, now: float, units: float = 1.0) -> bool:
+        """Charge ``units`` to ``who`` at ``now`` (the daemon's clock, seconds: the one its
+        expiry and overdue checks read, so a test's clock moves the refill too)."""
         b = self._b.get(who)
         if b is None:
             if len(self._b) >= self.max_keys:

@@ -23,7 +23,7 @@ class Control(Parts):
                 self._out.append((origin, wire.ControlReply("status", False, {}, f"no open stream {msg.stream!r}")))
                 return
             n = STATUS_STREAMS if msg.limit is None else msg.limit
-            if n > STATUS_STREAMS and not self.budget.allow(principal(origin), (n - STATUS_STREAMS) / 64.0):
+            if n > STATUS_STREAMS and not self.budget.allow(principal(origin), self.clock(), (n - STATUS_STREAMS) / 64.0):
                 self._rate_limited(origin)  # (a long listing costs its length)
                 return
             self._out.append((origin, wire.ControlReply("status", True, self.status(n, msg.stream))))

@@ -61,7 +61,7 @@ class Dispatch(Parts):
         elif isinstance(m, wire.WireError):
             self._reject(origin, m.reason, m.detail, m.stream, m.seq)
         elif type(m) is dict and m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
-                not self.budget.allow(principal(origin), units):
+                not self.budget.allow(principal(origin), self.clock(), units):
             # (before decoding: checking a hello's names is the cost the budget is for)
             self._rate_limited(origin, m)
         else:  # (_take's decode and dispatch, for a map: it decodes to one message)
@@ -282,7 +282,7 @@ class Dispatch(Parts):
             elif isinstance(msg, wire.Bundle):
                 self._bundle(msg, origin, arrived)
             elif isinstance(msg, (wire.Hello, wire.Control)) and \
-                    not self.budget.allow(principal(origin), budgets.HELLO_COST if isinstance(msg, wire.Hello)
+                    not self.budget.allow(principal(origin), self.clock(), budgets.HELLO_COST if isinstance(msg, wire.Hello)
                                           else budgets.CONTROL_COST):
                 self._rate_limited(origin)
             elif isinstance(msg, wire.Hello):
@@ -369,7 +369,7 @@ class Dispatch(Parts):
         than the datagram it answers or OSC_ERROR_FLOOR bytes, whichever is more (the detail
         is cut to fit; an answer that cannot fit is not sent): spoofing a source cannot turn
         the daemon into an amplifier."""
-        if not self.osc_err_budget.allow(origin[1][0]):
+        if not self.osc_err_budget.allow(origin[1][0], self.clock()):
             self.metrics.inc("osc_errors_unanswered")
             return
         room = max(self._osc_in, OSC_ERROR_FLOOR)
