@@ -38,6 +38,14 @@ root_pos_rms_cm / root_pos_max_cm / hold_root_pos_rms_cm  over frames where any 
                (1 unit = 1/0.45 inch = 5.644 cm for L = 0.45; CMU's FAQ: multiply by
                (1/0.45) * 2.54 / 100 for metres).  Without an ASF (BVH, CSV) the figures are in the
                file's own units and named ``root_pos_rms_units`` etc.
+step_err_rms_deg / pop_p99_deg / pop_max_deg / pop_over_2deg  steps inside gaps: over erased
+               values after a gap's first frame (k >= 1), the fill's own step d_f = wrap(fill[t] -
+               fill[t-1]) against the truth's d_t = wrap(truth[t] - truth[t-1]); step_err is RMS of
+               wrap(d_f - d_t), a *pop* is max(|d_f| - |d_t|, 0) (how much further the fill jumped in
+               one frame than the performer moved: 0 for a fill that moves no more than the truth);
+               its 99th percentile, maximum and the share above 2 degrees.  truth_step_rms_deg is
+               RMS of d_t over the same values, for scale.  (The first frame's jump is the onset
+               figures'.)
 joint_pos_mean_cm / joint_pos_p95_cm  marker-like error: forward kinematics (mocap.fk) of truth
                and fill, the 3-D distance of every joint on every frame where its position depends
                on an erased value (a filled angle of it or up its chain, or the root translation),
@@ -123,6 +131,10 @@ class Values:
     extra: dict[str, Any] = field(default_factory=dict)
     # per (frame, joint) moved by an erased value: 3-D joint-position error, cm (mocap.fkerror)
     joint_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # per erased value (NaN at a gap's first frame): fill step minus truth step, and the pop
+    step_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    truth_step: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pop: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @staticmethod
     def concat(tables: list[Values]) -> Values:
@@ -133,7 +145,7 @@ class Values:
             raise ValueError(f"cannot pool root errors in different units ({sorted(units)})")
         kw = {f: np.concatenate([getattr(t, f) for t in tables]) for f in
               ("err", "std", "since", "first", "length", "group", "hold_err", "onset_err", "onset_step",
-               "root_err", "root_hold_err", "joint_err")}
+               "root_err", "root_hold_err", "joint_err", "step_err", "truth_step", "pop")}
         return Values(**kw, root_unit=units.pop() if units else tables[0].root_unit)
 
 
@@ -162,6 +174,12 @@ def values(case: Any, filled: np.ndarray, std: np.ndarray | None, groups: dict[s
         hold_err = wrap180(held - truth)
 
     sel = missing & scored[None, :]
+    fprev = np.vstack([filled[:1], filled[:-1]])
+    df, dt = wrap180(filled - fprev), wrap180(truth - prev)
+    inner = since >= 1   # after the gap's first frame: fill[t-1] is a fill too
+    step_err = np.where(inner, wrap180(df - dt), np.nan)
+    pop = np.where(inner, np.maximum(np.abs(df) - np.abs(dt), 0.0), np.nan)
+    tstep = np.where(inner, np.abs(dt), np.nan)
     bone_group = {}
     for g, bones in groups.items():
         for b in bones:
@@ -195,6 +213,7 @@ def values(case: Any, filled: np.ndarray, std: np.ndarray | None, groups: dict[s
         onset_err=np.abs(err[onset]), onset_step=np.abs(wrap180(truth - prev)[onset]),
         root_err=root_err, root_hold_err=root_hold, root_unit=unit,
         joint_err=_joint_err(case, filled, missing),
+        step_err=step_err[sel], truth_step=tstep[sel], pop=pop[sel],
     )
 
 
@@ -263,6 +282,12 @@ def summarise(v: Values, by_group_bins: bool = True) -> list[tuple[str, float | 
         u, k = v.root_unit, int(v.root_err.size)
         out += [(f"root_pos_rms_{u}", _rms(v.root_err), k), (f"root_pos_max_{u}", float(v.root_err.max()), k),
                 (f"hold_root_pos_rms_{u}", _rms(v.root_hold_err), k)]
+    inner = np.isfinite(v.pop) if v.pop.size == n else np.zeros(0, bool)
+    if inner.any():
+        k, p = int(inner.sum()), v.pop[inner]
+        out += [("step_err_rms_deg", _rms(v.step_err[inner]), k), ("truth_step_rms_deg", _rms(v.truth_step[inner]), k),
+                ("pop_p99_deg", float(np.percentile(p, 99)), k), ("pop_max_deg", float(p.max()), k),
+                ("pop_over_2deg", float(np.mean(p > 2.0)), k)]
     if v.joint_err.size:
         k = int(v.joint_err.size)
         out += [("joint_pos_mean_cm", float(v.joint_err.mean()), k),

@@ -184,3 +184,24 @@ def test_bins_are_also_given_per_joint_group():
     assert _fig(s, "rms_deg[group head-neck, since first]") == pytest.approx(4.0)
     assert not [m for m, _, _ in s if m.startswith("rms_deg[group head-neck, len 0.25")]
     assert "rms_deg[group left-leg, len 0.1-0.25s]" not in [m for m, _, _ in s]
+
+
+def test_steps_inside_gaps_pop_is_what_the_fill_jumps_beyond_the_truth():
+    case, _ = _ramp_case(0.0)   # truth rises 1 degree a frame; erased frames 10-39
+    # a fill that follows the truth but steps up by 5 degrees at gap frame 12 (frame 22) and stays
+    fill = np.where(case.observed, case.truth, case.truth + np.where(np.arange(60)[:, None] >= 22, 5.0, 0.0))
+    s = metrics.summarise(metrics.values(case, fill, None, GAP_GROUPS))
+    # 29 values after the first frame; one of them moved 6 where the truth moved 1: a pop of 5
+    assert _fig(s, "pop_max_deg") == pytest.approx(5.0)
+    assert _fig(s, "pop_over_2deg") == pytest.approx(1 / 29)
+    assert _fig(s, "step_err_rms_deg") == pytest.approx(np.sqrt(25 / 29))
+    assert _fig(s, "truth_step_rms_deg") == pytest.approx(1.0)
+    # hold moves less than the truth every frame: no pop at all, a step error of 1 every frame
+    hold = np.where(case.observed, case.truth, 9.0)
+    h = metrics.summarise(metrics.values(case, hold, None, GAP_GROUPS))
+    assert _fig(h, "pop_max_deg") == 0.0 and _fig(h, "pop_over_2deg") == 0.0
+    assert _fig(h, "step_err_rms_deg") == pytest.approx(1.0)
+    # pooled tables keep the step figures (concat carries the new fields)
+    p = metrics.summarise(metrics.Values.concat([metrics.values(case, fill, None, GAP_GROUPS),
+                                                  metrics.values(case, hold, None, GAP_GROUPS)]))
+    assert _fig(p, "pop_over_2deg") == pytest.approx(1 / 58)
