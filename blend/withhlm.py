@@ -110,6 +110,13 @@ SHADOW_REVOKE = 1.5   # a window with r above this (and 1.1) sets the bound to a
 LOGQ_UNSCORED = math.log(100.0)   # no window scored yet: the bound is "no evidence", the last q bin (W = 0)
 W_MAX = 0.95   # the HLM's share at most: its std is 0 on channels its training held still; default's keeps std > 0
 ANCHOR_TAU = 30.0   # frames; replaced by the shipped choice (withhlm.json)
+# Smoothing (module doc, "Smooth"): each time bin's knot, its centre in frames since onset (the first
+# frame keeps bin 0; past the last knot, the last bin)
+T_KNOTS = np.array([1.0, 3.5, 8.5, 20.5, 44.5, 89.5, 179.5, 360.0])
+POP = 2.0        # degrees a frame the fill may depart from its own course, plus POP_REL x its last step (0: off)
+POP_REL = 1.0
+POP_TAU = 3.0    # frames: the decay of what the pop limit held back (all three chosen on VALIDATION: module doc)
+NO_SMOOTH = {"knots": False, "pop": 0.0, "pop_tau": POP_TAU, "pop_rel": 0.0}   # model files written before smoothing
 
 
 def group_index(channels: list[str]) -> np.ndarray:
@@ -150,7 +157,7 @@ class WithHLMModel(Model):
     causal = True
 
     def __init__(self, default: Model, hlm: Model, W: np.ndarray, S: np.ndarray, meta: dict[str, Any] | None = None,
-                 tau: float = ANCHOR_TAU, cal: np.ndarray | None = None):
+                 tau: float = ANCHOR_TAU, cal: np.ndarray | None = None, smooth: dict[str, Any] | None = None):
         if list(default.channels) != list(hlm.channels):
             raise FillerError(f"{METHOD}: the experts' channels differ ({len(default.channels)} vs {len(hlm.channels)})")
         self.default, self.hlm = default, hlm
@@ -181,6 +188,23 @@ class WithHLMModel(Model):
         # S of its group times its calibration, so the calibration costs nothing there (same fills)
         self._kW = np.ascontiguousarray(self.W[self.group])
         self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
+        self.set_smooth(**(NO_SMOOTH if smooth is None else smooth))
+
+    def set_smooth(self, knots: bool, pop: float, pop_tau: float = POP_TAU, pop_rel: float = POP_REL) -> None:
+        """The smoothing (module doc, "Smooth"): W and S read between the time bins' knots, and
+        the pop limit of ``pop`` + ``pop_rel`` |last step| degrees a frame (pop 0: off) with its
+        decay over ``pop_tau`` frames.  Applies to a stream's gaps from their first frame on."""
+        if not isinstance(knots, bool):
+            raise FillerError(f"{METHOD}: smooth 'knots' must be true or false (got {knots!r})")
+        for name, v in (("pop", pop), ("pop_tau", pop_tau), ("pop_rel", pop_rel)):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+                raise FillerError(f"{METHOD}: smooth '{name}' must be a finite number >= 0 (got {v!r})")
+        if pop > 0 and pop_tau <= 0:
+            raise FillerError(f"{METHOD}: smooth 'pop_tau' must be > 0 when 'pop' is on (got {pop_tau!r})")
+        self.smooth = {"knots": knots, "pop": float(pop), "pop_tau": float(pop_tau), "pop_rel": float(pop_rel)}
+        self.knots = T_KNOTS.copy() if knots else np.zeros(0)
+        self.pop, self.prel = float(pop), float(pop_rel)
+        self.pdecay = float(np.exp(-1.0 / pop_tau)) if pop > 0 else 0.0
 
     def stream(self) -> WithHLMState:
         return WithHLMState(self)
@@ -242,7 +266,7 @@ class WithHLMModel(Model):
             j += has
             eh, e0, nh = mix_row(F[i], O[i], HO[i], D[i], Dsd[i], H[i], Hsd[i], T[i] if has else D[i],   # type: ignore[index]
                                  has, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, s.logq),
-                                 self._anc, s.k, s.o, out[i], std[i])
+                                 self._anc, s.k, s.o, out[i], std[i], self.knots, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e)
             if has and nh:
                 s._score(eh, e0)
         return BlockFill(out, std, ~O, hb.style, hb.phase)
@@ -318,7 +342,7 @@ class WithHLMModel(Model):
             out, std = np.empty(C), np.empty(C)
             eh, e0, nh = mix_row(F[i], O[i], HO[i], d.frame, d.std, h.frame, h.std, d.frame if T is None else T,
                                  T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, logq),
-                                 self._anc, s.k, s.o, out, std)
+                                 self._anc, s.k, s.o, out, std, self.knots, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e)
             if T is not None and nh:
                 s._score(eh, e0)
             fills.append(Fill(out, std, d.filled, {**h.extras, "hlm_q": math.exp(logq)}))   # d.filled: ~O[i]
@@ -341,11 +365,39 @@ class WithHLMModel(Model):
         raw = np.where(self.ang, wrap(Hf - Df), Hf - Df)
         off = np.where(K == 1, -raw, np.stack([s.o for s in states]))
         diff = raw + (off * self.anchor ** np.maximum(K - 1, 0) if self.tau > 0 else 0.0)
-        tb = t_bin(K)
-        w = np.where(O, 0.0, self.W[self.group[None, :], tb, np.searchsorted(Q_EDGES, logq, side="right")[:, None]])
-        out = np.where(O, F, Df + w * diff)
+        qb = np.searchsorted(Q_EDGES, logq, side="right")[:, None]
+        if len(self.knots):   # W and S between the knots (module doc, "Smooth")
+            Kc = np.clip(K, self.knots[0], self.knots[-1]).astype(float)
+            lo = np.clip(np.searchsorted(self.knots, Kc, side="right") - 1, 0, len(self.knots) - 2)
+            f = (Kc - self.knots[lo]) / (self.knots[lo + 1] - self.knots[lo])
+            kW, kS = self._kW[self._rows[None, :], :, qb], self._kS[self._rows[None, :]]
+            w = np.take_along_axis(kW, lo[..., None], -1)[..., 0] * (1 - f) + np.take_along_axis(kW, lo[..., None] + 1, -1)[..., 0] * f
+            sc = np.take_along_axis(kS, lo[..., None], -1)[..., 0] * (1 - f) + np.take_along_axis(kS, lo[..., None] + 1, -1)[..., 0] * f
+            w = np.where(O, 0.0, w)
+        else:
+            tb = t_bin(K)
+            w = np.where(O, 0.0, self.W[self.group[None, :], tb, qb])
+            sc = self.S[self.group[None, :], tb]
+        y = Df + w * diff
+        if self.pop > 0:   # the pop limit (module doc, "Smooth")
+            rp, vp, e = (np.stack([getattr(s, a) for s in states]) for a in ("rp", "vp", "e"))
+            jump = y - (rp + vp)
+            lim = self.pop + self.prel * np.abs(vp)
+            x = np.where(K >= 3, jump - np.clip(jump, -lim, lim), 0.0)
+            e = np.where(K >= 3, e * self.pdecay - x, 0.0)
+            vp = np.where(K == 1, 0.0, y - rp - x)
+            rp = y
+            for a, v in (("rp", rp), ("vp", vp), ("e", e)):
+                for i, s in enumerate(states):
+                    setattr(s, a, np.where(O[i], getattr(s, a), v[i]))
+            out = np.where(O, F, y + e)
+        else:
+            out = np.where(O, F, y)
         var = (1 - w) * Dsd ** 2 + w * Hsd ** 2 + w * (1 - w) * diff ** 2
-        std = np.where(O, 0.0, self.S[self.group[None, :], tb] * np.sqrt(var)) * self.calib[self._rows, tb]
+        if len(self.knots):
+            std = np.where(O, 0.0, sc * np.sqrt(var))
+        else:
+            std = np.where(O, 0.0, sc * np.sqrt(var)) * self.calib[self._rows, tb]
         fills = []
         for i, s in enumerate(states):
             s.k, s.o = K[i].copy(), off[i].copy()
@@ -372,6 +424,7 @@ class WithHLMModel(Model):
                 parts[key] = meta
                 arrays.update({f"{key}/{k}": v for k, v in arr.items()})
         meta = {**self.meta, "method": METHOD, "channels": self.channels, "experts": parts, "tau": self.tau,
+                "smooth": self.smooth,
                 "bins": {"t_edges": T_EDGES.tolist(), "q_edges": Q_EDGES.tolist()}}
         modelfile.save_arrays(path, meta, arrays)
 
@@ -397,8 +450,14 @@ class WithHLMModel(Model):
         tau = meta.get("tau", ANCHOR_TAU)
         if not isinstance(tau, int | float) or tau < 0:
             raise modelfile.ModelFileError(f"{path}: {METHOD} 'tau' must be a number >= 0 (got {tau!r})")
-        return cls(d, h, W, S, {k: v for k, v in meta.items() if k not in ("experts", "bins", "channels", "method", "tau")},
-                   float(tau), cal)
+        smooth = meta.get("smooth", NO_SMOOTH)   # files written before smoothing: off, as they were
+        if not isinstance(smooth, dict) or set(smooth) != set(NO_SMOOTH):
+            raise modelfile.ModelFileError(f"{path}: {METHOD} 'smooth' must be a table of {sorted(NO_SMOOTH)} (got {smooth!r})")
+        try:
+            return cls(d, h, W, S, {k: v for k, v in meta.items() if k not in ("experts", "bins", "channels", "method", "tau", "smooth")},
+                       float(tau), cal, smooth)
+        except FillerError as e:
+            raise modelfile.ModelFileError(f"{path}: {e}") from None
 
 
 class WithHLMState(FillerState):
@@ -413,6 +472,7 @@ class WithHLMState(FillerState):
         self.hs = model.hlm.stream()
         self.k = np.zeros(C, np.int64)
         self.o = np.zeros(C)         # the HLM's anchoring offset (module doc)
+        self.rp, self.vp, self.e = np.zeros(C), np.zeros(C), np.zeros(C)   # the pop limit's course and offset ("Smooth")
         self.lr_sum = self.lr_ss = self.lr_n = 0.0   # decayed sums of the windows' log r, log r^2, count
         self._lq = LOGQ_UNSCORED     # the pessimistic bound on log q (module doc), updated as windows close
         self.sh = -1                 # index into SHADOW_GROUPS of the hidden group, -1: none
@@ -522,4 +582,5 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
             "weights": {"shipped": SHIPPED.name, **chosen} if W is None else {"given": True}}
     cal = calib.from_json(json.loads(SHIPPED.read_text()).get("calib") if SHIPPED.exists() else None, list(ch),
                           group_index(list(ch)), GROUP_NAMES, len(T_EDGES) + 1)
-    return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal)
+    return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal,
+                        chosen.get("smooth", {"knots": False, "pop": POP, "pop_tau": POP_TAU, "pop_rel": POP_REL}))

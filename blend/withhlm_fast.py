@@ -45,15 +45,25 @@ def shadow_counts(O, nonpos, sgroup, gmiss):
 
 
 @jit
-def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb, anchor, k, o, out, std):
+def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb, anchor, k, o, out, std,
+            knots, pop, prel, pdecay, rp, vp, e):
     """One stream's frame: ``out``/``std`` from the experts' fills (D, Dsd), (H, Hsd); the state's
     frames since onset ``k`` and anchoring offsets ``o`` updated in place.  Returns the shadow
     check's squared errors of the HLM and of the twin T on the hidden angles (O and not HO) and
-    how many there were (T is read only where ``has_twin``)."""
+    how many there were (T is read only where ``has_twin``).
+
+    Smoothing (blend/withhlm.py's module doc, "Smooth"): with ``knots`` (one per time bin, its
+    centre in frames since onset) W and S are read linearly between the knots instead of as steps
+    at the bin edges; with ``pop`` > 0, from a gap's third frame on, the fill y may depart from its
+    own linear course (last value plus last step, ``rp`` + ``vp``) by at most ``pop`` + ``prel``
+    |last step| a frame, the excess going into an offset ``e`` that decays by ``pdecay`` a frame
+    (rp, vp, e updated in place).  Without knots and with pop = 0 this is the unsmoothed mixing,
+    bit for bit."""
     eh = 0.0
     e0 = 0.0
     nh = 0
     NT = t_edges.shape[0]
+    NK = knots.shape[0]
     for j in range(F.shape[0]):
         if O[j]:
             k[j] = 0
@@ -74,12 +84,51 @@ def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb
         if kk == 1:
             o[j] = -d
         diff = d + o[j] * anchor ** (kk - 1) if anchor > 0.0 else d
-        tb = 0
-        while tb < NT and t_edges[tb] <= kk:
-            tb += 1
         g = group[j]
-        w = W[g, tb, qb]
-        out[j] = D[j] + w * diff
+        if NK > 0:
+            if kk <= knots[0]:
+                w = W[g, 0, qb]
+                sc = S[g, 0]
+            elif kk >= knots[NK - 1]:
+                w = W[g, NK - 1, qb]
+                sc = S[g, NK - 1]
+            else:
+                i = 0
+                while knots[i + 1] <= kk:
+                    i += 1
+                f = (kk - knots[i]) / (knots[i + 1] - knots[i])
+                w = W[g, i, qb] * (1.0 - f) + W[g, i + 1, qb] * f
+                sc = S[g, i] * (1.0 - f) + S[g, i + 1] * f
+        else:
+            tb = 0
+            while tb < NT and t_edges[tb] <= kk:
+                tb += 1
+            w = W[g, tb, qb]
+            sc = S[g, tb]
+        y = D[j] + w * diff
+        if pop > 0.0:   # the pop limit on the fill (module doc of blend/withhlm.py, "Smooth")
+            if kk == 1:
+                rp[j] = y
+                vp[j] = 0.0
+                e[j] = 0.0
+            elif kk == 2:
+                vp[j] = y - rp[j]
+                rp[j] = y
+                e[j] = 0.0
+            else:
+                jump = y - (rp[j] + vp[j])
+                lim = pop + prel * abs(vp[j])
+                x = 0.0
+                if jump > lim:
+                    x = jump - lim
+                elif jump < -lim:
+                    x = jump + lim
+                e[j] = e[j] * pdecay - x
+                vp[j] = y - rp[j] - x
+                rp[j] = y
+            out[j] = y + e[j]
+        else:
+            out[j] = y
         var = (1.0 - w) * Dsd[j] * Dsd[j] + w * Hsd[j] * Hsd[j] + w * (1.0 - w) * diff * diff
-        std[j] = S[g, tb] * np.sqrt(var)
+        std[j] = sc * np.sqrt(var)
     return eh, e0, nh

@@ -46,6 +46,20 @@ def cases(data):
     return out
 
 
+SMOOTHINGS = {"off": dict(knots=False, pop=0.0), "knots": dict(knots=True, pop=0.0),
+              "knots+pop": dict(knots=True, pop=1.0, pop_tau=6.0)}
+
+
+@pytest.fixture(params=sorted(SMOOTHINGS))
+def smoothed(request, model):
+    """The model with each smoothing (blend/withhlm.py "Smooth": off, knots, knots and the pop
+    limit), restored after."""
+    was = dict(model.smooth)
+    model.set_smooth(**SMOOTHINGS[request.param])
+    yield model
+    model.set_smooth(**was)
+
+
 def _run(model, compiled: bool, streams, truths, masks):
     """Step ``streams`` as one batch through every frame; returns (fills, stds), each (T, n, C)."""
     model.compiled = compiled
@@ -64,12 +78,15 @@ def _run(model, compiled: bool, streams, truths, masks):
 
 def _same_state(a, b):
     assert (a.k == b.k).all() and np.allclose(a.o, b.o, rtol=0, atol=1e-9)
+    for name in ("rp", "vp", "e"):   # the pop limit's state
+        assert np.allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-9), name
     assert abs(a.logq - b.logq) < 1e-9 and (a.sh, a.sh_n, a.sh_next) == (b.sh, b.sh_n, b.sh_next)
     assert (a.twin is None) == (b.twin is None)
 
 
-def test_one_stream_compiled_equals_numpy_frame_by_frame(model, cases):
+def test_one_stream_compiled_equals_numpy_frame_by_frame(smoothed, cases):
     """One stream (the daemon's usual case) through TEST 35_30's gaps, frame by frame."""
+    model = smoothed
     truth, obs = cases[0]
     a, b = model.stream(), model.stream()
     windows = gaps = 0
@@ -91,9 +108,10 @@ def test_one_stream_compiled_equals_numpy_frame_by_frame(model, cases):
     assert a.logq != 0.0                        # at least one window closed and moved q
 
 
-def test_batch_compiled_equals_numpy_and_each_stream_alone(model, cases):
+def test_batch_compiled_equals_numpy_and_each_stream_alone(smoothed, cases):
     """Four streams of different takes and masks in one batch: the compiled batch equals the numpy
     batch, and each stream stepped alone (a window of one stream hides nothing from another)."""
+    model = smoothed
     truths = np.stack([t for t, _ in cases], 1)           # (T, n, C)
     masks = np.stack([o for _, o in cases], 1)
     sa = [model.stream() for _ in cases]
@@ -105,6 +123,8 @@ def test_batch_compiled_equals_numpy_and_each_stream_alone(model, cases):
     assert wa == wb and wa > 100
     for a, b in zip(sa, sb):
         _same_state(a, b)
+    if model.pop > 0:   # the pop limit held something back somewhere (its offsets were exercised)
+        assert max(np.abs(s.e).max() for s in sa) > 1e-3
     assert np.isfinite(fa).all() and (~masks).sum() > 1000      # real gaps were filled
     alone = model.stream()
     f1, d1, _ = _run(model, True, [alone], truths[:, 3:4], masks[:, 3:4])
@@ -132,3 +152,31 @@ def test_an_observed_nan_is_a_clear_error_and_steps_no_stream(model, cases):
     O2[1, 7] = False
     got = model.step_batch(streams, F2, O2)          # the streams go on from where they were
     assert len(got) == 2 and np.isfinite(got[0].frame).all()
+
+
+def test_the_smoothing_is_saved_and_files_without_it_load_as_off(model, cases, tmp_path):
+    """train_model gives the shipped choice (blend/withhlm.json); a saved model keeps its smoothing
+    and fills as before; a file written before smoothing (no 'smooth') loads with it off, as it
+    filled when written; a malformed one is refused by name."""
+    from blend import withhlm
+    from lacuna import modelfile
+
+    assert model.smooth == {"knots": False, "pop": withhlm.POP, "pop_tau": withhlm.POP_TAU, "pop_rel": withhlm.POP_REL}
+    assert withhlm.shipped()[2]["smooth"] == model.smooth and model.pop > 0
+    truth, obs = cases[0]
+    path = tmp_path / "d.npz"
+    model.save(str(path))
+    again = modelfile.load_model(str(path))
+    assert again.smooth == model.smooth
+    given = np.where(obs, truth, np.nan)
+    np.testing.assert_array_equal(again.fill_offline(given, obs)[0], model.fill_offline(given, obs)[0])
+    meta, arrays = modelfile.load_arrays(str(path))
+    old = {k: v for k, v in meta.items() if k != "smooth"}
+    modelfile.save_arrays(str(tmp_path / "old.npz"), old, arrays)
+    legacy = modelfile.load_model(str(tmp_path / "old.npz"))
+    assert legacy.smooth == withhlm.NO_SMOOTH and legacy.pop == 0
+    assert not np.array_equal(legacy.fill_offline(given, obs)[0], model.fill_offline(given, obs)[0])  # the limit acted
+    for bad in ({"knots": False, "pop": -2.0, "pop_tau": 3.0, "pop_rel": 1.0}, {"pop": 2.0}, "on"):
+        modelfile.save_arrays(str(tmp_path / "bad.npz"), {**meta, "smooth": bad}, arrays)
+        with pytest.raises(modelfile.ModelFileError, match="smooth"):
+            modelfile.load_model(str(tmp_path / "bad.npz"))

@@ -1,0 +1,119 @@
+"""``default``'s smoothing (blend/withhlm.py, module doc "Smooth") on VALIDATION takes only: the
+gaps protocol's bursts at --seeds on splits.VALIDATION, each setting's RMS, by gap length and time
+since onset, onset figures, calibration and the steps inside gaps (mocap/metrics.py: step error,
+pops beyond the truth's own step) per activity, beside hold.  One trained model (experts on
+splits.TRAIN), every setting applied to it in turn (the smoothing is a run-time setting of the
+mixing, not of the experts).
+
+    OPENBLAS_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/default_smooth.py --model /tmp/default_train.npz \
+        --settings off:0:0 knots:1:0 k-p2t4:1:2:4 --seeds 0-2 --json bench/results/default_smooth_validation.json
+
+A setting is NAME:KNOTS:POP[:POP_TAU] (KNOTS 0/1; POP degrees a frame, 0 = off; POP_TAU frames).
+Without --model it trains ``default`` on TRAIN (as `lacuna train default` does) and saves it there
+(--save).  Progress per take on stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from lacuna.modelfile import load_model  # noqa: E402
+from mocap import metrics, protocols, splits  # noqa: E402
+
+FIGS = ("rms_deg", "rms_deg[len 0.1-0.25s]", "rms_deg[len 0.5-1s]", "rms_deg[len 1-2s]", "rms_deg[since first]",
+        "rms_deg[first 0.1s]", "hold_rms_deg[first 0.1s]", "onset_err_median_deg", "within_2std", "nll_per_value",
+        "step_err_rms_deg", "pop_p99_deg", "pop_max_deg", "pop_over_2deg")
+
+
+def seeds(spec: str) -> list[int]:
+    out: list[int] = []
+    for part in spec.split(","):
+        a, _, b = part.partition("-")
+        out += list(range(int(a), int(b or a) + 1))
+    return out
+
+
+def setting(spec: str) -> tuple[str, dict]:
+    name, knots, pop, *rest = spec.split(":")
+    out = {"knots": bool(int(knots)), "pop": float(pop)}
+    for key, v in zip(("pop_tau", "pop_rel"), rest):
+        out[key] = float(v)
+    return name, out
+
+
+def hold_values(v: metrics.Values) -> metrics.Values:
+    """The same values with hold's error in place of the fill's (std none, no steps)."""
+    n = v.err.size
+    return metrics.Values(err=v.hold_err, std=np.zeros(n), since=v.since, first=v.first, length=v.length,
+                          group=v.group, hold_err=v.hold_err, onset_err=v.onset_err, onset_step=v.onset_step,
+                          root_err=v.root_hold_err, root_hold_err=v.root_hold_err, root_unit=v.root_unit)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--model")
+    ap.add_argument("--save", default="/tmp/default_train.npz")
+    ap.add_argument("--settings", nargs="+", default=["off:0:0", "knots:1:0"])
+    ap.add_argument("--seeds", default="0-2")
+    ap.add_argument("--split", default="validation", choices=["validation", "test"])
+    ap.add_argument("--json")
+    a = ap.parse_args()
+    if a.model:
+        model = load_model(a.model)
+    else:
+        from blend.withhlm import train_model
+
+        t0 = time.perf_counter()
+        model = train_model(protocols.Gaps().training_set(), fps=120.0)
+        model.save(a.save)
+        print(f"trained default on TRAIN in {time.perf_counter() - t0:.0f} s; saved {a.save}", file=sys.stderr)
+    sets = [setting(s) for s in a.settings]
+    cases = []
+    for sd in seeds(a.seeds):
+        for c in protocols.Gaps(seed=sd, split=a.split).cases():
+            c.info.pop("fk", None)   # joint positions are not this bench's question
+            cases.append(c)
+    acts = sorted({splits.ACTIVITY[c.test] for c in cases})
+    tables: dict[str, dict[str, list]] = {name: {act: [] for act in acts} for name, _ in sets}
+    t0 = time.perf_counter()
+    for i, c in enumerate(cases):
+        given = np.where(c.observed, c.truth, np.nan)
+        for name, sm in sets:
+            model.set_smooth(**sm)
+            fill, std = model.fill_offline(given, c.observed)
+            tables[name][splits.ACTIVITY[c.test]].append(metrics.values(c, fill, std, c.info["groups"]))
+        print(f"  [{i + 1}/{len(cases)}] {c.test} seed {c.info['seed']} ({time.perf_counter() - t0:.0f} s)",
+              file=sys.stderr, flush=True)
+    out: dict = {"split": a.split, "takes": sorted({c.test for c in cases}), "seeds": seeds(a.seeds),
+                 "settings": dict(sets), "activities": {}}
+    for act in acts + ["all"]:
+        row: dict = {}
+        for name, _ in sets:
+            vs = [v for t in (tables[name].values() if act == "all" else [tables[name][act]]) for v in t]
+            pooled = metrics.Values.concat(vs)
+            row[name] = {m: x for m, x, _ in metrics.summarise(pooled, by_group_bins=False)}
+            if "hold" not in row:
+                row["hold"] = {m: x for m, x, _ in metrics.summarise(hold_values(pooled), by_group_bins=False)}
+        out["activities"][act] = row
+    names = ["hold"] + [n for n, _ in sets]
+    print(f"{a.split} ({', '.join(out['takes'])}), seeds {out['seeds']}")
+    for act, row in out["activities"].items():
+        print(f"\n{act}: " + " | ".join(names))
+        for f in FIGS:
+            vals = [row[n].get(f) for n in names]
+            print(f"  {f:28s} " + "  ".join("-" if v is None else f"{v:8.4f}" for v in vals))
+    if a.json:
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,93 @@
+"""``default``'s smoothing (blend/withhlm.py, module doc "Smooth") on the compiled mixing itself,
+``blend.withhlm_fast.mix_row``, with constructed experts whose answers are worked out here: the
+pop limit holds back a jump of the HLM's fill inside a gap and lets it in over a few frames,
+leaves a fill that moves smoothly alone, and is the unsmoothed mixing bit for bit when off; the
+knots read W between the time bins' centres.  (Compiled against numpy on real takes, and the
+setting's persistence: tests/test_default_step_equal.py.)"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from blend import withhlm
+from blend.withhlm_fast import mix_row
+
+T = 60
+JUMP_AT = 25   # the HLM's fill jumps by 14 degrees on this frame (as its phase did on VALIDATION's walking_21)
+
+
+def _run(H, w=0.9, knots=False, pop=0.0, prel=0.0, tau=3.0, W=None):
+    """One channel missing from frame 1 on: the blend holds 0, the HLM says ``H[t]``; the mixing's
+    fill for every frame (anchoring off, so the fill is w H from the gap's first frame on)."""
+    TB, QB = len(withhlm.T_EDGES) + 1, 4
+    Wt = np.full((1, TB, QB), w) if W is None else W
+    S = np.ones((1, TB))
+    k, o, rp, vp, e = np.zeros(1, np.int64), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1)
+    out, std, fills = np.empty(1), np.empty(1), []
+    kn = withhlm.T_KNOTS if knots else np.zeros(0)
+    pdecay = float(np.exp(-1.0 / tau)) if pop > 0 else 0.0
+    one = np.ones(1)
+    for t in range(T):
+        obs = np.array([t == 0])
+        mix_row(np.zeros(1), obs, obs, np.zeros(1), one, np.array([H[t]]), one, np.zeros(1), False,
+                np.array([True]), np.zeros(1, np.int64), Wt, S, withhlm.T_EDGES, 0, 0.0, k, o, out, std,
+                kn, pop, prel, pdecay, rp, vp, e)
+        fills.append(out[0])
+    return np.array(fills)
+
+
+def _ramp_then_jump():
+    H = 0.5 * np.arange(T, dtype=float)      # the HLM moves 0.5 degree a frame
+    H[JUMP_AT:] += 14.0
+    return H
+
+
+def test_off_is_the_unsmoothed_fill_and_the_pop_shows():
+    H = _ramp_then_jump()
+    f = _run(H)
+    np.testing.assert_array_equal(f[1:], 0.9 * H[1:])   # D + w (H - D), D = 0: bit for bit
+    assert f[JUMP_AT] - f[JUMP_AT - 1] == pytest.approx(0.9 * 14.5)
+
+
+def test_the_pop_limit_holds_a_jump_back_and_lets_it_in_over_a_few_frames():
+    H = _ramp_then_jump()
+    off, on = _run(H), _run(H, pop=2.0, prel=1.0, tau=3.0)
+    np.testing.assert_array_equal(on[:JUMP_AT], off[:JUMP_AT])   # a steady course is never limited
+    step = 0.45                                                  # the fill's own step before the jump
+    # the jump frame moves at most the course's step plus pop + prel |step|
+    assert on[JUMP_AT] - on[JUMP_AT - 1] == pytest.approx(step + 2.0 + 1.0 * step)
+    held = off[JUMP_AT] - on[JUMP_AT]
+    assert held == pytest.approx(0.9 * 14 - 2.0 - step)
+    # what was held back decays by exp(-1/3) a frame: every later step is far below the pop's 12.6
+    d = np.diff(on[JUMP_AT:])
+    assert d.max() < 0.9 * 14 / 3 and (d > 0).all()
+    assert abs(on[JUMP_AT + 2] - off[JUMP_AT + 2]) == pytest.approx(held * np.exp(-2 / 3), rel=1e-9)
+    assert abs(on[-1] - off[-1]) < 1e-3 * held                   # and it is let in: the fill comes back to the mix
+
+
+def test_the_first_two_frames_of_a_gap_are_never_limited():
+    # the HLM's course starts with a fast step (the mixing's first frames set the course, not judge it)
+    H = np.concatenate([[0.0, 0.0, 10.0], 10.0 + 0.1 * np.arange(T - 3)])
+    np.testing.assert_array_equal(_run(H, pop=2.0, prel=1.0)[:3], _run(H)[:3])
+
+
+def test_the_knots_read_w_between_the_bins_centres():
+    TB = len(withhlm.T_EDGES) + 1
+    W = np.zeros((1, TB, 4))
+    W[0, :, 0] = np.linspace(0.0, 0.7, TB)     # a share that grows bin by bin
+    H = np.full(T, 10.0)
+    steps, smooth = _run(H, W=W), _run(H, W=W, knots=True)
+    kk = np.arange(1, T)                        # frames since onset of frames 1..T-1
+    tb = np.searchsorted(withhlm.T_EDGES, kk, side="right")
+    np.testing.assert_allclose(steps[1:], 10.0 * W[0, tb, 0])
+    np.testing.assert_allclose(smooth[1:], 10.0 * np.interp(kk, withhlm.T_KNOTS, W[0, :, 0]), rtol=0, atol=1e-12)
+    # the steps at the bin edges are gone: the largest step of the knotted fill is far below the binned one's
+    assert np.abs(np.diff(smooth[1:])).max() < 0.5 * np.abs(np.diff(steps[1:])).max()
+
+
+@pytest.mark.parametrize("bad", [dict(knots=1, pop=0.0), dict(knots=False, pop=-1.0), dict(knots=False, pop=float("nan")),
+                                 dict(knots=False, pop=2.0, pop_tau=0.0), dict(knots=False, pop=2.0, pop_rel=True)])
+def test_a_bad_smoothing_is_a_clear_error(bad):
+    m = object.__new__(withhlm.WithHLMModel)   # set_smooth checks before it sets anything
+    with pytest.raises(withhlm.FillerError, match="smooth"):
+        m.set_smooth(**bad)
