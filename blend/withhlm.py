@@ -68,6 +68,27 @@ activity that needs the widest band (walk, turn, run, non-locomotion: each then 
 then times a per channel x time-bin factor F (blend/calib.py, fitted on VALIDATION; 1 in files
 written before it): folded into the compiled mixing's per-channel S table, one factor on the numpy
 path's std; fills unchanged.
+
+Smooth (``set_smooth``; the ``smooth`` table of a model file).  The mixing is piecewise constant
+in its cells: a fill inside a gap jumped where the time bin or the q bin changed (w moves by up to
+0.6 at once), where the HLM's phase jumped (VALIDATION's walking_21: phase 0.137 -> 0.187 in one
+frame, a 14-degree pop) and where the blend re-anchored as other channels came and went.  The
+*pop limit*: from a gap's third frame on, the fill y = D + w wrap(H' - D) may depart from its own
+linear course (last value plus last step, y[t-1] + s, s the step the course took) by at most
+
+    POP + POP_REL |s|   degrees a frame,
+
+the excess x going into an offset e (e <- e exp(-1 / POP_TAU) - x; the course itself follows y, not
+the limited output) so what was held back comes in over a few frames: fill = y + e.  The first two
+frames of a gap set the course and are never limited.  A fill that moves smoothly, however fast, is
+never touched.  POP = 2, POP_REL = 1, POP_TAU = 3 were chosen on VALIDATION (bench/default_smooth.py,
+the gaps protocol's seeds 0-2; the rule, set before the last round: every activity's RMS within
+1.5% and every gap-length bin within 3% of no smoothing, then the lowest pooled RMS, fewer pops to
+break ties; bench/notebook/smooth-6.md): pops above 2 degrees (mocap/metrics.py: a frame's step
+beyond the truth's own) 0.53% -> 0.31% of values, the largest 38 -> 11 degrees, pooled RMS -0.1%
+(walks -1.3%, runs +0.8%: a run's jumps are partly corrections).  The *knots* (T_KNOTS: W and S
+read linearly between the bins' centres) are kept as an option, off: they cost the VALIDATION
+run's short gaps 4.7%.  Files written before smoothing load with it off and fill as they did.
 """
 from __future__ import annotations
 
