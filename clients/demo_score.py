@@ -6,7 +6,9 @@ dropped value, by gap length (short 0.1-0.25 s, long 0.5-2 s, and every length b
 ``metrics.LENGTH_BINS``), the onset figures (median error of the first erased frame beside the
 truth's own step from the last observed frame; RMS over the first 100 ms beside holding the last
 value over the same values) and the calibration (share within 1 and 2 reported std, Gaussian
-negative log-likelihood per value; None where the method reports no std).
+negative log-likelihood per value; None where the method reports no std), and the pops inside gaps
+(share of values after a gap's first frame whose step is over 2 deg beyond the truth's own, and the
+largest such pop).
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ SHORT = (0.1, 0.25)  # seconds: the short dropouts the demo reports apart
 LONG = (0.5, 2.0)
 FIGURES = ("rms_deg", "rms_short_deg", "rms_long_deg", "onset_err_median_deg", "onset_truth_step_median_deg",
            "onset_err_over_step", "rms_first_100ms_deg", "hold_rms_first_100ms_deg", "within_1std", "within_2std",
-           "nll_per_value")
+           "nll_per_value", "pop_over_2deg", "pop_max_deg")
 
 
 def make_case(name: str, truth: np.ndarray, observed: np.ndarray, channels: list[str], fps: float,
@@ -58,7 +60,8 @@ def score(case: Case, filled: np.ndarray, std: np.ndarray | None) -> dict[str, A
     names = {"rms_deg": "rms_deg", "onset_err_median_deg": "onset_err_median_deg",
              "onset_truth_step_median_deg": "onset_truth_step_median_deg", "onset_err_over_step": "onset_err_over_step",
              f"rms_deg[{w}]": "rms_first_100ms_deg", f"hold_rms_deg[{w}]": "hold_rms_first_100ms_deg",
-             "within_1std": "within_1std", "within_2std": "within_2std", "nll_per_value": "nll_per_value"}
+             "within_1std": "within_1std", "within_2std": "within_2std", "nll_per_value": "nll_per_value",
+             "pop_over_2deg": "pop_over_2deg", "pop_max_deg": "pop_max_deg"}
     for src, dst in names.items():
         x, n = rows.get(src, (None, 0))
         out[dst] = x
@@ -86,12 +89,16 @@ def _f(v: float | None, spec: str = "6.2f") -> str:
     return "-" if v is None else format(v, spec)
 
 
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.2f}%"
+
+
 def format_report(rep: dict[str, Any]) -> str:
     """The table the demo prints (every figure is in demo.json too)."""
     L = [f"motion: {rep['motion']}", f"replayed: {rep['take']['about']}", f"dropouts: {rep['dropouts']['about']}", ""]
     L.append("accuracy on the dropped values, degrees (mocap.metrics; n/a = the method reports no std)")
     L.append(f"{'method':<8} {'path':<9} {'all':>6} {'short':>6} {'long':>6} | {'onset':>6} {'step':>6} "
-             f"{'0-100ms':>7} {'hold':>6} | {'in 2sd':>6} {'NLL':>6} | {'p50 ms':>7} {'p99 ms':>7}")
+             f"{'0-100ms':>7} {'hold':>6} | {'in 2sd':>6} {'NLL':>6} | {'pops':>6} {'max':>5} | {'p50 ms':>7} {'p99 ms':>7}")
     for name, r in rep["results"].items():
         s = r["scores"]
         lat = r.get("latency") or {}
@@ -101,12 +108,14 @@ def format_report(rep: dict[str, Any]) -> str:
         L.append(f"{name:<8} {path:<9} {_f(s['rms_deg']):>6} {_f(s['rms_short_deg']):>6} {_f(s['rms_long_deg']):>6} | "
                  f"{_f(s['onset_err_median_deg']):>6} {_f(s['onset_truth_step_median_deg']):>6} "
                  f"{_f(s['rms_first_100ms_deg'], '7.2f'):>7} {_f(s['hold_rms_first_100ms_deg']):>6} | "
-                 f"{_f(s['within_2std'], '6.3f'):>6} {_f(s['nll_per_value']):>6} | {p50:>7} {p99:>7}")
+                 f"{_f(s['within_2std'], '6.3f'):>6} {_f(s['nll_per_value']):>6} | "
+                 f"{_pct(s['pop_over_2deg']):>6} {_f(s['pop_max_deg'], '5.1f'):>5} | {p50:>7} {p99:>7}")
     L += ["", "short = gaps of 0.1-0.25 s, long = 0.5-2 s; onset = median |error| of the first dropped frame, "
               "step = the performer's own median step into that frame; 0-100ms = RMS over each gap's first 100 ms, "
               "hold = holding the last value over the same values; in 2sd = share within 2 reported std (0.95 is "
               "calibrated); NLL = Gaussian negative log-likelihood per value (nats, std floor "
-              f"{metrics.STD_FLOOR:g} deg); ms = round trip through the daemon"]
+              f"{metrics.STD_FLOOR:g} deg); pops = share of values inside gaps whose step is over 2 deg beyond "
+              "the performer's own, max = the largest; ms = round trip through the daemon"]
     for n in rep["notes"]:
         L.append(f"note: {n}")
     L += ["", f"fills vs truth (2-std band): {rep['plots']['fills']}", f"latency histogram: {rep['plots']['latency']}",

@@ -57,6 +57,11 @@ def test_score_uses_the_metrics_bins_on_a_hand_made_fill():
     assert s["by_length"]["0.1-0.25s"]["n"] == 18 and s["by_length"]["0.5-1s"]["n"] == 90
     # no std reported: calibration is n/a, not a made-up number
     assert demo_score.score(case, truth + 2.0, None)["within_2std"] is None
+    # a fill following the truth has no pop; one that jumps 5 deg once inside the long gap has one
+    assert s["pop_over_2deg"] == 0.0 and s["pop_max_deg"] == pytest.approx(0.0)
+    jump = truth + np.where(np.arange(T)[:, None] >= 150, 5.0, 0.0)
+    p = demo_score.score(case, jump, None)
+    assert p["pop_max_deg"] == pytest.approx(5.0) and p["pop_over_2deg"] == pytest.approx(1 / (17 + 89))
 
 
 def _check_report(rep: dict, out) -> None:
