@@ -8,7 +8,8 @@ mixing, not of the experts).
     OPENBLAS_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/default_smooth.py --model /tmp/default_train.npz \
         --settings off:0:0 knots:1:0 k-p2t4:1:2:4 --seeds 0-2 --json bench/results/default_smooth_validation.json
 
-A setting is NAME:KNOTS:POP[:POP_TAU] (KNOTS 0/1; POP degrees a frame, 0 = off; POP_TAU frames).
+A setting is NAME:KNOTS:POP[:POP_TAU[:POP_REL]] (KNOTS 0, 1 (W and S between the knots) or s (S
+only); POP degrees a frame, 0 = off; POP_TAU frames; POP_REL x the fill's last step).
 Without --model it trains ``default`` on TRAIN (as `lacuna train default` does) and saves it there
 (--save).  Progress per take on stderr.
 """
@@ -42,7 +43,7 @@ def seeds(spec: str) -> list[int]:
 
 def setting(spec: str) -> tuple[str, dict]:
     name, knots, pop, *rest = spec.split(":")
-    out = {"knots": bool(int(knots)), "pop": float(pop)}
+    out = {"knots": knots == "1", "std_knots": knots == "s", "pop": float(pop)}
     for key, v in zip(("pop_tau", "pop_rel"), rest):
         out[key] = float(v)
     return name, out

@@ -46,15 +46,15 @@ def shadow_counts(O, nonpos, sgroup, gmiss):
 
 @jit
 def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb, anchor, k, o, out, std,
-            knots, pop, prel, pdecay, rp, vp, e):
+            knots, wk, pop, prel, pdecay, rp, vp, e):
     """One stream's frame: ``out``/``std`` from the experts' fills (D, Dsd), (H, Hsd); the state's
     frames since onset ``k`` and anchoring offsets ``o`` updated in place.  Returns the shadow
     check's squared errors of the HLM and of the twin T on the hidden angles (O and not HO) and
     how many there were (T is read only where ``has_twin``).
 
     Smoothing (blend/withhlm.py's module doc, "Smooth"): with ``knots`` (one per time bin, its
-    centre in frames since onset) W and S are read linearly between the knots instead of as steps
-    at the bin edges; with ``pop`` > 0, from a gap's third frame on, the fill y may depart from its
+    centre in frames since onset) S, and W too where ``wk``, are read linearly between the knots
+    instead of as steps at the bin edges; with ``pop`` > 0, from a gap's third frame on, the fill y may depart from its
     own linear course (last value plus last step, ``rp`` + ``vp``) by at most ``pop`` + ``prel``
     |last step| a frame, the excess going into an offset ``e`` that decays by ``pdecay`` a frame
     (rp, vp, e updated in place).  Without knots and with pop = 0 this is the unsmoothed mixing,
@@ -85,26 +85,24 @@ def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb
             o[j] = -d
         diff = d + o[j] * anchor ** (kk - 1) if anchor > 0.0 else d
         g = group[j]
-        if NK > 0:
-            if kk <= knots[0]:
-                w = W[g, 0, qb]
-                sc = S[g, 0]
-            elif kk >= knots[NK - 1]:
-                w = W[g, NK - 1, qb]
-                sc = S[g, NK - 1]
-            else:
-                i = 0
+        tb = 0
+        while tb < NT and t_edges[tb] <= kk:
+            tb += 1
+        w = W[g, tb, qb]
+        sc = S[g, tb]
+        if NK > 0:   # between the knots: S, and W too where wk
+            i = 0
+            f = 0.0
+            if kk >= knots[NK - 1]:
+                i = NK - 2
+                f = 1.0
+            elif kk > knots[0]:
                 while knots[i + 1] <= kk:
                     i += 1
                 f = (kk - knots[i]) / (knots[i + 1] - knots[i])
+            sc = S[g, i] * (1.0 - f) + S[g, i + 1] * f
+            if wk:
                 w = W[g, i, qb] * (1.0 - f) + W[g, i + 1, qb] * f
-                sc = S[g, i] * (1.0 - f) + S[g, i + 1] * f
-        else:
-            tb = 0
-            while tb < NT and t_edges[tb] <= kk:
-                tb += 1
-            w = W[g, tb, qb]
-            sc = S[g, tb]
         y = D[j] + w * diff
         if pop > 0.0:   # the pop limit on the fill (module doc of blend/withhlm.py, "Smooth")
             if kk == 1:

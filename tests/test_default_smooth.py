@@ -16,14 +16,16 @@ T = 60
 JUMP_AT = 25   # the HLM's fill jumps by 14 degrees on this frame (as its phase did on VALIDATION's walking_21)
 
 
-def _run(H, w=0.9, knots=False, pop=0.0, prel=0.0, tau=3.0, W=None):
-    """One channel missing from frame 1 on: the blend holds 0, the HLM says ``H[t]``; the mixing's
-    fill for every frame (anchoring off, so the fill is w H from the gap's first frame on)."""
+def _run(H, w=0.9, knots=False, pop=0.0, prel=0.0, tau=3.0, W=None, S=None, wk=None):
+    """One channel missing from frame 1 on: the blend holds 0 (std 1), the HLM says ``H[t]`` (std 1);
+    the mixing's fill and std for every frame (anchoring off, so the fill is w H from the gap's
+    first frame on).  ``wk``: W between the knots too (default: as ``knots``)."""
     TB, QB = len(withhlm.T_EDGES) + 1, 4
     Wt = np.full((1, TB, QB), w) if W is None else W
-    S = np.ones((1, TB))
+    S = np.ones((1, TB)) if S is None else S
+    wk = knots if wk is None else wk
     k, o, rp, vp, e = np.zeros(1, np.int64), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1)
-    out, std, fills = np.empty(1), np.empty(1), []
+    out, std, fills, stds = np.empty(1), np.empty(1), [], []
     kn = withhlm.T_KNOTS if knots else np.zeros(0)
     pdecay = float(np.exp(-1.0 / tau)) if pop > 0 else 0.0
     one = np.ones(1)
@@ -31,9 +33,10 @@ def _run(H, w=0.9, knots=False, pop=0.0, prel=0.0, tau=3.0, W=None):
         obs = np.array([t == 0])
         mix_row(np.zeros(1), obs, obs, np.zeros(1), one, np.array([H[t]]), one, np.zeros(1), False,
                 np.array([True]), np.zeros(1, np.int64), Wt, S, withhlm.T_EDGES, 0, 0.0, k, o, out, std,
-                kn, pop, prel, pdecay, rp, vp, e)
+                kn, wk, pop, prel, pdecay, rp, vp, e)
         fills.append(out[0])
-    return np.array(fills)
+        stds.append(std[0])
+    return np.array(fills), np.array(stds)
 
 
 def _ramp_then_jump():
@@ -44,14 +47,14 @@ def _ramp_then_jump():
 
 def test_off_is_the_unsmoothed_fill_and_the_pop_shows():
     H = _ramp_then_jump()
-    f = _run(H)
+    f = _run(H)[0]
     np.testing.assert_array_equal(f[1:], 0.9 * H[1:])   # D + w (H - D), D = 0: bit for bit
     assert f[JUMP_AT] - f[JUMP_AT - 1] == pytest.approx(0.9 * 14.5)
 
 
 def test_the_pop_limit_holds_a_jump_back_and_lets_it_in_over_a_few_frames():
     H = _ramp_then_jump()
-    off, on = _run(H), _run(H, pop=2.0, prel=1.0, tau=3.0)
+    off, on = _run(H)[0], _run(H, pop=2.0, prel=1.0, tau=3.0)[0]
     np.testing.assert_array_equal(on[:JUMP_AT], off[:JUMP_AT])   # a steady course is never limited
     step = 0.45                                                  # the fill's own step before the jump
     # the jump frame moves at most the course's step plus pop + prel |step|
@@ -68,7 +71,7 @@ def test_the_pop_limit_holds_a_jump_back_and_lets_it_in_over_a_few_frames():
 def test_the_first_two_frames_of_a_gap_are_never_limited():
     # the HLM's course starts with a fast step (the mixing's first frames set the course, not judge it)
     H = np.concatenate([[0.0, 0.0, 10.0], 10.0 + 0.1 * np.arange(T - 3)])
-    np.testing.assert_array_equal(_run(H, pop=2.0, prel=1.0)[:3], _run(H)[:3])
+    np.testing.assert_array_equal(_run(H, pop=2.0, prel=1.0)[0][:3], _run(H)[0][:3])
 
 
 def test_the_knots_read_w_between_the_bins_centres():
@@ -76,7 +79,7 @@ def test_the_knots_read_w_between_the_bins_centres():
     W = np.zeros((1, TB, 4))
     W[0, :, 0] = np.linspace(0.0, 0.7, TB)     # a share that grows bin by bin
     H = np.full(T, 10.0)
-    steps, smooth = _run(H, W=W), _run(H, W=W, knots=True)
+    steps, smooth = _run(H, W=W)[0], _run(H, W=W, knots=True)[0]
     kk = np.arange(1, T)                        # frames since onset of frames 1..T-1
     tb = np.searchsorted(withhlm.T_EDGES, kk, side="right")
     np.testing.assert_allclose(steps[1:], 10.0 * W[0, tb, 0])
@@ -85,8 +88,26 @@ def test_the_knots_read_w_between_the_bins_centres():
     assert np.abs(np.diff(smooth[1:])).max() < 0.5 * np.abs(np.diff(steps[1:])).max()
 
 
+def test_std_knots_smooth_the_band_alone():
+    TB = len(withhlm.T_EDGES) + 1
+    S = np.linspace(1.0, 3.0, TB)[None, :]      # a std scale that grows bin by bin
+    W = np.zeros((1, TB, 4))
+    W[0, :, 0] = np.linspace(0.0, 0.7, TB)
+    H = np.full(T, 10.0)
+    f0, s0 = _run(H, W=W, S=S)
+    f1, s1 = _run(H, W=W, S=S, knots=True, wk=False)          # the band between the knots, W in steps
+    np.testing.assert_array_equal(f1, f0)                        # the fill is untouched
+    kk = np.arange(1, T)
+    tb = np.searchsorted(withhlm.T_EDGES, kk, side="right")
+    w = W[0, tb, 0]
+    sd = np.sqrt((1 - w) + w + w * (1 - w) * 100.0)              # the two-part mixture, both stds 1, diff 10
+    np.testing.assert_allclose(s0[1:], S[0, tb] * sd, rtol=1e-12)
+    np.testing.assert_allclose(s1[1:], np.interp(kk, withhlm.T_KNOTS, S[0]) * sd, rtol=1e-12)
+
+
 @pytest.mark.parametrize("bad", [dict(knots=1, pop=0.0), dict(knots=False, pop=-1.0), dict(knots=False, pop=float("nan")),
-                                 dict(knots=False, pop=2.0, pop_tau=0.0), dict(knots=False, pop=2.0, pop_rel=True)])
+                                 dict(knots=False, pop=2.0, pop_tau=0.0), dict(knots=False, pop=2.0, pop_rel=True),
+                                 dict(knots=False, pop=0.0, std_knots="yes")])
 def test_a_bad_smoothing_is_a_clear_error(bad):
     m = object.__new__(withhlm.WithHLMModel)   # set_smooth checks before it sets anything
     with pytest.raises(withhlm.FillerError, match="smooth"):

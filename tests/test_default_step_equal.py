@@ -47,7 +47,7 @@ def cases(data):
 
 
 SMOOTHINGS = {"off": dict(knots=False, pop=0.0), "knots": dict(knots=True, pop=0.0),
-              "knots+pop": dict(knots=True, pop=1.0, pop_tau=6.0)}
+              "knots+pop": dict(knots=True, pop=1.0, pop_tau=6.0), "std_knots+pop": dict(knots=False, std_knots=True, pop=2.0)}
 
 
 @pytest.fixture(params=sorted(SMOOTHINGS))
@@ -161,7 +161,8 @@ def test_the_smoothing_is_saved_and_files_without_it_load_as_off(model, cases, t
     from blend import withhlm
     from lacuna import modelfile
 
-    assert model.smooth == {"knots": False, "pop": withhlm.POP, "pop_tau": withhlm.POP_TAU, "pop_rel": withhlm.POP_REL}
+    assert model.smooth == {"knots": False, "std_knots": True, "pop": withhlm.POP, "pop_tau": withhlm.POP_TAU,
+                            "pop_rel": withhlm.POP_REL}
     assert withhlm.shipped()[2]["smooth"] == model.smooth and model.pop > 0
     truth, obs = cases[0]
     path = tmp_path / "d.npz"
@@ -176,7 +177,7 @@ def test_the_smoothing_is_saved_and_files_without_it_load_as_off(model, cases, t
     legacy = modelfile.load_model(str(tmp_path / "old.npz"))
     assert legacy.smooth == withhlm.NO_SMOOTH and legacy.pop == 0
     assert not np.array_equal(legacy.fill_offline(given, obs)[0], model.fill_offline(given, obs)[0])  # the limit acted
-    for bad in ({"knots": False, "pop": -2.0, "pop_tau": 3.0, "pop_rel": 1.0}, {"pop": 2.0}, "on"):
+    for bad in ({**withhlm.NO_SMOOTH, "pop": -2.0}, {**withhlm.NO_SMOOTH, "std_knots": 1}, {"pop": 2.0}, "on"):
         modelfile.save_arrays(str(tmp_path / "bad.npz"), {**meta, "smooth": bad}, arrays)
         with pytest.raises(modelfile.ModelFileError, match="smooth"):
             modelfile.load_model(str(tmp_path / "bad.npz"))
