@@ -151,38 +151,9 @@ def correct(tab, ct: CondTables, state: dict[str, np.ndarray], z: np.ndarray, zo
 
 
 @_jit
-def _chol_solve(A, b):  # pragma: no cover - compiled
-    """x with A x = b for symmetric positive definite A (n, n) (Cholesky, then two triangular solves)."""
-    n = A.shape[0]
-    L = np.zeros((n, n))
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        L[j, j] = np.sqrt(s)
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / L[j, j]
-    y = np.empty(n)
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= L[i, k] * y[k]
-        y[i] = s / L[i, i]
-    x = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        s = y[i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * x[k]
-        x[i] = s / L[i, i]
-    return x
-
-
-@_jit
 def _chol_solve_in(A, b, L, y, x):  # pragma: no cover - compiled
-    """``_chol_solve`` into the caller's arrays L (n, n), y, x (n,) (``correct1``'s one block; the
+    """x with A x = b for symmetric positive definite A (n, n) (Cholesky, then two triangular solves),
+    into the caller's arrays L (n, n), y, x (n,) (``correct1``'s one block; the
     same operations in the same order, so the same bits): returns x."""
     n = A.shape[0]
     for j in range(n):

@@ -23,6 +23,39 @@ numba = pytest.importorskip("numba")
 pytestmark = pytest.mark.skipif(not fast.enabled(), reason="numba is not installed (or LACUNA_NO_JIT=1)")
 
 
+def _chol_solve_old(A, b):  # pragma: no cover - compiled
+    """x with A x = b for symmetric positive definite A (n, n): hlm/condfill.py's ``_chol_solve`` at 2968ff8,
+    verbatim (the old kernel's solver; production now solves in place, ``_chol_solve_in``)."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        L[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / L[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    x = np.empty(n)
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+    return x
+
+
+_chol_solve = numba.njit(nogil=True)(_chol_solve_old)   # (no on-disk cache)
+
+
 def _correct1_old(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
                   cov, prec, shrink, live, style_live):  # pragma: no cover - compiled
     # hlm/condfill.py's correct1 at 2968ff8, verbatim: every one of the C*M states visited
@@ -122,7 +155,7 @@ def _correct1_old(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
                     A[i, j] = prec[c, mi[i], mi[j]]
                 for j in range(no):
                     b[i] += prec[c, mi[i], oi[j]] * r[j]
-            x = condfill._chol_solve(A, b)
+            x = _chol_solve(A, b)
             for i in range(nm):
                 corr[i] -= wc * x[i]
         else:
@@ -130,7 +163,7 @@ def _correct1_old(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
             for i in range(no):
                 for j in range(no):
                     A[i, j] = cov[c, oi[i], oi[j]]
-            y = condfill._chol_solve(A, r)
+            y = _chol_solve(A, r)
             for i in range(nm):
                 acc = 0.0
                 for j in range(no):
