@@ -9,8 +9,8 @@ metrics snapshot, signal flags).  Signal handlers only set flags.  A reload (dae
 loads and checks the new models on a helper thread and swaps them between two turns, so no
 frame is dropped or held up by the load; a file that fails keeps the old model and the log
 says why.  Control requests: daemon/control.py.  The data flow, file by file: transport.py ->
-dispatch.py (decode -> session.py) -> tick.py (scheduler.py -> wire.py's encode); a studio's
-regular bundle takes the same steps as arrays: blockpath.py (decode -> sessions) -> tickblock.py.
+dispatch.py (decode -> session.py) -> tick.py (scheduler.py -> wire.py's encode) -> outbox.py; a
+studio's regular bundle takes the same steps as arrays: blockpath.py (decode -> sessions) -> tickblock.py.
 """
 from __future__ import annotations
 
