@@ -181,29 +181,33 @@ class Daemon(Dispatch, Tick, Control, Reloading, Waiting):
     def run(self) -> None:
         try:
             while True:
-                ready = self._wait()  # (daemon/wait.py)
-                self.turn(self.clock(), ready)
+                ready, arrived = self._wait()  # (daemon/wait.py)
+                self.turn(self.clock(), ready, arrived=arrived)
                 if self.flag_stop:
                     break
             self._drain()
         finally:
             self.close()
 
-    def turn(self, now: float, ready: Any = None, items: list[tuple[bytes, Origin, float]] | None = None) -> int:
+    def turn(self, now: float, ready: Any = None, items: list[tuple[bytes, Origin, float]] | None = None,
+             arrived: float | None = None) -> int:
         """One turn of the loop at ``now`` (the daemon's clock): read what ``ready`` (a poll's
         answer) says is waiting, or take ``items`` (bytes, origin, receipt time) as if read;
         decode and hand them to their sessions; serve the frames waiting; answer the frames a
         newer one superseded; send the turn's answers together; then, unless a stop was asked,
         a finished reload is swapped in and housekeeping (idle expiry, metrics) runs when due.
-        Returns how many frames were set aside as superseded.  Nothing here raises: a failure
-        is logged, counted, and the frames it stranded are answered with an error."""
+        ``arrived``: the receipt time of everything ``ready`` has (the start of a rehearsal it
+        waited through, daemon/wait.py), else each message's is taken as it is read; both on
+        the transport's clock, time.perf_counter, the default ``clock``.  Returns how many
+        frames were set aside as superseded.  Nothing here raises: a failure is logged,
+        counted, and the frames it stranded are answered with an error."""
         net = self.net
         if net is not None:
             net.hold()  # this turn's answers go out together, after its work
         aside = 0
         try:
             if ready and net is not None:
-                net.receive(ready)  # (-> _batch)
+                net.receive(ready, arrived)  # (-> _batch)
             if items:
                 self._batch(items)
             aside = sum(len(item) if type(item) is list else 1  # (a run of kept heads: daemon/aside.py)

@@ -136,7 +136,10 @@ class Transports(Outbox):
                 raise
             return {}
 
-    def receive(self, ready: dict[Any, int]) -> None:
+    def receive(self, ready: dict[Any, int], arrived: float | None = None) -> None:
+        """Read what ``ready`` (a poll's answer) says is waiting and hand it to ``on_batch``.  A
+        message's receipt time is time.perf_counter() as it is read, or ``arrived`` for every one
+        when given (the loop's: the start of a rehearsal they waited through, daemon/wait.py)."""
         batch: list[tuple[bytes, Origin, float]] = []
         for sock_, name in ((self.router, "router"), (self.pull, "pull"), (self.sub, "sub")):
             if sock_ is None or sock_ not in ready:
@@ -152,7 +155,7 @@ class Transports(Outbox):
                     parts = _recv_bounded(sock_, keep, keyed)
                 except zmq.Again:
                     break
-                got.append((parts, time.perf_counter()))
+                got.append((parts, time.perf_counter() if arrived is None else arrived))
                 nbytes += len(parts[-1]) if type(parts[-1]) is bytes else 0
                 if nbytes > DRAIN_MAX_BYTES:  # (the rest next turn: one turn's decoding stays bounded)
                     break
@@ -192,7 +195,7 @@ class Transports(Outbox):
                 if self.guard is not None and not self.guard.osc_allowed(addr):
                     self.metrics.reject("source_not_allowed")  # counted, never answered (no reflection)
                     continue
-                batch.append((data, ("osc", addr), time.perf_counter()))
+                batch.append((data, ("osc", addr), time.perf_counter() if arrived is None else arrived))
         if batch:
             self.on_batch(batch)
 
