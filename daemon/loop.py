@@ -1,16 +1,17 @@
 """`lacuna serve`: the daemon's lifecycle and its loop.
 
-One thread serves everything: ``poll(timeout)`` over the ZeroMQ sockets and the OSC UDP socket,
-then one :meth:`Daemon.turn`: what arrived (bounded) is decoded and handed to its sessions
-(daemon/dispatch.py, conflating per stream), one batched scheduler step per model answers the
-frames waiting (daemon/tick.py), then the frames of the burst that a newer frame of their
-stream superseded are answered; then housekeeping against deadlines (watchdog, idle expiry,
-metrics snapshot, signal flags).  Signal handlers only set flags.  A reload (daemon/reload.py)
-loads and checks the new models on a helper thread and swaps them between two turns, so no
-frame is dropped or held up by the load; a file that fails keeps the old model and the log
-says why.  Control requests: daemon/control.py.  The data flow, file by file: transport.py ->
-dispatch.py (decode -> session.py) -> tick.py (scheduler.py -> wire.py's encode); a studio's
-regular bundle takes the same steps as arrays: blockpath.py (decode -> sessions) -> tickblock.py.
+One thread serves everything: ``poll(timeout)`` over the ZeroMQ sockets and the OSC UDP socket
+(daemon/wait.py: how long, and the rehearsal before a frame is due), then one :meth:`Daemon.turn`:
+what arrived (bounded) is decoded and handed to its sessions (daemon/dispatch.py, conflating per
+stream), one batched scheduler step per model answers the frames waiting (daemon/tick.py), then
+the frames of the burst that a newer frame of their stream superseded are answered; then
+housekeeping against deadlines (watchdog, idle expiry, metrics snapshot, signal flags).  Signal
+handlers only set flags.  A reload (daemon/reload.py) loads and checks the new models on a helper
+thread and swaps them between two turns, so no frame is dropped or held up by the load; a file
+that fails keeps the old model and the log says why.  Control requests: daemon/control.py.  The
+data flow, file by file: transport.py -> dispatch.py (decode -> session.py) -> tick.py
+(scheduler.py -> wire.py's encode) -> outbox.py; a studio's regular bundle takes the same steps as
+arrays: blockpath.py (decode -> sessions) -> tickblock.py.
 """
 from __future__ import annotations
 
@@ -44,15 +45,15 @@ from daemon.sessions import SessionTable
 from daemon.stalls import Stalls
 from daemon.tick import Tick
 from daemon.transport import Transports
+from daemon.wait import Waiting
 from view import in_daemon
 
 PROM_STREAMS = 64  # streams with per-stream series in the metrics snapshot
-IDLE_POLL_MS = 100  # poll timeout when nothing is pending (signal flags are read at least this often)
 HOUSEKEEPING_S = 0.5
 DRAIN_LINGER_MS = 1000  # on SIGTERM, let answers already queued reach their peers
 
 
-class Daemon(Dispatch, Tick, Control, Reloading):
+class Daemon(Dispatch, Tick, Control, Reloading, Waiting):
     def __init__(self, cfg: config_mod.Config, log: Log | None = None,
                  clock: Callable[[], float] = time.perf_counter):
         # the clock of receipt times, deadlines, idle expiry and slow steps (tests pass a fake one)
@@ -93,10 +94,6 @@ class Daemon(Dispatch, Tick, Control, Reloading):
         self.osc_err_budget = budgets.Budget(OSC_ERRORS_PER_S, OSC_ERRORS_PER_S)  # error answers per OSC source host
         self._osc_in = 0  # bytes of the OSC datagram being handled (its answers may not be larger)
         self._osc_errs: list[tuple[str, str]] | None = None  # errors of the OSC bundle being handled
-
-    @property
-    def _busy_s(self) -> float:
-        return self.cfg.busy_poll_ms / 1000.0   # read each time: a reload may change it
 
     # ---- models -----------------------------------------------------------------------------
     def _resolve(self, requested: str | None, sid: str) -> tuple[str, Any]:
@@ -184,52 +181,33 @@ class Daemon(Dispatch, Tick, Control, Reloading):
     def run(self) -> None:
         try:
             while True:
-                pending = bool(self.sessions.waiting or self.sessions.blocks)  # (cost: the streams with a frame, not the open ones)
-                timeout = 0 if pending else IDLE_POLL_MS
-                wd = self.notify.watchdog_due(time.monotonic())
-                if wd is not None:
-                    timeout = min(timeout, max(0, int(wd * 1000)))
-                pw = self.prewarm
-                if timeout and pw.due is not None:
-                    # the next frame is due soon: warm the path it takes (daemon/prewarm.py); the
-                    # poll's timeout is whole milliseconds, so this runs lead to lead + 1 ms ahead
-                    left = pw.due - time.perf_counter()
-                    if left < 0.001:
-                        pw.rehearse(self.sessions.sessions, self.sched, wire.encode)
-                    else:
-                        timeout = min(timeout, int(left * 1000))
-                self.stalls.sleeping()
-                due = time.perf_counter() + timeout / 1000.0
-                if timeout and self._busy_s:
-                    due += max(0.0, self._last_rx + self._busy_s - time.perf_counter())
-                    ready = self._spin(timeout)
-                else:
-                    ready = self.net.poll(timeout)  # type: ignore[union-attr]
-                self.stalls.woke(due)
-                if ready:
-                    self._last_rx = time.perf_counter()
-                self.turn(self.clock(), ready)
+                ready, arrived = self._wait()  # (daemon/wait.py)
+                self.turn(self.clock(), ready, arrived=arrived)
                 if self.flag_stop:
                     break
             self._drain()
         finally:
             self.close()
 
-    def turn(self, now: float, ready: Any = None, items: list[tuple[bytes, Origin, float]] | None = None) -> int:
+    def turn(self, now: float, ready: Any = None, items: list[tuple[bytes, Origin, float]] | None = None,
+             arrived: float | None = None) -> int:
         """One turn of the loop at ``now`` (the daemon's clock): read what ``ready`` (a poll's
         answer) says is waiting, or take ``items`` (bytes, origin, receipt time) as if read;
         decode and hand them to their sessions; serve the frames waiting; answer the frames a
         newer one superseded; send the turn's answers together; then, unless a stop was asked,
         a finished reload is swapped in and housekeeping (idle expiry, metrics) runs when due.
-        Returns how many frames were set aside as superseded.  Nothing here raises: a failure
-        is logged, counted, and the frames it stranded are answered with an error."""
+        ``arrived``: the receipt time of everything ``ready`` has (the start of a rehearsal it
+        waited through, daemon/wait.py), else each message's is taken as it is read; both on
+        the transport's clock, time.perf_counter, the default ``clock``.  Returns how many
+        frames were set aside as superseded.  Nothing here raises: a failure is logged,
+        counted, and the frames it stranded are answered with an error."""
         net = self.net
         if net is not None:
             net.hold()  # this turn's answers go out together, after its work
         aside = 0
         try:
             if ready and net is not None:
-                net.receive(ready)  # (-> _batch)
+                net.receive(ready, arrived)  # (-> _batch)
             if items:
                 self._batch(items)
             aside = sum(len(item) if type(item) is list else 1  # (a run of kept heads: daemon/aside.py)
@@ -263,21 +241,6 @@ class Daemon(Dispatch, Tick, Control, Reloading):
             self.metrics.inc("internal_errors")
             self.log("error", "internal_error", where="housekeeping", error=f"{type(e).__name__}: {e}"[:300])
         return aside
-
-    def _spin(self, timeout_ms: int) -> dict[Any, Any]:
-        """Busy-poll (``busy_poll_ms``): for that long after the last message arrived, poll without
-        sleeping, so the next frame is picked up as soon as it lands instead of after the kernel
-        wakes the thread (0.3-1 ms on a virtual machine, most of a loopback round trip).  Costs a
-        core while frames flow; once the stream pauses for longer, sleep in poll as usual."""
-        end = self._last_rx + self._busy_s
-        net = self.net
-        while time.perf_counter() < end:
-            ready = net.poll(0)  # type: ignore[union-attr]
-            if ready or self.flag_stop or self.flag_reload:
-                return ready
-            os.sched_yield()  # let ZeroMQ's I/O thread, which moves the bytes, run on this core at once
-        return net.poll(timeout_ms)  # type: ignore[union-attr]
-
 
     # ---- output -----------------------------------------------------------------------------
     def _batch(self, items: list[tuple[bytes, Origin, float]]) -> None:

@@ -1,4 +1,4 @@
-"""What the parts of the daemon (daemon/dispatch.py, tick.py, control.py, reload.py) share: the
+"""What the parts of the daemon (daemon/dispatch.py, tick.py, control.py, reload.py, wait.py) share: the
 attributes :class:`daemon.loop.Daemon` sets up and the few methods one part calls on another,
 declared once so that each part is type-checked on its own.  Nothing here runs."""
 from __future__ import annotations
@@ -53,6 +53,7 @@ class Parts:
         started: float
         last_reload: dict[str, Any]
         flag_stop: bool
+        flag_reload: bool
         _drop_overdue: bool
         _out: Answers
         _conflated: Answers
@@ -64,6 +65,7 @@ class Parts:
         _osc_errs: list[tuple[str, str]] | None
         _reload_args: tuple[str | None, dict[str, Loaded]]
         _switch: float
+        _last_rx: float
 
         # (one part calls these on another)
         def _send(self, origin: Origin, msg: wire.Message, publish: bool = False) -> None: ...

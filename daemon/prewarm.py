@@ -15,7 +15,9 @@ scheduler's cost estimates, and nothing is sent.  A rehearsal runs only when no 
 at most once per frame served, when the stream's period is regular and between
 ``MIN_PERIOD_S`` and ``MAX_PERIOD_S``, and when the model's step is estimated to fit in
 ``MAX_STEP_S``.  It costs one more step per period (a few percent of a core for one HLM stream
-at 120 Hz).  Frames served as a bundle's block (daemon/tickblock.py) plan no rehearsal.
+at 120 Hz).  Frames served as a bundle's block (daemon/tickblock.py) plan no rehearsal.  A frame
+that lands while a rehearsal runs waits for it; the loop then stamps it with the rehearsal's
+start (daemon/wait.py), so its ``proc_us`` and the latency in ``status`` show that wait.
 """
 from __future__ import annotations
 

@@ -91,7 +91,8 @@ class FillMsg:
     angles, std : (C,) float32;  filled : (C,) bool, True where the daemon filled the value.
     style : (n_styles,) float32 posterior or None;  phase : gait phase in [0, 1) or None.
     gap : number of frames predicted (never received) just before this one.
-    proc_us : microseconds from receipt of the frame to sending this reply.
+    proc_us : microseconds from receipt of the frame to sending this reply (a frame that landed
+        during a rehearsal, daemon/prewarm.py, is received at the rehearsal's start: daemon/wait.py).
     """
 
     stream: str

@@ -258,3 +258,73 @@ def test_a_daemon_paced_at_120_hz_rehearses_before_its_frames_and_fills_as_the_m
                 d.proc.kill()
                 d.proc.wait(10)
         ctx.term()
+
+
+def test_a_frame_that_lands_during_a_rehearsal_counts_the_rehearsal_in_its_proc_us(tmp_path):
+    """The daemon's own loop (Daemon.run on a thread, real ROUTER socket, a DEALER pacing a
+    pass-through stream at 120 Hz) with one rehearsal made slow: it waits, inside the rehearsal,
+    until the next frame has landed on the daemon's socket and then holds on a while.  That frame
+    waited for the rest of the rehearsal, so its ``proc_us`` and the latency ``status`` reports
+    must cover that wait (stamped when read, after the rehearsal, both would show only the
+    fill's own microseconds)."""
+    import threading
+
+    import zmq
+
+    from clients.control import control
+
+    hold_s = 0.05  # how long the slow rehearsal goes on after the frame landed
+    cfg = config.from_dict({"daemon": {"budget_ms": 1000.0, "log_level": "error", "overdue": "serve"},
+                            "models": {"pt": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
+    d = server.Daemon(cfg, server.Log("error"))
+    d.start()
+    real = d.prewarm.rehearse
+    held: dict[str, float] = {}
+
+    def slow_rehearse(*args):
+        # (on the daemon's thread: poll() looks at its sockets without reading them)
+        if not held:
+            assert d.net is not None and d.net.poll(10_000), "no frame landed during the rehearsal"
+            held["landed"] = time.perf_counter()
+            real(*args)
+            while time.perf_counter() < held["landed"] + hold_s:
+                time.sleep(0.001)
+            held["ended"] = time.perf_counter()
+        else:
+            real(*args)
+
+    d.prewarm.rehearse = slow_rehearse
+    loop = threading.Thread(target=d.run, name="daemon-loop")
+    loop.start()
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.DEALER)
+    s.setsockopt(zmq.LINGER, 0)
+    try:
+        endpoint = d.endpoints()["router"]
+        s.connect(endpoint)
+        s.send(wire.encode(wire.Hello("a", ["c0", "c1", "c2"])))
+        assert s.poll(30000) and isinstance(wire.decode(s.recv()), wire.HelloAck)
+        t0 = time.perf_counter() + 0.01
+        got = None
+        for t in range(240):  # until a rehearsal has held a frame (a regular period is needed first)
+            while time.perf_counter() < t0 + t * PERIOD:  # pacing IS the behaviour: a 120 Hz stream
+                time.sleep(0.0002)
+            was_held = "landed" in held
+            s.send(wire.encode(wire.Frame("a", t, t * PERIOD, np.zeros(3, np.float32))))
+            assert s.poll(30000), "no answer from the daemon"
+            m = wire.decode(s.recv())
+            assert isinstance(m, wire.FillMsg) and m.seq == t, m
+            if not was_held and "ended" in held:  # the frame the slow rehearsal held
+                got = m
+                break
+        assert got is not None, "no rehearsal ran in 240 frames"
+        waited_us = int((held["ended"] - held["landed"]) * 1e6)
+        assert got.proc_us >= waited_us, (got.proc_us, waited_us)
+        lat = control(endpoint, "status", timeout_s=5.0).result["latency"]
+        assert lat["max_ms"] >= waited_us / 1e3, (lat, waited_us)
+    finally:
+        s.close(0)
+        d.flag_stop = True
+        loop.join(30)
+        ctx.term()
+    assert not loop.is_alive()
