@@ -116,7 +116,6 @@ def main() -> int:
     ap.add_argument("--json", help="write the per-case figures here")
     ap.add_argument("--policy", type=float, nargs=2, metavar=("Q_PRIOR_N", "SHADOW_REVOKE"),
                     help="run under this check instead of the module's (0 0: main 5b13b52's)")
-    ap.add_argument("--r0", type=float, help="run with this guard_r0 (lambda_r's ridge target) instead of the file's")
     ap.add_argument("--n0", type=float, help="run with this guard_n0 (the ridge's strength) instead of the file's")
     a = ap.parse_args()
     import blend.methods  # noqa: F401  (loaders)
@@ -125,9 +124,6 @@ def main() -> int:
         withhlm.Q_PRIOR_N, withhlm.SHADOW_REVOKE = a.policy
     model = modelfile.load_model(a.model)
     assert isinstance(model, withhlm.WithHLMModel)
-    if a.r0 is not None:
-        model.default.settings.guard_r0 = a.r0
-        model.default.guard_par[4] = a.r0
     if a.n0 is not None:
         model.default.settings.guard_n0 = a.n0
         model.default.guard_par[1] = a.n0

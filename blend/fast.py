@@ -154,7 +154,7 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
 
 
 @jit
-def _guard_solve(GS, n0, mx, r0, L):
+def _guard_solve(GS, n0, mx, L):
     """blend.guard.solve into L (G, B, 2)."""
     for g in range(GS.shape[0]):
         for b in range(GS.shape[1]):
@@ -168,7 +168,7 @@ def _guard_solve(GS, n0, mx, r0, L):
             a11 = pp * (1 + kap) + 1e-12
             a22 = qq * (1 + kap) + 1e-12
             b1 = yp + kap * pp
-            b2 = yq + kap * r0 * qq
+            b2 = yq + kap * qq
             det = a11 * a22 - pq * pq
             if pp > 1e-9 and qq > 1e-9 and det > 1e-12 * a11 * a22:
                 lv = (b1 * a22 - b2 * pq) / det
@@ -356,7 +356,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 Rv[c] = h[c] + _wrap(val - h[c])  # R on the branch of the last value: never 360 away
         L = GL
         if guard_on:
-            _guard_solve(GS, gpar[1], gpar[2], gpar[4], L)
+            _guard_solve(GS, gpar[1], gpar[2], L)
         scale = 1.0
         if sv[1] != 0.0:
             scale = min(max(np.sqrt((cal_prior + sv[0]) / (cal_prior + sv[1])), 0.33), 3.0)

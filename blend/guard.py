@@ -21,7 +21,7 @@ decayed sums (time constant ``guard_s``) PP, PQ, QQ, yP, yQ and a count n, and a
     H + lambda_v(g, t) P + lambda_r(g, t) Q,
 
 (lambda_v, lambda_r) the least-squares scales of the two parts on the stream's own virtual gaps,
-with a ridge toward (1, ``guard_r0``) of ``guard_n0`` / n times the diagonal (n: virtual gaps that reached
+with a ridge toward (1, 1) of ``guard_n0`` / n times the diagonal (n: virtual gaps that reached
 that horizon, decayed) (thin evidence keeps the fitted
 weights), each clipped to [0, ``guard_max``].  A run, whose limbs reverse faster than the damping
 assumes, finds lambda_v < 1 and falls back on hold and the regression; a performer whose body
@@ -61,7 +61,7 @@ def hat(kk: np.ndarray, hf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return i, p - i
 
 
-def solve(S: np.ndarray, n0: float, mx: float, r0: float = 1.0) -> np.ndarray:
+def solve(S: np.ndarray, n0: float, mx: float) -> np.ndarray:
     """(G, B, NS) sums -> (G, B, 2) scales (lambda_v, lambda_r)."""
     pp, pq, qq, yp, yq, n = (S[..., i] for i in range(NS))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -69,7 +69,7 @@ def solve(S: np.ndarray, n0: float, mx: float, r0: float = 1.0) -> np.ndarray:
     a11 = pp * (1 + kap) + 1e-12
     a22 = qq * (1 + kap) + 1e-12
     b1 = yp + kap * pp
-    b2 = yq + kap * r0 * qq
+    b2 = yq + kap * qq
     det = a11 * a22 - pq * pq
     both = (pp > 1e-9) & (qq > 1e-9) & (det > 1e-12 * a11 * a22)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -148,7 +148,7 @@ def guard_update(st: DefaultState, f: np.ndarray, obs: np.ndarray) -> None:
 def guard_lambda(st: DefaultState, g: np.ndarray, kk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(lambda_v, lambda_r) for missing channels of groups g, kk frames since their onset."""
     m = st.m
-    L = solve(st.GS, m.guard_par[1], m.guard_par[2], m.guard_par[4])
+    L = solve(st.GS, m.guard_par[1], m.guard_par[2])
     i, fr = hat(kk, m.guard_hf)
     lam = L[g, i] * (1.0 - fr)[:, None] + L[g, np.minimum(i + 1, L.shape[1] - 1)] * fr[:, None]
     return lam[:, 0], lam[:, 1]

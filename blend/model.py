@@ -90,8 +90,6 @@ class Settings:
     guard_s: float = 0.0      # the guard (blend.guard): decay time constant of its evidence, seconds (0: off)
     guard_n0: float = 120.0   # ... its ridge toward lambda = 1: guard_n0 / n times the diagonal (n: virtual gaps seen)
     guard_max: float = 1.0    # ... the largest lambda (1: the guard only shrinks toward hold)
-    guard_r0: float = 1.0     # ... the value lambda_r's ridge pulls toward (1: the old ridge; < 1: thin evidence
-                              # trusts the regression less, as the virtual gaps judge it on easier cases)
 
     def per_frame(self) -> dict[str, float]:
         f = self.fps
@@ -176,8 +174,7 @@ class DefaultModel(Model):
         for i, g in enumerate(self.sh_g):
             self.guard_sh[g] = i
         self.guard_par = np.array([float(np.exp(-1.0 / max(settings.guard_s * settings.fps, 1e-9))) if self.guard_on else 1.0,
-                                   settings.guard_n0, settings.guard_max, 1.0 if self.guard_on else 0.0,
-                                   settings.guard_r0])
+                                   settings.guard_n0, settings.guard_max, 1.0 if self.guard_on else 0.0])
         from lacuna import jit
 
         self.compiled = jit.enabled()
