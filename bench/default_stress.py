@@ -116,6 +116,7 @@ def main() -> int:
     ap.add_argument("--json", help="write the per-case figures here")
     ap.add_argument("--policy", type=float, nargs=2, metavar=("Q_PRIOR_N", "SHADOW_REVOKE"),
                     help="run under this check instead of the module's (0 0: main 5b13b52's)")
+    ap.add_argument("--n0", type=float, help="run with this guard_n0 (the ridge's strength) instead of the file's")
     a = ap.parse_args()
     import blend.methods  # noqa: F401  (loaders)
 
@@ -123,6 +124,9 @@ def main() -> int:
         withhlm.Q_PRIOR_N, withhlm.SHADOW_REVOKE = a.policy
     model = modelfile.load_model(a.model)
     assert isinstance(model, withhlm.WithHLMModel)
+    if a.n0 is not None:
+        model.default.settings.guard_n0 = a.n0
+        model.default.guard_par[1] = a.n0
     rows = []
     t0 = time.time()
     for kind, label, act, x, obs in cases(a):
