@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from lacuna.modelfile import load_model  # noqa: E402
 from mocap import metrics, protocols, splits  # noqa: E402
+from mocap.cli import parse_seeds  # noqa: E402
 
 FIGS = ("rms_deg", "rms_deg[len 0.1-0.25s]", "rms_deg[len 0.5-1s]", "rms_deg[len 1-2s]", "rms_deg[since first]",
         "rms_deg[first 0.1s]", "hold_rms_deg[first 0.1s]", "onset_err_median_deg", "within_2std", "nll_per_value",
@@ -34,11 +35,7 @@ FIGS = ("rms_deg", "rms_deg[len 0.1-0.25s]", "rms_deg[len 0.5-1s]", "rms_deg[len
 
 
 def seeds(spec: str) -> list[int]:
-    out: list[int] = []
-    for part in spec.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b or a) + 1))
-    return out
+    return parse_seeds(spec, None)   # A-B or A,B,... as `lacuna eval --seeds`
 
 
 def setting(spec: str) -> tuple[str, dict]:

@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from blend import withhlm  # noqa: E402
 from lacuna import modelfile  # noqa: E402
 from mocap import protocols, splits  # noqa: E402
+from mocap.cli import parse_seeds  # noqa: E402
 from mocap.representation import is_angle  # noqa: E402
 from mocap.rootrot import wrap180 as wrap  # noqa: E402
 
@@ -39,11 +40,7 @@ WALK_FRAMES = 600
 
 
 def seeds(spec: str) -> list[int]:
-    out: list[int] = []
-    for part in spec.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b or a) + 1))
-    return out
+    return parse_seeds(spec, None)   # A-B or A,B,... as `lacuna eval --seeds`
 
 
 def _mask(name: str, T: int, channels: list[str], seed: int, clean: list[tuple[int, int]] = ()) -> np.ndarray:

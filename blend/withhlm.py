@@ -142,6 +142,7 @@ POP = 2.0        # degrees a frame the fill may depart from its own course, plus
 POP_REL = 1.0
 POP_TAU = 3.0    # frames: the decay of what the pop limit held back (all three chosen on VALIDATION: module doc)
 NO_SMOOTH = {"knots": False, "std_knots": False, "pop": 0.0, "pop_tau": POP_TAU, "pop_rel": 0.0}   # model files written before smoothing
+SMOOTH = {"knots": False, "std_knots": True, "pop": POP, "pop_tau": POP_TAU, "pop_rel": POP_REL}   # the choice (withhlm.json's)
 
 
 def group_index(channels: list[str]) -> np.ndarray:
@@ -615,5 +616,4 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
     cal = calib.from_json(json.loads(SHIPPED.read_text()).get("calib") if SHIPPED.exists() else None, list(ch),
                           group_index(list(ch)), GROUP_NAMES, len(T_EDGES) + 1)
     return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal,
-                        chosen.get("smooth", {"knots": False, "std_knots": True, "pop": POP, "pop_tau": POP_TAU,
-                                              "pop_rel": POP_REL}))
+                        chosen.get("smooth", SMOOTH))
