@@ -1,4 +1,4 @@
-"""A bundle's frames as arrays: one pass over the received element maps gives the stream ids,
+"""A bundle's frames as arrays (:class:`daemon.schema.FrameBlock`): one pass over the received element maps gives the stream ids,
 seqs and stamps, an (n, C) float32 values matrix and an (n, C) bool mask matrix (None: every
 element came without a mask, observed = finite), checked as arrays at once.
 
@@ -12,12 +12,11 @@ anything else, which then takes that path and gets its named error.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from daemon.schema import F32, MAX_CHANNELS, MAX_SEQ, MAX_STREAM_ID, SCHEMA_VERSION, Frame
+from daemon.schema import F32, MAX_CHANNELS, MAX_SEQ, MAX_STREAM_ID, SCHEMA_VERSION, FrameBlock
 
 _ADD = np.add.reduce
 _PINF, _NINF = np.array([np.inf], F32).tobytes(), np.array([-np.inf], F32).tobytes()
@@ -28,31 +27,6 @@ def no_inf(b: bytes) -> bool:
     so bytes that contain neither pattern anywhere hold none (a byte search, no array).  False
     may be a false alarm (the pattern across two values): the caller then checks with numpy."""
     return b.find(_PINF) < 0 and b.find(_NINF) < 0
-
-
-@dataclass
-class FrameBlock:
-    """n frames of one width C, row i being element i of the bundle."""
-
-    sids: list[str]
-    seqs: list[int]
-    stamps: list[float]
-    values: np.ndarray  # (n, C) float32, read-only (a view of the received bytes)
-    mask: np.ndarray | None  # (n, C) bool, or None: observed = finite
-
-    def __len__(self) -> int:
-        return len(self.sids)
-
-    def observed(self) -> np.ndarray:
-        """(n, C) bool: the mask, or where the values are finite."""
-        return np.isfinite(self.values) if self.mask is None else self.mask
-
-    def frames(self) -> list[Frame]:
-        """One :class:`Frame` per row (angles and observed are row views, nothing copied)."""
-        v, m = self.values, self.mask
-        if m is None:
-            return [Frame(sid, seq, t, v[i], None) for i, (sid, seq, t) in enumerate(zip(self.sids, self.seqs, self.stamps))]
-        return [Frame(sid, seq, t, v[i], m[i]) for i, (sid, seq, t) in enumerate(zip(self.sids, self.seqs, self.stamps))]
 
 
 def read_block(frames: list[Any]) -> FrameBlock | None:

@@ -29,8 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.block import FrameBlock
-from daemon.schema import Drop
+from daemon.schema import Drop, FrameBlock
 from daemon.session import Origin, Pending, Session
 from lacuna.filler import Model
 

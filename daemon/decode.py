@@ -15,7 +15,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from daemon.block import FrameBlock, no_inf, read_block
+from daemon.block import no_inf, read_block
 from daemon.schema import (
     CONTROL_COMMANDS,
     F32,
@@ -35,6 +35,7 @@ from daemon.schema import (
     ErrorMsg,
     FillMsg,
     Frame,
+    FrameBlock,
     Hello,
     HelloAck,
     Message,

@@ -38,7 +38,8 @@ from daemon.notify import Notifier
 from daemon.pmqos import CpuLatency
 from daemon.prewarm import Prewarm
 from daemon.realtime import Realtime
-from daemon.reload import Reloader, Reloading
+from daemon.reload import Reloading
+from daemon.reloader import Reloader
 from daemon.scheduler import Scheduler
 from daemon.session import Origin
 from daemon.sessions import SessionTable

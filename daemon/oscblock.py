@@ -26,8 +26,7 @@ from typing import Any
 import numpy as np
 
 from daemon import blockpath, osc, wire
-from daemon.block import FrameBlock
-from daemon.schema import F32, MAX_BUNDLE, MAX_CHANNELS, MAX_SEQ, MAX_STREAM_ID
+from daemon.schema import F32, MAX_BUNDLE, MAX_CHANNELS, MAX_SEQ, MAX_STREAM_ID, FrameBlock
 from daemon.session import principal
 
 _FRAME = b"/lacuna/frame\0\0\0"

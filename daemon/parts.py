@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from daemon.pmqos import CpuLatency
     from daemon.prewarm import Prewarm
     from daemon.realtime import Realtime
-    from daemon.reload import Reloader
+    from daemon.reloader import Reloader
     from daemon.scheduler import Scheduler
     from daemon.session import Origin, Pending, Session
     from daemon.sessions import SessionTable

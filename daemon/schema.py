@@ -11,12 +11,9 @@ back into bytes; daemon/wire.py is the one name the rest of the project imports 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from daemon.block import FrameBlock
 
 SCHEMA_VERSION = 1
 MAX_MESSAGE_BYTES = 1 << 20  # default cap, enforced before unpacking; the config can lower it
@@ -145,6 +142,31 @@ class ErrorMsg:
     detail: str
     stream: str | None = None
     seq: int | None = None
+
+
+@dataclass
+class FrameBlock:
+    """n frames of one width C, row i being element i of the bundle."""
+
+    sids: list[str]
+    seqs: list[int]
+    stamps: list[float]
+    values: np.ndarray  # (n, C) float32, read-only (a view of the received bytes)
+    mask: np.ndarray | None  # (n, C) bool, or None: observed = finite
+
+    def __len__(self) -> int:
+        return len(self.sids)
+
+    def observed(self) -> np.ndarray:
+        """(n, C) bool: the mask, or where the values are finite."""
+        return np.isfinite(self.values) if self.mask is None else self.mask
+
+    def frames(self) -> list[Frame]:
+        """One :class:`Frame` per row (angles and observed are row views, nothing copied)."""
+        v, m = self.values, self.mask
+        if m is None:
+            return [Frame(sid, seq, t, v[i], None) for i, (sid, seq, t) in enumerate(zip(self.sids, self.seqs, self.stamps))]
+        return [Frame(sid, seq, t, v[i], m[i]) for i, (sid, seq, t) in enumerate(zip(self.sids, self.seqs, self.stamps))]
 
 
 @dataclass
