@@ -21,7 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from lacuna.errors import DataError  # noqa: E402
-from mocap import io, splits  # noqa: E402
+from mocap import splits  # noqa: E402
 from mocap.rootrot import _matrix_to_ypr, _rxyz_to_matrix, wrap180  # noqa: E402
 
 
@@ -32,7 +32,7 @@ def main() -> int:
     found = 0
     for take in sorted(splits.ACTIVITY):
         try:
-            m = io.read_motion(str(splits.take_path(take)))
+            m = splits.load_take(take)
         except DataError:  # a take this data directory does not hold (35_18 is in cmu35_taylor only)
             continue
         ch = list(m.channels)

@@ -23,37 +23,12 @@ numba = pytest.importorskip("numba")
 pytestmark = pytest.mark.skipif(not fast.enabled(), reason="numba is not installed (or LACUNA_NO_JIT=1)")
 
 
-def _chol_solve_old(A, b):  # pragma: no cover - compiled
-    """x with A x = b for symmetric positive definite A (n, n): hlm/condfill.py's ``_chol_solve`` at 2968ff8,
-    verbatim (the old kernel's solver; production now solves in place, ``_chol_solve_in``)."""
+@numba.njit(nogil=True)
+def _chol_solve(A, b):  # pragma: no cover - compiled
+    """The old kernel's solver (``_chol_solve`` at 2968ff8, which allocated its L, y, x): production's
+    in-place one, the same operations in the same order, given arrays of its own."""
     n = A.shape[0]
-    L = np.zeros((n, n))
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        L[j, j] = np.sqrt(s)
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / L[j, j]
-    y = np.empty(n)
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= L[i, k] * y[k]
-        y[i] = s / L[i, i]
-    x = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        s = y[i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * x[k]
-        x[i] = s / L[i, i]
-    return x
-
-
-_chol_solve = numba.njit(nogil=True)(_chol_solve_old)   # (no on-disk cache)
+    return condfill._chol_solve_in(A, b, np.zeros((n, n)), np.empty(n), np.empty(n))
 
 
 def _correct1_old(post, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
