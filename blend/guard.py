@@ -29,17 +29,14 @@ moves unlike the training takes finds lambda_r < 1.  No activity label is needed
 to motion the weights never saw.  ``guard_s`` = 0 turns it off (models saved before it load so).
 
 Here the numpy reference (DefaultState.step_numpy calls it); blend.fast has the same arithmetic.
+``st`` is that blend.state.DefaultState, named by its base class: blend.state imports this file.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
+from lacuna.filler import FillerState
 from mocap.rootrot import wrap180 as wrap
-
-if TYPE_CHECKING:
-    from blend.state import DefaultState
 
 GUARD_S = (1 / 120, 0.05, 0.1, 0.25, 0.5, 1.0)  # horizons, seconds since a (virtual) gap's onset
 NS = 6  # sums per group and horizon: PP, PQ, QQ, yP, yQ, n
@@ -86,7 +83,7 @@ def wait(cnt: int, g: int) -> int:
     return 1 + (cnt * 7919 + g * 104729) % 61
 
 
-def guard_update(st: DefaultState, f: np.ndarray, obs: np.ndarray) -> None:
+def guard_update(st: FillerState, f: np.ndarray, obs: np.ndarray) -> None:
     """Advance every virtual gap by this frame (before the frame updates h and the velocity)."""
     m = st.m
     pf = m._pf
@@ -145,7 +142,7 @@ def guard_update(st: DefaultState, f: np.ndarray, obs: np.ndarray) -> None:
         st.GS[g, b] += np.array([P @ P, P @ Q, Q @ Q, y @ P, y @ Q, 1.0])
 
 
-def guard_lambda(st: DefaultState, g: np.ndarray, kk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def guard_lambda(st: FillerState, g: np.ndarray, kk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(lambda_v, lambda_r) for missing channels of groups g, kk frames since their onset."""
     m = st.m
     L = solve(st.GS, m.guard_par[1], m.guard_par[2])

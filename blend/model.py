@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from blend import guard
+from blend.state import DefaultState
 from blend.groups import GROUP_NAMES, GROUPS, NO_REGRESSION, ROOT_POS, group_of, model_groups  # noqa: F401
 from lacuna import modelfile
 from lacuna.filler import FillerError, Model
@@ -239,14 +240,10 @@ class DefaultModel(Model):
         return W[g, i] * (1.0 - f) + W[g, i + 1] * f
 
     def stream(self):
-        from blend.state import DefaultState
-
         return DefaultState(self)
 
     def step_batch(self, states, frames, observed):
         """Many streams: one check of the whole batch, then each stream's compiled step."""
-        from blend.state import DefaultState
-
         if not self.compiled or not states or not all(isinstance(s, DefaultState) and s.m is self and not s.collect
                                                       for s in states):
             return super().step_batch(states, frames, observed)

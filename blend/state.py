@@ -3,16 +3,11 @@ blend.fast.  See blend.model for what is computed."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from blend.guard import NS, guard_lambda, guard_update
-from lacuna.filler import Fill, FillerState, check_frame
+from lacuna.filler import Fill, FillerState, Model, check_frame
 from mocap.rootrot import wrap180 as wrap  # (blend.model's wrap, the same arithmetic)
-
-if TYPE_CHECKING:  # blend.model makes the states (stream()): a real import would be a circle
-    from blend.model import DefaultModel
 
 
 @dataclass
@@ -34,7 +29,9 @@ class Components:
 
 
 class DefaultState(FillerState):
-    def __init__(self, model: DefaultModel):
+    # ``model`` is the blend.model.DefaultModel whose stream() made this state, named by its base
+    # class: blend.model imports this file, so importing it back would make a circle
+    def __init__(self, model: Model):
         self.m = model
         C = model.n_channels
         self.last = model.mean_.copy()      # last output (observed or filled), raw units
