@@ -49,8 +49,8 @@ from typing import Any
 import numpy as np
 
 from blend import guard
-from blend.state import DefaultState
 from blend.groups import GROUP_NAMES, GROUPS, NO_REGRESSION, ROOT_POS, group_of, model_groups  # noqa: F401
+from blend.state import DefaultState
 from lacuna import modelfile
 from lacuna.filler import FillerError, Model
 from mocap.representation import is_angle

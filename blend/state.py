@@ -3,6 +3,7 @@ blend.fast.  See blend.model for what is computed."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+
 import numpy as np
 
 from blend.guard import NS, guard_lambda, guard_update
