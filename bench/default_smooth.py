@@ -62,6 +62,7 @@ def main() -> int:
     ap.add_argument("--seeds", default="0-2")
     ap.add_argument("--split", default="validation", choices=["validation", "test"])
     ap.add_argument("--json")
+    ap.add_argument("--gate-n0", type=float, help="the blend's gate_n0 instead of the file's (blend/model.py Settings)")
     a = ap.parse_args()
     if a.model:
         model = load_model(a.model)
@@ -72,6 +73,9 @@ def main() -> int:
         model = train_model(protocols.Gaps().training_set(), fps=120.0)
         model.save(a.save)
         print(f"trained default on TRAIN in {time.perf_counter() - t0:.0f} s; saved {a.save}", file=sys.stderr)
+    if a.gate_n0 is not None:
+        model.default.settings.gate_n0 = a.gate_n0
+        model.default._par[12] = a.gate_n0
     sets = [setting(s) for s in a.settings]
     cases = []
     for sd in seeds(a.seeds):

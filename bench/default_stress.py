@@ -113,6 +113,7 @@ def main() -> int:
     ap.add_argument("--json", help="write the per-case figures here")
     ap.add_argument("--policy", type=float, nargs=2, metavar=("Q_PRIOR_N", "SHADOW_REVOKE"),
                     help="run under this check instead of the module's (0 0: main 5b13b52's)")
+    ap.add_argument("--gate-n0", type=float, help="run with this gate_n0 (checks before the regression's whole gate) instead of the file's")
     ap.add_argument("--n0", type=float, help="run with this guard_n0 (the ridge's strength) instead of the file's")
     a = ap.parse_args()
     import blend.methods  # noqa: F401  (loaders)
@@ -121,6 +122,9 @@ def main() -> int:
         withhlm.Q_PRIOR_N, withhlm.SHADOW_REVOKE = a.policy
     model = modelfile.load_model(a.model)
     assert isinstance(model, withhlm.WithHLMModel)
+    if a.gate_n0 is not None:
+        model.default.settings.gate_n0 = a.gate_n0
+        model.default._par[12] = a.gate_n0
     if a.n0 is not None:
         model.default.settings.guard_n0 = a.n0
         model.default.guard_par[1] = a.n0

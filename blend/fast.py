@@ -39,6 +39,24 @@ def _knot(W, g, t, knots):
 
 
 @jit
+def _rho(ER, EH, NE, g, n0):
+    """Group g's shadow ratio for its gates (blend.state.gate): its own, or while it has had fewer than
+    ``n0`` checks, mixed with the ratio of all groups' sums (1 before any check)."""
+    rho = (ER[g] + 1e-9) / (EH[g] + 1e-9)
+    if n0 <= 0.0:
+        return rho
+    w = min(NE[g] / n0, 1.0)
+    if w >= 1.0:
+        return rho
+    sr = 0.0
+    sh = 0.0
+    for i in range(ER.shape[0]):
+        sr += ER[i]
+        sh += EH[i]
+    return w * rho + (1.0 - w) * (sr + 1e-9) / (sh + 1e-9)
+
+
+@jit
 def _features_all(x, ri, mean, mu, Ls, hist, pos, zf):
     """Every regression feature of frame x (blend.state.DefaultState._features with back 0)."""
     n = hist.shape[0]
@@ -56,7 +74,7 @@ def _features_all(x, ri, mean, mu, Ls, hist, pos, zf):
 @jit
 def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
                   h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
-                  ER, EH, gate_rho, gate_weak, Lm, gbuf, gbin):
+                  ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin):
     """blend.guard.guard_update, channel by channel (``gbuf``: the state's scratch, 2 C + len(mu))."""
     G = GS.shape[0]
     B = GS.shape[1]
@@ -114,7 +132,7 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
             if not have_z:
                 _features_all(x, ri, mean, mu, Ls, hist, pos, zf)
                 have_z = True
-            rho = (ER[g] + 1e-9) / (EH[g] + 1e-9)
+            rho = _rho(ER, EH, NE, g, gate_n0)
             gate = 1.0 / (1.0 + (rho / gate_rho) ** 2)
             weak = 1.0 / (1.0 + (rho / gate_weak) ** 2)
             wq = _knot(wr, g, t, knots) * weak + _knot(wg, g, t, knots) * gate
@@ -208,10 +226,10 @@ def reg_missing(obs, ri, out):
 @jit
 def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
                 last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
-                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, GL, gbuf, gbin):
+                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, NE, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, GL, gbuf, gbin):
     _beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
                                                                  par[6], par[7], par[8])
-    gate_rho, gate_decay, gate_weak = par[9], par[10], par[11]
+    gate_rho, gate_decay, gate_weak, gate_n0 = par[9], par[10], par[11], par[12]
     C = f.shape[0]
     n = hist.shape[0]
     pos = int(sv[3])
@@ -266,11 +284,12 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
             g = sh_g[q]
             ER[g] = gate_decay * ER[g] + eR
             EH[g] = gate_decay * EH[g] + eH
+            NE[g] = min(NE[g] + 1.0, gate_n0)
     guard_on = gpar[3] > 0.0
     if guard_on:
         _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
                       h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
-                      ER, EH, gate_rho, gate_weak, Lm, gbuf, gbin)
+                      ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin)
     anyobs = False
     anymiss = False
     for j in range(C):
@@ -369,7 +388,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
             W = H + v0[j] * (d2 * (1.0 - d2 ** kk) / (1.0 - d2))
             t = kk / fps
             g = group[j]
-            rho = (ER[g] + 1e-9) / (EH[g] + 1e-9)
+            rho = _rho(ER, EH, NE, g, gate_n0)
             gate = 1.0 / (1.0 + (rho / gate_rho) ** 2)
             weak = 1.0 / (1.0 + (rho / gate_weak) ** 2)
             wrj = _knot(wr, g, t, knots) * weak + _knot(wg, g, t, knots) * gate

@@ -85,6 +85,11 @@ class Settings:
                               # error ratio (1e9: gamma = 1)
     gate_decay: float = 0.9   # decay of the shadow error sums per check (one group checked per frame)
     gate_rho_weak: float = 1e9  # the same gate, weaker, on w_r (1e9: w_r ungated)
+    gate_n0: float = 0.0      # shadow checks of a group before its own rho alone gates it: with n < gate_n0 checks
+                              # so far its rho is (n rho_g + (gate_n0 - n) rho_stream) / gate_n0, rho_stream the
+                              # ratio of all groups' sums (1 before any check): a group not yet seen is gated by how
+                              # the regression predicts the rest of this stream (0: off, its prior is rho = 1;
+                              # files written before it load so)
     vcap_mult: float = 1e9    # onset velocity capped at this many training RMS changes per frame (1e9: no cap)
     vel_gain: float = 0.0     # 1: each channel's onset velocity scaled by its training gain (vgain); 0: not
     knots: tuple = KNOTS
@@ -154,7 +159,8 @@ class DefaultModel(Model):
         self._cache: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         pf = self._pf
         self._par = np.array([pf["beta"], pf["d"], pf["d2"], pf["a"], pf["eta"], settings.fps, settings.amp_floor,
-                              settings.cal_prior, settings.cal_decay, settings.gate_rho, settings.gate_decay, settings.gate_rho_weak])
+                              settings.cal_prior, settings.cal_decay, settings.gate_rho, settings.gate_decay, settings.gate_rho_weak,
+                              settings.gate_n0])
         self._Ls = np.array(pf["L"], np.int64)
         self._none_i = np.zeros(0, np.int64)
         self._none_B = np.zeros((0, 0))

@@ -60,6 +60,7 @@ class DefaultState(FillerState):
         G = int(model.group.max()) + 1
         self.ER = np.zeros(G)               # shadow check: decayed squared error of the regression ...
         self.EH = np.zeros(G)               # ... and of the group's own change over the longest lag
+        self.NE = np.zeros(G)               # ... and how many checks each group has had (up to gate_n0)
         self.hist = np.repeat(model.mean_[None], max(model._pf["L"]) + 2, 0)  # ring of outputs, newest at sv[3]
         self.miss_key: bytes | None = None
         self.mreg = np.zeros(len(model.reg_idx), bool)   # _step_fast's scratch: the regression channels missing
@@ -110,7 +111,7 @@ class DefaultState(FillerState):
         step_kernel(f, obs, m.ang, m.group, m.mean_, m.std_, m.reg_idx, m.mu_, m.knots, m.weights.wv, m.weights.wl,
                     m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, has, changed, self.last, self.h, self.vel,
                     self.v0, self.k, self.R, self.off, self.amean, self.avar, self.lstd, self.hist, self.sv, out, std,
-                    self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH,
+                    self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH, self.NE,
                     m.guard_h, m.guard_hf, m.guard_par, m.guard_cols_flat, m.guard_cols_ptr, m.guard_sh, m.guard_pos,
                     self.vk, self.vh, self.vv, self.voff, self.GS, self.GL, self.gbuf, m.guard_bin)
 
@@ -138,10 +139,14 @@ class DefaultState(FillerState):
         lam = m.settings.gate_decay
         self.ER[g] = lam * self.ER[g] + float(np.sum(wrap(x[cols] - m.mean_[cols] - r) ** 2))
         self.EH[g] = lam * self.EH[g] + float(np.sum(wrap(x[cols] - self.hist[(int(self.sv[3]) - Lm + 1) % n, cols]) ** 2))
+        self.NE[g] = min(self.NE[g] + 1.0, m.settings.gate_n0)
 
     def gate(self, g: np.ndarray, weak: bool = False) -> np.ndarray:
         rho = (self.ER[g] + 1e-9) / (self.EH[g] + 1e-9)
         s = self.m.settings
+        if s.gate_n0 > 0:  # a group with few checks of its own: the stream's other groups speak for it
+            w = np.minimum(self.NE[g] / s.gate_n0, 1.0)
+            rho = w * rho + (1.0 - w) * (self.ER.sum() + 1e-9) / (self.EH.sum() + 1e-9)
         return 1.0 / (1.0 + (rho / (s.gate_rho_weak if weak else s.gate_rho)) ** 2)
 
     def step_numpy(self, f: np.ndarray, obs: np.ndarray) -> Fill:
