@@ -8,8 +8,12 @@ mixing, not of the experts).
     OPENBLAS_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/default_smooth.py --model /tmp/default_train.npz \
         --settings off:0:0 knots:1:0 k-p2t4:1:2:4 --seeds 0-2 --json bench/results/default_smooth_validation.json
 
-A setting is NAME:KNOTS:POP[:POP_TAU[:POP_REL]] (KNOTS 0, 1 (W and S between the knots) or s (S
-only); POP degrees a frame, 0 = off; POP_TAU frames; POP_REL x the fill's last step).
+A setting is NAME:KNOTS:POP[:POP_TAU[:POP_REL[:BAND_TAU]]] (KNOTS 0, 1 (W and S between the knots)
+or s (S only); POP degrees a frame, 0 = off; POP_TAU frames; POP_REL x the fill's last step;
+BAND_TAU frames, the band's low-passed share, 0 = off).  Besides mocap.metrics' figures, the band's
+kinks: over erased values from a gap's third frame on, |s[t] - 2 s[t-1] + s[t-2]| / s[t-1] of the
+std s (a band that ramps or curves has none; one that steps has one at each step): the share above
+10% and 25%.
 Without --model it trains ``default`` on TRAIN (as `lacuna train default` does) and saves it there
 (--save).  Progress per take on stderr.
 """
@@ -31,7 +35,7 @@ from mocap.cli import parse_seeds  # noqa: E402
 
 FIGS = ("rms_deg", "rms_deg[len 0.1-0.25s]", "rms_deg[len 0.5-1s]", "rms_deg[len 1-2s]", "rms_deg[since first]",
         "rms_deg[first 0.1s]", "hold_rms_deg[first 0.1s]", "onset_err_median_deg", "within_2std", "nll_per_value",
-        "step_err_rms_deg", "pop_p99_deg", "pop_max_deg", "pop_over_2deg")
+        "step_err_rms_deg", "pop_p99_deg", "pop_max_deg", "pop_over_2deg", "band_kink_over_10pct", "band_kink_over_25pct")
 
 
 def seeds(spec: str) -> list[int]:
@@ -41,9 +45,22 @@ def seeds(spec: str) -> list[int]:
 def setting(spec: str) -> tuple[str, dict]:
     name, knots, pop, *rest = spec.split(":")
     out = {"knots": knots == "1", "std_knots": knots == "s", "pop": float(pop)}
-    for key, v in zip(("pop_tau", "pop_rel"), rest):
+    for key, v in zip(("pop_tau", "pop_rel", "band_tau"), rest):
         out[key] = float(v)
     return name, out
+
+
+def band_kinks(std: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """|s[t] - 2 s[t-1] + s[t-2]| / s[t-1] over erased values at least 3 frames into their gap."""
+    miss = ~observed
+    k = np.zeros(miss.shape, np.int64)
+    k[0] = miss[0]
+    for t in range(1, len(miss)):
+        k[t] = np.where(miss[t], k[t - 1] + 1, 0)
+    sel = k[2:] >= 3
+    s0, s1, s2 = std[:-2][sel], std[1:-1][sel], std[2:][sel]
+    ok = s1 > 1e-9
+    return np.abs(s2 - 2 * s1 + s0)[ok] / s1[ok]
 
 
 def hold_values(v: metrics.Values) -> metrics.Values:
@@ -84,6 +101,7 @@ def main() -> int:
             cases.append(c)
     acts = sorted({splits.ACTIVITY[c.test] for c in cases})
     tables: dict[str, dict[str, list]] = {name: {act: [] for act in acts} for name, _ in sets}
+    bends: dict[str, dict[str, list]] = {name: {act: [] for act in acts} for name, _ in sets}
     t0 = time.perf_counter()
     for i, c in enumerate(cases):
         given = np.where(c.observed, c.truth, np.nan)
@@ -91,6 +109,7 @@ def main() -> int:
             model.set_smooth(**sm)
             fill, std = model.fill_offline(given, c.observed)
             tables[name][splits.ACTIVITY[c.test]].append(metrics.values(c, fill, std, c.info["groups"]))
+            bends[name][splits.ACTIVITY[c.test]].append(band_kinks(std, c.observed))
         print(f"  [{i + 1}/{len(cases)}] {c.test} seed {c.info['seed']} ({time.perf_counter() - t0:.0f} s)",
               file=sys.stderr, flush=True)
     out: dict = {"split": a.split, "takes": sorted({c.test for c in cases}), "seeds": seeds(a.seeds),
@@ -101,6 +120,9 @@ def main() -> int:
             vs = [v for t in (tables[name].values() if act == "all" else [tables[name][act]]) for v in t]
             pooled = metrics.Values.concat(vs)
             row[name] = {m: x for m, x, _ in metrics.summarise(pooled, by_group_bins=False)}
+            r = np.concatenate([v for t in (bends[name].values() if act == "all" else [bends[name][act]]) for v in t])
+            row[name]["band_kink_over_10pct"] = float((r > 0.1).mean()) if r.size else 0.0
+            row[name]["band_kink_over_25pct"] = float((r > 0.25).mean()) if r.size else 0.0
             if "hold" not in row:
                 row["hold"] = {m: x for m, x, _ in metrics.summarise(hold_values(pooled), by_group_bins=False)}
         out["activities"][act] = row

@@ -92,7 +92,13 @@ run's short gaps 4.7%.  The *std knots* (S alone between the knots, ``std_knots`
 no longer steps at the bin edges; fills unchanged) are on: chosen on VALIDATION by the calibration
 rule (every activity's share within 2 std in 0.90-0.98, then the pooled NLL): NLL 2.2122 -> 2.1987,
 within 2 std 0.9622 -> 0.9628 (the run's 0.9051 -> 0.9007, the lowest).  Files written before
-smoothing load with all of it off and fill as they did.
+smoothing load with all of it off and fill as they did.  The *band's share* (``band_tau``): the
+std's mixture uses w low-passed over BAND_TAU = 12 frames from a gap's second frame on, so where w
+steps (a time bin's edge, a q bin's change mid-gap) the band bends over ~0.1 s instead of stepping;
+the fill keeps its w.  Chosen on VALIDATION (bench/notebook/band-8.md): the band's kinks (a second
+difference above 10% of the std) 2.4% -> 1.6% of erased values (walks 7.0% -> 3.2%), fills unchanged,
+within 2 std 0.9627 -> 0.9627, NLL 2.1977 -> 2.1992.  Files whose smooth table has no band_tau load
+with it off.
 """
 from __future__ import annotations
 
@@ -141,8 +147,10 @@ T_KNOTS = np.array([1.0, 3.5, 8.5, 20.5, 44.5, 89.5, 179.5, 360.0])
 POP = 2.0        # degrees a frame the fill may depart from its own course, plus POP_REL x its last step (0: off)
 POP_REL = 1.0
 POP_TAU = 3.0    # frames: the decay of what the pop limit held back (all three chosen on VALIDATION: module doc)
-NO_SMOOTH = {"knots": False, "std_knots": False, "pop": 0.0, "pop_tau": POP_TAU, "pop_rel": 0.0}   # model files written before smoothing
-SMOOTH = {"knots": False, "std_knots": True, "pop": POP, "pop_tau": POP_TAU, "pop_rel": POP_REL}   # the choice (withhlm.json's)
+BAND_TAU = 12.0  # frames: the band's share w low-passed over this (module doc; chosen on VALIDATION, band-8.md)
+NO_SMOOTH = {"knots": False, "std_knots": False, "pop": 0.0, "pop_tau": POP_TAU, "pop_rel": 0.0, "band_tau": 0.0}   # files before smoothing
+SMOOTH = {"knots": False, "std_knots": True, "pop": POP, "pop_tau": POP_TAU, "pop_rel": POP_REL, "band_tau": BAND_TAU}   # the choice (withhlm.json's)
+SMOOTH_SINCE = {"band_tau": 0.0}   # keys a file's smooth table may lack (written before them): off
 
 
 def group_index(channels: list[str]) -> np.ndarray:
@@ -217,22 +225,24 @@ class WithHLMModel(Model):
         self.set_smooth(**(NO_SMOOTH if smooth is None else smooth))
 
     def set_smooth(self, knots: bool, pop: float, pop_tau: float = POP_TAU, pop_rel: float = POP_REL,
-                   std_knots: bool = False) -> None:
+                   std_knots: bool = False, band_tau: float = 0.0) -> None:
         """The smoothing (module doc, "Smooth"): W and S read between the time bins' knots
-        (``knots``; S alone with ``std_knots``), and the pop limit of ``pop`` + ``pop_rel`` |last
-        step| degrees a frame (pop 0: off) with its decay over ``pop_tau`` frames.  Applies to a
+        (``knots``; S alone with ``std_knots``), the pop limit of ``pop`` + ``pop_rel`` |last
+        step| degrees a frame (pop 0: off) with its decay over ``pop_tau`` frames, and the band's
+        share w low-passed over ``band_tau`` frames (0: off; the fill's w is not).  Applies to a
         stream's gaps from their first frame on."""
         if not isinstance(std_knots, bool):
             raise FillerError(f"{METHOD}: smooth 'std_knots' must be true or false (got {std_knots!r})")
         if not isinstance(knots, bool):
             raise FillerError(f"{METHOD}: smooth 'knots' must be true or false (got {knots!r})")
-        for name, v in (("pop", pop), ("pop_tau", pop_tau), ("pop_rel", pop_rel)):
+        for name, v in (("pop", pop), ("pop_tau", pop_tau), ("pop_rel", pop_rel), ("band_tau", band_tau)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
                 raise FillerError(f"{METHOD}: smooth '{name}' must be a finite number >= 0 (got {v!r})")
         if pop > 0 and pop_tau <= 0:
             raise FillerError(f"{METHOD}: smooth 'pop_tau' must be > 0 when 'pop' is on (got {pop_tau!r})")
         self.smooth = {"knots": knots, "std_knots": std_knots, "pop": float(pop), "pop_tau": float(pop_tau),
-                       "pop_rel": float(pop_rel)}
+                       "pop_rel": float(pop_rel), "band_tau": float(band_tau)}
+        self.bdecay = float(np.exp(-1.0 / band_tau)) if band_tau > 0 else 0.0
         self.knots = T_KNOTS.copy() if knots or std_knots else np.zeros(0)
         self._wk = knots
         self.pop, self.prel = float(pop), float(pop_rel)
@@ -298,7 +308,8 @@ class WithHLMModel(Model):
             j += has
             eh, e0, nh = mix_row(F[i], O[i], HO[i], D[i], Dsd[i], H[i], Hsd[i], T[i] if has else D[i],   # type: ignore[index]
                                  has, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, s.logq),
-                                 self._anc, s.k, s.o, out[i], std[i], self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e)
+                                 self._anc, s.k, s.o, out[i], std[i], self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
+                                 self.bdecay, s.wb)
             if has and nh:
                 s._score(eh, e0)
         return BlockFill(out, std, ~O, hb.style, hb.phase)
@@ -374,7 +385,8 @@ class WithHLMModel(Model):
             out, std = np.empty(C), np.empty(C)
             eh, e0, nh = mix_row(F[i], O[i], HO[i], d.frame, d.std, h.frame, h.std, d.frame if T is None else T,
                                  T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, logq),
-                                 self._anc, s.k, s.o, out, std, self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e)
+                                 self._anc, s.k, s.o, out, std, self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
+                                 self.bdecay, s.wb)
             if T is not None and nh:
                 s._score(eh, e0)
             fills.append(Fill(out, std, d.filled, {**h.extras, "hlm_q": math.exp(logq)}))   # d.filled: ~O[i]
@@ -426,6 +438,12 @@ class WithHLMModel(Model):
             out = np.where(O, F, y + e)
         else:
             out = np.where(O, F, y)
+        if self.bdecay > 0:   # the band's share, low-passed from the gap's second frame on ("Smooth")
+            wb = np.stack([s.wb for s in states])
+            wb = np.where(K == 1, w, wb + (w - wb) * (1.0 - self.bdecay))
+            for i, s in enumerate(states):
+                s.wb = np.where(O[i], s.wb, wb[i])
+            w = np.where(O, 0.0, wb)
         var = (1 - w) * Dsd ** 2 + w * Hsd ** 2 + w * (1 - w) * diff ** 2
         if len(self.knots):
             std = np.where(O, 0.0, sc * np.sqrt(var))
@@ -484,6 +502,8 @@ class WithHLMModel(Model):
         if not isinstance(tau, int | float) or tau < 0:
             raise modelfile.ModelFileError(f"{path}: {METHOD} 'tau' must be a number >= 0 (got {tau!r})")
         smooth = meta.get("smooth", NO_SMOOTH)   # files written before smoothing: off, as they were
+        if isinstance(smooth, dict):   # ... and before one of its keys: that key off
+            smooth = {**{k: v for k, v in SMOOTH_SINCE.items() if k not in smooth}, **smooth}
         if not isinstance(smooth, dict) or set(smooth) != set(NO_SMOOTH):
             raise modelfile.ModelFileError(f"{path}: {METHOD} 'smooth' must be a table of {sorted(NO_SMOOTH)} (got {smooth!r})")
         try:
@@ -506,6 +526,7 @@ class WithHLMState(FillerState):
         self.k = np.zeros(C, np.int64)
         self.o = np.zeros(C)         # the HLM's anchoring offset (module doc)
         self.rp, self.vp, self.e = np.zeros(C), np.zeros(C), np.zeros(C)   # the pop limit's course and offset ("Smooth")
+        self.wb = np.zeros(C)        # the band's low-passed share w ("Smooth", band_tau)
         self.lr_sum = self.lr_ss = self.lr_n = 0.0   # decayed sums of the windows' log r, log r^2, count
         self._lq = LOGQ_UNSCORED     # the pessimistic bound on log q (module doc), updated as windows close
         self.sh = -1                 # index into SHADOW_GROUPS of the hidden group, -1: none

@@ -46,7 +46,7 @@ def shadow_counts(O, nonpos, sgroup, gmiss):
 
 @jit
 def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb, anchor, k, o, out, std,
-            knots, wk, pop, prel, pdecay, rp, vp, e):
+            knots, wk, pop, prel, pdecay, rp, vp, e, bdecay, wb):
     """One stream's frame: ``out``/``std`` from the experts' fills (D, Dsd), (H, Hsd); the state's
     frames since onset ``k`` and anchoring offsets ``o`` updated in place.  Returns the shadow
     check's squared errors of the HLM and of the twin T on the hidden angles (O and not HO) and
@@ -57,8 +57,10 @@ def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb
     instead of as steps at the bin edges; with ``pop`` > 0, from a gap's third frame on, the fill y may depart from its
     own linear course (last value plus last step, ``rp`` + ``vp``) by at most ``pop`` + ``prel``
     |last step| a frame, the excess going into an offset ``e`` that decays by ``pdecay`` a frame
-    (rp, vp, e updated in place).  Without knots and with pop = 0 this is the unsmoothed mixing,
-    bit for bit."""
+    (rp, vp, e updated in place).  With ``bdecay`` > 0 the band's share ``wb`` (updated in place)
+    follows w from the gap's second frame on as wb += (w - wb) (1 - bdecay): the std's mixture uses
+    it, the fill does not.  Without knots, with pop = 0 and bdecay = 0 this is the unsmoothed
+    mixing, bit for bit."""
     eh = 0.0
     e0 = 0.0
     nh = 0
@@ -127,6 +129,12 @@ def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb
             out[j] = y + e[j]
         else:
             out[j] = y
+        if bdecay > 0.0:   # the band's share, low-passed
+            if kk == 1:
+                wb[j] = w
+            else:
+                wb[j] = wb[j] + (w - wb[j]) * (1.0 - bdecay)
+            w = wb[j]
         var = (1.0 - w) * Dsd[j] * Dsd[j] + w * Hsd[j] * Hsd[j] + w * (1.0 - w) * diff * diff
         std[j] = sc * np.sqrt(var)
     return eh, e0, nh

@@ -16,7 +16,7 @@ T = 60
 JUMP_AT = 25   # the HLM's fill jumps by 14 degrees on this frame (as its phase did on VALIDATION's walking_21)
 
 
-def _run(H, w=0.9, knots=False, pop=0.0, prel=0.0, tau=3.0, W=None, S=None, wk=None):
+def _run(H, w=0.9, knots=False, pop=0.0, prel=0.0, tau=3.0, W=None, S=None, wk=None, band_tau=0.0, hsd=1.0):
     """One channel missing from frame 1 on: the blend holds 0 (std 1), the HLM says ``H[t]`` (std 1);
     the mixing's fill and std for every frame (anchoring off, so the fill is w H from the gap's
     first frame on).  ``wk``: W between the knots too (default: as ``knots``)."""
@@ -29,11 +29,13 @@ def _run(H, w=0.9, knots=False, pop=0.0, prel=0.0, tau=3.0, W=None, S=None, wk=N
     kn = withhlm.T_KNOTS if knots else np.zeros(0)
     pdecay = float(np.exp(-1.0 / tau)) if pop > 0 else 0.0
     one = np.ones(1)
+    bdecay = float(np.exp(-1.0 / band_tau)) if band_tau > 0 else 0.0
+    wb = np.zeros(1)
     for t in range(T):
         obs = np.array([t == 0])
-        mix_row(np.zeros(1), obs, obs, np.zeros(1), one, np.array([H[t]]), one, np.zeros(1), False,
+        mix_row(np.zeros(1), obs, obs, np.zeros(1), one, np.array([H[t]]), np.array([hsd]), np.zeros(1), False,
                 np.array([True]), np.zeros(1, np.int64), Wt, S, withhlm.T_EDGES, 0, 0.0, k, o, out, std,
-                kn, wk, pop, prel, pdecay, rp, vp, e)
+                kn, wk, pop, prel, pdecay, rp, vp, e, bdecay, wb)
         fills.append(out[0])
         stds.append(std[0])
     return np.array(fills), np.array(stds)
@@ -112,3 +114,26 @@ def test_a_bad_smoothing_is_a_clear_error(bad):
     m = object.__new__(withhlm.WithHLMModel)   # set_smooth checks before it sets anything
     with pytest.raises(withhlm.FillerError, match="smooth"):
         m.set_smooth(**bad)
+
+
+def test_the_band_bends_where_w_steps_and_the_fill_keeps_its_w():
+    """W steps from 0.2 to 0.9 at a time bin's edge inside the gap; the HLM's std is 4x the blend's.
+    Without band_tau the std jumps there in one frame; with it the std's share follows w over ~12
+    frames: no frame's std moves more than a quarter of the jump, it gets there within 5 tau, and the
+    fill is the same bit for bit."""
+    TB, QB = len(withhlm.T_EDGES) + 1, 4
+    edge = int(withhlm.T_EDGES[1])          # frames since onset where the second bin ends
+    assert 3 < edge < T - 20
+    W = np.full((1, TB, QB), 0.9)
+    W[0, :2] = 0.2
+    H = np.full(T, 5.0)
+    f0, s0 = _run(H, W=W, hsd=4.0)
+    f1, s1 = _run(H, W=W, hsd=4.0, band_tau=12.0)
+    np.testing.assert_array_equal(f0, f1)
+    np.testing.assert_array_equal(s0[:edge], s1[:edge])       # before the step: the same band
+    jump = s0[edge] - s0[edge - 1]
+    assert jump > 1.0                                           # the unsmoothed band steps ...
+    steps = np.diff(s1[edge - 1:])
+    assert np.all(np.abs(steps) <= 0.25 * jump)                 # ... the smoothed one bends
+    assert abs(s1[min(edge + 60, T - 1)] - s0[min(edge + 60, T - 1)]) <= 0.05 * jump
+    assert s1[edge + 1] > s1[edge] > s1[edge - 1]               # and moves toward it at once

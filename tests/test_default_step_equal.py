@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from blend import withhlm
 from blend.withhlm import train_model
 from lacuna import jit
 from mocap import protocols, splits
@@ -47,7 +48,8 @@ def cases(data):
 
 
 SMOOTHINGS = {"off": dict(knots=False, pop=0.0), "knots": dict(knots=True, pop=0.0),
-              "knots+pop": dict(knots=True, pop=1.0, pop_tau=6.0), "std_knots+pop": dict(knots=False, std_knots=True, pop=2.0)}
+              "knots+pop": dict(knots=True, pop=1.0, pop_tau=6.0), "std_knots+pop": dict(knots=False, std_knots=True, pop=2.0),
+              "band": dict(knots=False, pop=0.0, band_tau=12.0), "shipped": dict(withhlm.SMOOTH)}
 
 
 @pytest.fixture(params=sorted(SMOOTHINGS))
@@ -162,7 +164,7 @@ def test_the_smoothing_is_saved_and_files_without_it_load_as_off(model, cases, t
     from lacuna import modelfile
 
     assert model.smooth == {"knots": False, "std_knots": True, "pop": withhlm.POP, "pop_tau": withhlm.POP_TAU,
-                            "pop_rel": withhlm.POP_REL}
+                            "pop_rel": withhlm.POP_REL, "band_tau": withhlm.BAND_TAU}
     assert withhlm.shipped()[2]["smooth"] == model.smooth and model.pop > 0
     truth, obs = cases[0]
     path = tmp_path / "d.npz"
@@ -177,7 +179,18 @@ def test_the_smoothing_is_saved_and_files_without_it_load_as_off(model, cases, t
     legacy = modelfile.load_model(str(tmp_path / "old.npz"))
     assert legacy.smooth == withhlm.NO_SMOOTH and legacy.pop == 0
     assert not np.array_equal(legacy.fill_offline(given, obs)[0], model.fill_offline(given, obs)[0])  # the limit acted
-    for bad in ({**withhlm.NO_SMOOTH, "pop": -2.0}, {**withhlm.NO_SMOOTH, "std_knots": 1}, {"pop": 2.0}, "on"):
+    # a file written before band_tau (its smooth table without it) loads with it off: the same fills, the
+    # band's share not low-passed (so a different std where w changed inside a gap)
+    before = {k: v for k, v in model.smooth.items() if k != "band_tau"}
+    modelfile.save_arrays(str(tmp_path / "before_band.npz"), {**meta, "smooth": before}, arrays)
+    pre = modelfile.load_model(str(tmp_path / "before_band.npz"))
+    assert pre.smooth == {**model.smooth, "band_tau": 0.0} and pre.bdecay == 0.0 < model.bdecay
+    f_pre, s_pre = pre.fill_offline(given, obs)
+    f_now, s_now = model.fill_offline(given, obs)
+    np.testing.assert_array_equal(f_pre, f_now)
+    assert not np.array_equal(s_pre, s_now)
+    for bad in ({**withhlm.NO_SMOOTH, "pop": -2.0}, {**withhlm.NO_SMOOTH, "std_knots": 1}, {"pop": 2.0}, "on",
+                {**withhlm.NO_SMOOTH, "band_tau": -1.0}, {**withhlm.NO_SMOOTH, "band_tau": float("nan")}):
         modelfile.save_arrays(str(tmp_path / "bad.npz"), {**meta, "smooth": bad}, arrays)
         with pytest.raises(modelfile.ModelFileError, match="smooth"):
             modelfile.load_model(str(tmp_path / "bad.npz"))
