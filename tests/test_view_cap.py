@@ -85,6 +85,24 @@ def test_the_page_draws_at_most_its_fps_cap_and_nothing_while_hidden(recording, 
         assert b.console_errors() == []
 
 
+def test_a_page_opened_after_the_take_ended_still_shows_its_last_pose(recording, chromium):  # noqa: F811
+    """The view publishes each tick's new frames, and once a second a tick of stats alone; a page that
+    opened after the last frame and after such a tick got only the stats, and no stream to draw.  Now
+    a page gets every stream's newest frame first (the snapshot), whenever it opens."""
+    from tests.test_view import _state_when
+
+    with ViewProcess(["--play", str(recording), "--skeleton-file", str(trial_path("07_01"))]) as view:
+        def last(st):
+            return any(d["id"] == SID and d["seq"] == 119 for d in (st["update"] or {}).get("streams", []))
+        t_last = _state_when(view.url, last, "the take's last frame in the view")["update"]["time"]
+        # a later update: the take has ended, so it is a tick of stats alone (played files have no latency)
+        _state_when(view.url, lambda st: (st["update"] or {}).get("time", 0) > t_last, "a tick after the take ended")
+        with Browser(chromium) as b:
+            b.goto(view.url)
+            b.wait_for(f"(lacunaView.state.streams[{json.dumps(SID)}] || {{}}).pose.seq === 119", TIMEOUT_S)
+            assert b.console_errors() == []
+
+
 def test_the_page_draws_a_stream_only_when_a_new_frame_came(recording, chromium):  # noqa: F811
     # played once: after its last frame (seq 119) no frame comes, and the skeleton is not redrawn
     # however many animation frames pass (the page's counter of them)

@@ -25,28 +25,34 @@ STATIC = {"index.html": "text/html; charset=utf-8", "view.js": "text/javascript;
 
 
 class Broadcast:
-    """The newest update, numbered; readers wait for a number above the one they have."""
+    """The newest update, numbered; readers wait for a number above the one they have.  Beside it
+    the *snapshot*: every stream's newest entry and the newest stats, for a page that opens later
+    (an update holds only the streams with a new frame that tick, and a stats-only tick a second
+    after a take ends would otherwise leave a late page with no pose at all)."""
 
     def __init__(self) -> None:
         self.cond = threading.Condition()
         self.n = 0
         self.update: str = ""
+        self.snapshot: str = ""
         self.meta: str = "{}"
         self.meta_version = -1
 
-    def publish(self, update: str | None, meta: tuple[int, str] | None) -> None:
+    def publish(self, update: str | None, meta: tuple[int, str] | None, snapshot: str | None = None) -> None:
         with self.cond:
             if meta is not None:
                 self.meta_version, self.meta = meta
             if update is not None:
                 self.update = update
+                self.snapshot = update if snapshot is None else snapshot
                 self.n += 1
             self.cond.notify_all()
 
     def wait(self, have: int, timeout: float) -> tuple[int, str, int, str]:
+        """(number, update, meta version, meta); a reader with nothing yet (``have`` < 0) gets the snapshot."""
         with self.cond:
             self.cond.wait_for(lambda: self.n > have, timeout)
-            return self.n, self.update, self.meta_version, self.meta
+            return self.n, (self.snapshot if have < 0 else self.update), self.meta_version, self.meta
 
 
 class ViewServer:
@@ -79,6 +85,8 @@ class ViewServer:
         period = 1.0 / self.feed.rate
         next_t = time.monotonic()
         meta_sent = -1
+        latest: dict[str, Any] = {}   # each stream's newest entry, for the snapshot
+        stats: Any = None
         while not self.stop_event.is_set():
             next_t += period
             try:
@@ -92,8 +100,19 @@ class ViewServer:
                 m = self.feed.meta()
                 meta_sent = m["version"]
                 meta = (meta_sent, dumps(m))
+                known = {s["id"] for s in m["streams"]}
+                for sid in [sid for sid in latest if sid not in known]:   # streams the view forgot
+                    del latest[sid]
+            snap = None
+            if upd is not None:
+                for d in upd["streams"]:
+                    latest[d["id"]] = {**latest.get(d["id"], {}), **d}   # a frame without a pose keeps the last pose
+                stats = upd.get("stats", stats)
+                snap = {**upd, "streams": list(latest.values())}
+                if stats is not None:
+                    snap["stats"] = stats
             if upd is not None or meta is not None:
-                self.bc.publish(None if upd is None else dumps(upd), meta)
+                self.bc.publish(None if upd is None else dumps(upd), meta, None if snap is None else dumps(snap))
                 self.updates += upd is not None
             delay = next_t - time.monotonic()
             if delay < 0:  # fell behind (a stalled machine): do not try to catch up
@@ -129,7 +148,7 @@ class _Handler(BaseHTTPRequestHandler):
             self._events()
         elif path == "/state.json":
             bc = self.view.bc
-            body = '{{"meta":{},"update":{}}}'.format(bc.meta, bc.update or "null")
+            body = '{{"meta":{},"update":{}}}'.format(bc.meta, bc.snapshot or "null")
             self._send(200, "application/json", body.encode())
         else:
             self._send(404, "text/plain; charset=utf-8", b"not found\n")
