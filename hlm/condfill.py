@@ -284,26 +284,22 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
                 if done[b] == 0:
                     done[b] = 1
                     cb = b // nbk
-                    e, Db, Wb = E[b], D[b], W[b]
                     if kappa_g > 0.0:
-                        Gc, GWc = G[cb], GW[cb]
                         for f in range(F):
-                            g = Gc[f] / (kappa_g + GWc[f])
-                            e[f] = g + (Db[f] - Wb[f] * g) / (kappa + Wb[f])
+                            g = G[cb, f] / (kappa_g + GW[cb, f])
+                            E[b, f] = g + (D[b, f] - W[b, f] * g) / (kappa + W[b, f])
                     else:
                         for f in range(F):
-                            e[f] = Db[f] / (kappa + Wb[f])
-            e0, e1, ms, ls = E[b0], E[b1], mu[s], lam_rows[s]
+                            E[b, f] = D[b, f] / (kappa + W[b, f])
             for f in range(F):
-                u = ms[f] + (1.0 - a) * e0[f] + a * e1[f]
-                lam = ls[f]
+                u = mu[s, f] + (1.0 - a) * E[b0, f] + a * E[b1, f]
+                lam = lam_rows[s, f]
                 num[f] += p * lam * u
                 den[f] += p * lam
         else:
-            row = pack[s]
             for f in range(F):
-                num[f] += p * row[f]
-                den[f] += p * row[F + f]
+                num[f] += p * pack[s, f]
+                den[f] += p * pack[s, F + f]
     for j in range(no):
         f = oi[j]
         r[j] = z[f] - num[f] / den[f]
@@ -336,28 +332,24 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
         wc = pc[c] / csum
         if nm <= no:
             # -Q_mm^-1 Q_mo r_o
-            Pc = prec[c]
             A = Aw[: nm * nm].reshape((nm, nm))
             b = bw[:nm]
             for i in range(nm):
-                Pi = Pc[mi[i]]
                 for j in range(nm):
-                    A[i, j] = Pi[mi[j]]
-            _rows_dot(Pc, mi, oi, r, b)
+                    A[i, j] = prec[c, mi[i], mi[j]]
+            _rows_dot(prec, c, mi, oi, r, b)
             x = _chol_solve_in(A, b, Lw[: nm * nm].reshape((nm, nm)), yw[:nm], xw[:nm])
             for i in range(nm):
                 corr[i] -= wc * x[i]
         else:
             # Sigma_mo Sigma_oo^-1 r_o
-            Sc = cov[c]
             A = Aw[: no * no].reshape((no, no))
             for i in range(no):
-                Si = Sc[oi[i]]
                 for j in range(no):
-                    A[i, j] = Si[oi[j]]
+                    A[i, j] = cov[c, oi[i], oi[j]]
             y = _chol_solve_in(A, r, Lw[: no * no].reshape((no, no)), yw[:no], xw[:no])
             b = bw[:nm]
-            _rows_dot(Sc, mi, oi, y, b)
+            _rows_dot(cov, c, mi, oi, y, b)
             for i in range(nm):
                 corr[i] += wc * b[i]
     for i in range(nm):
@@ -365,15 +357,16 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
 
 
 @_jit
-def _rows_dot(S, ri, ci, v, out):  # pragma: no cover - compiled
-    """out[i] = sum_j S[ri[i], ci[j]] v[j], each sum from 0.0 in ascending j (the bits of the loop
+def _rows_dot(S, c, ri, ci, v, out):  # pragma: no cover - compiled
+    """out[i] = sum_j S[c, ri[i], ci[j]] v[j], each sum from 0.0 in ascending j (the bits of the loop
     written so), four rows at a time in registers (four independent chains of additions, where one
-    row alone waits on each addition's latency)."""
+    row alone waits on each addition's latency).  (Indexed in place, no row views: each view of an
+    array costs numba a reference count up and down, atomic operations.)"""
     n = ri.shape[0]
     m = ci.shape[0]
     i = 0
     while i + 4 <= n:
-        S0, S1, S2, S3 = S[ri[i]], S[ri[i + 1]], S[ri[i + 2]], S[ri[i + 3]]
+        r0, r1, r2, r3 = ri[i], ri[i + 1], ri[i + 2], ri[i + 3]
         a0 = 0.0
         a1 = 0.0
         a2 = 0.0
@@ -381,20 +374,20 @@ def _rows_dot(S, ri, ci, v, out):  # pragma: no cover - compiled
         for j in range(m):
             f = ci[j]
             vj = v[j]
-            a0 += S0[f] * vj
-            a1 += S1[f] * vj
-            a2 += S2[f] * vj
-            a3 += S3[f] * vj
+            a0 += S[c, r0, f] * vj
+            a1 += S[c, r1, f] * vj
+            a2 += S[c, r2, f] * vj
+            a3 += S[c, r3, f] * vj
         out[i] = a0
         out[i + 1] = a1
         out[i + 2] = a2
         out[i + 3] = a3
         i += 4
     while i < n:
-        Si = S[ri[i]]
+        r0 = ri[i]
         acc = 0.0
         for j in range(m):
-            acc += Si[ci[j]] * v[j]
+            acc += S[c, r0, ci[j]] * v[j]
         out[i] = acc
         i += 1
 
