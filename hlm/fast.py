@@ -362,8 +362,10 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
         x[c] = frame[c] if observed[c] else np.nan
     z = np.empty(nF)
     zobs = np.empty(nF, np.bool_)
+    xw = np.empty(C)
+    R = np.empty((3, 3))
     encode1(x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center, dr, df, dang, any_angle,
-            relative, rot, pos, rootf, fsrc, normalize, mean, std, z, zobs)
+            relative, rot, pos, rootf, fsrc, normalize, mean, std, z, zobs, xw, R)
     q = r if cyc else 0
     zf = np.empty(nF)
     zsd = np.empty(nF)
@@ -377,7 +379,7 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
                  cov, prec, shrink, live, STYLE_LIVE)
     prev_yaw[r] = finish1(zf, zsd, x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center,
                           const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power,
-                          out, sd)
+                          out, sd, z, R)  # (z: done with, finish1's working row)
     started[r] = True
     return phase
 
@@ -441,12 +443,15 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
     zobs = np.empty((n, nF), np.bool_)
     zf = np.empty((n, nF))
     zsd = np.empty((n, nF))
+    xw = np.empty(C)  # (the coders' working arrays, once for the batch)
+    Fv = np.empty(nF)
+    R = np.empty((3, 3))
     for i in range(n):
         r = prow[i]
         for c in range(C):
             x[i, c] = frames[i, c] if observed[i, c] else np.nan
         encode1(x[i], observed[i], prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center, dr, df, dang,
-                any_angle, relative, rot, pos, rootf, fsrc, normalize, mean, std, z[i], zobs[i])
+                any_angle, relative, rot, pos, rootf, fsrc, normalize, mean, std, z[i], zobs[i], xw, R)
     fs, ix = scratch(CM, nF, M)
     for i in range(n):
         r = prow[i]
@@ -463,7 +468,7 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
         r = prow[i]
         prev_yaw[r] = finish1(zf[i], zsd[i], x[i], observed[i], prev_u[r], prev_raw[r], prev_yaw[r], started[r],
                               root_st[r], center, const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean,
-                              std, root_tau, root_power, out[i], sd[i])
+                              std, root_tau, root_power, out[i], sd[i], Fv, R)
         started[r] = True
 
 
