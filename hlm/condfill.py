@@ -42,6 +42,13 @@ STYLE_LIVE = 1e-3  # styles below this fraction of the most probable one add no 
 PRIOR_FRAMES = 1000.0  # pseudo-frames of the pooled covariance in each style's (cov_from_sums)
 
 
+def _jit_numpy_errors(fn):
+    """``jit`` with numba's numpy error model: a float division by zero gives inf/nan as numpy's does
+    instead of a test and a ZeroDivisionError before each division (``correct1``: its divisors are
+    positive, and the test keeps its division loops out of SIMD lanes)."""
+    return _jit(fn, error_model="numpy")
+
+
 class CondTables:
     """Sigma_c (C, F, F), their inverses Q_c and the shrink s, as the kernels take them."""
 
@@ -182,7 +189,7 @@ def _chol_solve_in(A, b, L, y, x):  # pragma: no cover - compiled
     return x
 
 
-@_jit
+@_jit_numpy_errors
 def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D, W, G, GW, lam_rows, pack,
              cov, prec, shrink, live, style_live):  # pragma: no cover - compiled
     """``correct`` for one stream: post (C M,) its filtered posterior, D, W, G, GW its cycle
@@ -194,7 +201,17 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
     same ascending order, and a state left out adds nothing -- its post is +-0, which no
     ``post > live * pmax`` test lets into ptot or x_hat (live * pmax >= 0), which cannot raise
     pmax (posts are >= 0), and which added to a style's pc (starting at +0.0, never -0.0) leaves
-    it as it was."""
+    it as it was.
+
+    Each quantity is computed by the same operations in the same order as before (so the same
+    bits), laid out for the machine: a live knot's offsets E and a live state's x_hat terms for
+    every feature in contiguous rows (SIMD lanes: IEEE division, products and sums lane by lane
+    are the scalar ones; the missing features' entries are computed and not used), each
+    right-hand side's sums in registers, four rows at a time (each row's terms still added in
+    ascending feature order).  Compiled with numpy's error model (no zero test before each
+    division: what keeps the division loops out of SIMD); every divisor here is positive
+    (kappa + W, kappa_g + GW, x_hat's sum of p lambda, ptot, the styles' sum, a Cholesky pivot
+    of a Sigma or Q with RIDGE on its diagonal)."""
     F = z.shape[0]
     no = 0
     for f in range(F):
@@ -203,9 +220,17 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
     nm = F - no
     if no == 0 or nm == 0:
         return
-    ii = np.empty(F, np.int64)
-    oi = ii[:no]
-    mi = ii[no:]
+    CM = post.shape[0]
+    ns = sup.shape[0]
+    C = CM // M
+    CB = D.shape[0] if kappa > 0.0 else 1
+    n2 = max(nm, no)
+    # the working arrays in two blocks (an allocation costs more than the arithmetic on them)
+    ws = np.empty(3 * F + C + nm + CB * F + 2 * n2 * n2 + 3 * n2)
+    iw = np.empty(F + CB, np.int64)
+    oi = iw[:no]
+    mi = iw[no:F]
+    done = iw[F:]
     a_ = 0
     b_ = 0
     for f in range(F):
@@ -216,8 +241,6 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
             mi[b_] = f
             b_ += 1
     # x_hat at the observed features (the arithmetic of hlm.online.fill / hlm.fast._step_in's fill)
-    CM = post.shape[0]
-    ns = sup.shape[0]
     pmax = 0.0
     for i in range(ns):
         if post[sup[i]] > pmax:
@@ -226,20 +249,15 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
     for i in range(ns):
         if post[sup[i]] > live * pmax:
             ptot += post[sup[i]]
-    # the working arrays in one block (an allocation costs more than the arithmetic on them)
-    C = CM // M
-    CB = D.shape[0] if kappa > 0.0 else 1
-    n2 = max(nm, no)
-    ws = np.empty(3 * no + C + nm + CB * no + 2 * n2 * n2 + 3 * n2)
-    num = ws[:no]
-    den = ws[no : 2 * no]
-    r = ws[2 * no : 3 * no]
-    pc = ws[3 * no : 3 * no + C]
-    o = 3 * no + C
+    num = ws[:F]
+    den = ws[F : 2 * F]
+    r = ws[2 * F : 2 * F + no]
+    pc = ws[3 * F : 3 * F + C]
+    o = 3 * F + C
     corr = ws[o : o + nm]
     o += nm
-    E = ws[o : o + CB * no].reshape((CB, no))
-    o += CB * no
+    E = ws[o : o + CB * F].reshape((CB, F))
+    o += CB * F
     Aw = ws[o : o + n2 * n2]
     o += n2 * n2
     Lw = ws[o : o + n2 * n2]
@@ -247,12 +265,13 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
     bw = ws[o : o + n2]
     yw = ws[o + n2 : o + 2 * n2]
     xw = ws[o + 2 * n2 : o + 3 * n2]
-    for j in range(no):
-        num[j] = 0.0
-        den[j] = 0.0
-    # the knot offsets at the observed features, each knot computed once (live states share a few)
-    nbk = max(CB // (CM // M), 1)
-    done = np.zeros(CB, np.bool_)
+    for f in range(F):
+        num[f] = 0.0
+        den[f] = 0.0
+    # the knot offsets, each live knot's row computed once (live states share a few)
+    nbk = max(CB // C, 1)
+    for b in range(CB):
+        done[b] = 0
     for i in range(ns):
         s = sup[i]
         p = post[s]
@@ -262,29 +281,28 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
         if kappa > 0.0:
             b0, b1, a = bin0[s], bin1[s], bin_a[s]
             for b in (b0, b1):
-                if not done[b]:
-                    done[b] = True
+                if done[b] == 0:
+                    done[b] = 1
                     cb = b // nbk
-                    for j in range(no):
-                        f = oi[j]
-                        if kappa_g > 0.0:
+                    if kappa_g > 0.0:
+                        for f in range(F):
                             g = G[cb, f] / (kappa_g + GW[cb, f])
-                            E[b, j] = g + (D[b, f] - W[b, f] * g) / (kappa + W[b, f])
-                        else:
-                            E[b, j] = D[b, f] / (kappa + W[b, f])
-            for j in range(no):
-                f = oi[j]
-                u = mu[s, f] + (1.0 - a) * E[b0, j] + a * E[b1, j]
+                            E[b, f] = g + (D[b, f] - W[b, f] * g) / (kappa + W[b, f])
+                    else:
+                        for f in range(F):
+                            E[b, f] = D[b, f] / (kappa + W[b, f])
+            for f in range(F):
+                u = mu[s, f] + (1.0 - a) * E[b0, f] + a * E[b1, f]
                 lam = lam_rows[s, f]
-                num[j] += p * lam * u
-                den[j] += p * lam
+                num[f] += p * lam * u
+                den[f] += p * lam
         else:
-            for j in range(no):
-                f = oi[j]
-                num[j] += p * pack[s, f]
-                den[j] += p * pack[s, F + f]
+            for f in range(F):
+                num[f] += p * pack[s, f]
+                den[f] += p * pack[s, F + f]
     for j in range(no):
-        r[j] = z[oi[j]] - num[j] / den[j]
+        f = oi[j]
+        r[j] = z[f] - num[f] / den[f]
     # the styles' weights (style_weights)
     for c in range(C):
         pc[c] = 0.0
@@ -317,11 +335,9 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
             A = Aw[: nm * nm].reshape((nm, nm))
             b = bw[:nm]
             for i in range(nm):
-                b[i] = 0.0
                 for j in range(nm):
                     A[i, j] = prec[c, mi[i], mi[j]]
-                for j in range(no):
-                    b[i] += prec[c, mi[i], oi[j]] * r[j]
+            _rows_dot(prec, c, mi, oi, r, b)
             x = _chol_solve_in(A, b, Lw[: nm * nm].reshape((nm, nm)), yw[:nm], xw[:nm])
             for i in range(nm):
                 corr[i] -= wc * x[i]
@@ -332,13 +348,48 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
                 for j in range(no):
                     A[i, j] = cov[c, oi[i], oi[j]]
             y = _chol_solve_in(A, r, Lw[: no * no].reshape((no, no)), yw[:no], xw[:no])
+            b = bw[:nm]
+            _rows_dot(cov, c, mi, oi, y, b)
             for i in range(nm):
-                acc = 0.0
-                for j in range(no):
-                    acc += cov[c, mi[i], oi[j]] * y[j]
-                corr[i] += wc * acc
+                corr[i] += wc * b[i]
     for i in range(nm):
         zf[mi[i]] += shrink * corr[i]
+
+
+@_jit
+def _rows_dot(S, c, ri, ci, v, out):  # pragma: no cover - compiled
+    """out[i] = sum_j S[c, ri[i], ci[j]] v[j], each sum from 0.0 in ascending j (the bits of the loop
+    written so), four rows at a time in registers (four independent chains of additions, where one
+    row alone waits on each addition's latency).  (Indexed in place, no row views: each view of an
+    array costs numba a reference count up and down, atomic operations.)"""
+    n = ri.shape[0]
+    m = ci.shape[0]
+    i = 0
+    while i + 4 <= n:
+        r0, r1, r2, r3 = ri[i], ri[i + 1], ri[i + 2], ri[i + 3]
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        a3 = 0.0
+        for j in range(m):
+            f = ci[j]
+            vj = v[j]
+            a0 += S[c, r0, f] * vj
+            a1 += S[c, r1, f] * vj
+            a2 += S[c, r2, f] * vj
+            a3 += S[c, r3, f] * vj
+        out[i] = a0
+        out[i + 1] = a1
+        out[i + 2] = a2
+        out[i + 3] = a3
+        i += 4
+    while i < n:
+        r0 = ri[i]
+        acc = 0.0
+        for j in range(m):
+            acc += S[c, r0, ci[j]] * v[j]
+        out[i] = acc
+        i += 1
 
 
 @_jit

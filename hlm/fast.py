@@ -39,28 +39,57 @@ from mocap.fastrepr import encode1, finish1
 def scratch(CM, F, M):  # pragma: no cover - compiled
     """The step's working arrays, made once per batch (``_step_in``): pr (CM,) all zero between
     steps; then llp (CM,), v (3F,), num/den/mean/m2 (F,) each, in one float block; rows and the
-    touched prediction entries (CM,) each, the observed features (F,), and each state's style
-    and phase (CM,) each (s // M, s % M: an integer division costs tens of cycles), in one int
+    touched prediction entries (CM,) each, the observed and the missing features (F,) each, and
+    each state's style and phase (CM,) each (s // M, s % M: an integer division costs tens of cycles), in one int
     block."""
-    ix = np.empty(4 * CM + F, np.int64)
+    ix = np.empty(4 * CM + 2 * F, np.int64)
     s = 0
     for c in range(CM // M):
         for m in range(M):
-            ix[2 * CM + F + s] = c
-            ix[3 * CM + F + s] = m
+            ix[2 * CM + 2 * F + s] = c
+            ix[3 * CM + 2 * F + s] = m
             s += 1
     return np.zeros(2 * CM + 7 * F), ix
 
 
 @_jit_sums
-def _dot(row, v):  # pragma: no cover - compiled
-    """row . v, summed in SIMD lanes (``lacuna.jit.jit_sums``): an emission's log-likelihood
+def _dot(T, s, v):  # pragma: no cover - compiled
+    """T[s] . v, summed in SIMD lanes (``lacuna.jit.jit_sums``): an emission's log-likelihood
     term to ~1e-16 relative of the sequential sum (tests/test_hlm_fast*.py hold the step to
-    1e-9 of numpy's, whose matrix products sum in their own order)."""
+    1e-9 of numpy's, whose matrix products sum in their own order).  (T indexed in place: a row
+    view would cost numba an atomic reference count up and down, a support state each.)"""
     acc = 0.0
     for f in range(v.shape[0]):
-        acc += row[f] * v[f]
+        acc += T[s, f] * v[f]
     return acc
+
+
+@_jit
+def _nonzero(x, out, positive):  # pragma: no cover - compiled
+    """The s with x[s] != 0 (positive: x[s] > 0), ascending, into out; returns how many.  What a
+    pass testing each entry finds (the predict's sources, the update's support: ~20 of C*M = 560
+    entries), sixteen entries at a time: a block whose bits are all those of +0.0 or -0.0 (their
+    bits shifted left by one, OR-ed, are 0; a NaN's or any other number's are not) holds none, and
+    only the others are tested entry by entry."""
+    n = x.shape[0]
+    xi = x.view(np.int64)
+    k = 0
+    b = 0
+    while b + 16 <= n:
+        acc = 0
+        for j in range(b, b + 16):
+            acc |= xi[j] << 1
+        if acc != 0:
+            for s in range(b, b + 16):
+                if (x[s] > 0.0) if positive else (x[s] != 0.0):
+                    out[k] = s
+                    k += 1
+        b += 16
+    for s in range(b, n):
+        if (x[s] > 0.0) if positive else (x[s] != 0.0):
+            out[k] = s
+            k += 1
+    return k
 
 
 @_jit
@@ -86,8 +115,9 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
     rows = ix[:CM]
     tch = ix[CM : 2 * CM]
     fo = ix[2 * CM : 2 * CM + F]
-    cof = ix[2 * CM + F : 3 * CM + F]
-    mof = ix[3 * CM + F :]
+    fm = ix[2 * CM + F : 2 * CM + 2 * F]
+    cof = ix[2 * CM + 2 * F : 3 * CM + 2 * F]
+    mof = ix[3 * CM + 2 * F :]
     # ---- predict: p(c, m | x_<t) = sum_j d_j post(c, m - j) (the cycle wraps within a style)
     nt = 0
     if first:
@@ -97,32 +127,33 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
             tch[s] = s
         nt = CM
     else:
-        for s in range(CM):
+        ns = _nonzero(post, rows, False)  # (rows: free until the update's support)
+        for i in range(ns):
+            s = rows[i]
             ps = post[s]
-            if ps != 0.0:
-                post[s] = 0.0
-                m = mof[s]
-                base = s - m
-                for j in range(J):
-                    g = m + j + 1
-                    if g >= M:  # (J <= M: one wrap at most)
-                        g -= M
-                    g += base
-                    if pr[g] == 0.0:
-                        tch[nt] = g  # (to zero it after: a target may be listed twice if a term added 0)
-                        nt += 1
-                    pr[g] += d_pop[j] * ps
+            post[s] = 0.0
+            m = mof[s]
+            base = s - m
+            for j in range(J):
+                g = m + j + 1
+                if g >= M:  # (J <= M: one wrap at most)
+                    g -= M
+                g += base
+                if pr[g] == 0.0:
+                    tch[nt] = g  # (to zero it after: a target may be listed twice if a term added 0)
+                    nt += 1
+                pr[g] += d_pop[j] * ps
     # ---- update on the support of the prediction: emission terms [o x, o, o x^2] . fused row
-    k = 0
-    for s in range(CM):  # (ascending: one pass costs less than sorting the touched targets)
-        if pr[s] > 0.0:
-            rows[k] = s
-            k += 1
+    k = _nonzero(pr, rows, True)  # (ascending: one pass costs less than sorting the touched targets)
     no = 0
+    nm = 0
     for f in range(F):
         if zobs[f]:
             fo[no] = f
             no += 1
+        else:
+            fm[nm] = f
+            nm += 1
     if no > 0:
         for f in range(3 * F):
             v[f] = 0.0
@@ -134,7 +165,7 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
             v[2 * F + f] = x * x
         top = -np.inf
         for i in range(k):
-            acc = _dot(fused_t[rows[i]], v)
+            acc = _dot(fused_t, rows[i], v)
             llp[i] = acc
             if acc > top:
                 top = acc
@@ -165,15 +196,28 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
             b0, b1, a = bin0[s], bin1[s], bin_a[s]
             w0, w1 = p * (1.0 - a), p * a
             c = cof[s]
-            for j in range(no):
-                f = fo[j]
+            # each observed feature's D[b0] += w0 dev, D[b1] += w1 dev, W[b0] += w0, W[b1] += w1,
+            # G[c] += p dev, GW[c] += p, in that order for a feature (b0 may be b1), over every
+            # feature in SIMD lanes (a missing one's entries stored back as they were: the same
+            # bits as a loop over the observed ones), one pair of rows a loop (the compiler checks
+            # two rows for overlap, not six)
+            for f in range(F):
                 dev = z[f] - mu[s, f]
-                D[b0, f] += w0 * dev
-                D[b1, f] += w1 * dev
-                W[b0, f] += w0
-                W[b1, f] += w1
-                G[c, f] += p * dev
-                GW[c, f] += p
+                x0 = D[b0, f] + w0 * dev
+                D[b0, f] = x0 if zobs[f] else D[b0, f]
+                x1 = D[b1, f] + w1 * dev
+                D[b1, f] = x1 if zobs[f] else D[b1, f]
+            for f in range(F):
+                x0 = W[b0, f] + w0
+                W[b0, f] = x0 if zobs[f] else W[b0, f]
+                x1 = W[b1, f] + w1
+                W[b1, f] = x1 if zobs[f] else W[b1, f]
+            for f in range(F):
+                dev = z[f] - mu[s, f]
+                x0 = G[c, f] + p * dev
+                G[c, f] = x0 if zobs[f] else G[c, f]
+                x1 = GW[c, f] + p
+                GW[c, f] = x1 if zobs[f] else GW[c, f]
     # ---- fill the missing features from the live states (eq. 18 with the joint posterior)
     for f in range(F):
         out[f] = z[f]
@@ -198,9 +242,8 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
             if kappa > 0.0:
                 b0, b1, a = bin0[s], bin1[s], bin_a[s]
                 c = cof[s]
-                for f in range(F):
-                    if zobs[f]:
-                        continue
+                for j in range(nm):
+                    f = fm[j]
                     # the stream's offset at this state: knot offsets E (streamcycle.knot_offsets)
                     # interpolated between the state's two knots
                     if kappa_g > 0.0:
@@ -217,14 +260,12 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
                     mean[f] += p * u
                     m2[f] += p * (u * u + var_q[s, f])
             else:
-                row = pack[s]
-                for f in range(F):
-                    if zobs[f]:
-                        continue
-                    num[f] += p * row[f]
-                    den[f] += p * row[F + f]
-                    mean[f] += p * row[2 * F + f]
-                    m2[f] += p * row[3 * F + f]
+                for j in range(nm):
+                    f = fm[j]
+                    num[f] += p * pack[s, f]
+                    den[f] += p * pack[s, F + f]
+                    mean[f] += p * pack[s, 2 * F + f]
+                    m2[f] += p * pack[s, 3 * F + f]
         for f in range(F):
             if not zobs[f]:
                 val = num[f] / den[f]
@@ -321,8 +362,10 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
         x[c] = frame[c] if observed[c] else np.nan
     z = np.empty(nF)
     zobs = np.empty(nF, np.bool_)
+    xw = np.empty(C)
+    R = np.empty((3, 3))
     encode1(x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center, dr, df, dang, any_angle,
-            relative, rot, pos, rootf, fsrc, normalize, mean, std, z, zobs)
+            relative, rot, pos, rootf, fsrc, normalize, mean, std, z, zobs, xw, R)
     q = r if cyc else 0
     zf = np.empty(nF)
     zsd = np.empty(nF)
@@ -336,7 +379,7 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
                  cov, prec, shrink, live, STYLE_LIVE)
     prev_yaw[r] = finish1(zf, zsd, x, observed, prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center,
                           const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power,
-                          out, sd)
+                          out, sd, z, R)  # (z: done with, finish1's working row)
     started[r] = True
     return phase
 
@@ -400,12 +443,15 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
     zobs = np.empty((n, nF), np.bool_)
     zf = np.empty((n, nF))
     zsd = np.empty((n, nF))
+    xw = np.empty(C)  # (the coders' working arrays, once for the batch)
+    Fv = np.empty(nF)
+    R = np.empty((3, 3))
     for i in range(n):
         r = prow[i]
         for c in range(C):
             x[i, c] = frames[i, c] if observed[i, c] else np.nan
         encode1(x[i], observed[i], prev_u[r], prev_raw[r], prev_yaw[r], started[r], root_st[r], center, dr, df, dang,
-                any_angle, relative, rot, pos, rootf, fsrc, normalize, mean, std, z[i], zobs[i])
+                any_angle, relative, rot, pos, rootf, fsrc, normalize, mean, std, z[i], zobs[i], xw, R)
     fs, ix = scratch(CM, nF, M)
     for i in range(n):
         r = prow[i]
@@ -422,7 +468,7 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
         r = prow[i]
         prev_yaw[r] = finish1(zf[i], zsd[i], x[i], observed[i], prev_u[r], prev_raw[r], prev_yaw[r], started[r],
                               root_st[r], center, const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean,
-                              std, root_tau, root_power, out[i], sd[i])
+                              std, root_tau, root_power, out[i], sd[i], Fv, R)
         started[r] = True
 
 

@@ -63,10 +63,11 @@ def _rad(x):  # pragma: no cover - compiled
 
 @_jit
 def encode1(frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, dr, df, dang, any_angle,
-            relative, rot, pos, rootf, fsrc, normalize, mean, std, F, fobs):  # pragma: no cover - compiled
-    """ReprState.encode for one stream: fills F (n_features,) and fobs (n_features,) in place."""
+            relative, rot, pos, rootf, fsrc, normalize, mean, std, F, fobs, x, R):  # pragma: no cover - compiled
+    """ReprState.encode for one stream: fills F (n_features,) and fobs (n_features,) in place.
+    x (C,) and R (3, 3): working arrays, overwritten (the caller's, made once for a batch: an
+    allocation costs more than the arithmetic done in it)."""
     C = frame.shape[0]
-    x = np.empty(C)
     for c in range(C):
         x[c] = frame[c] if observed[c] else np.nan
     for j in range(F.shape[0]):
@@ -80,7 +81,6 @@ def encode1(frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, cente
         F[df[k]] = v
     if relative:
         r0, r1, r2 = _rad(x[rot[0]]), _rad(x[rot[1]]), _rad(x[rot[2]])
-        R = np.empty((3, 3))
         _rxyz(r0, r1, r2, R)
         pitch = _asin_clip(-R[1, 2])
         roll = math.atan2(R[1, 0], R[1, 1])
@@ -127,19 +127,19 @@ def _to_rxyz(R, p0, p1, p2, out, i0, i1, i2):  # pragma: no cover - compiled
 
 @_jit
 def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, const, dr, df, dang,
-            relative, rot, pos, rootf, rsrc, normalize, mean, std, root_damp, root_power, out, sd):  # pragma: no cover - compiled
+            relative, rot, pos, rootf, rsrc, normalize, mean, std, root_damp, root_power, out, sd, Fv,
+            R):  # pragma: no cover - compiled
     """ReprState.finish (decode + the raw std + commit), for one stream.  Writes the completed raw
     frame to out, its std (0 where observed) to sd, and the new previous-frame state (prev_u,
     prev_raw, root_st in place); returns the new prev_yaw.  root_damp: (root_tau, root_turn,
     root_turn_frames, root_std a, p, c, w, u; a 0 = no root_std) of the representation (``tables``'
-    "root_tau")."""
+    "root_tau").  Fv (n_features,) and R (3, 3): working arrays, overwritten (``encode1``'s x, R)."""
     root_tau, root_turn, turn_frames = root_damp[0], root_damp[1], root_damp[2]
     std_a, std_p, std_c, std_w, std_u = root_damp[3], root_damp[4], root_damp[5], root_damp[6], root_damp[7]
     damped = root_tau > 0 or root_turn > 0
     rate_seen = False
     C = frame.shape[0]
     nF = z.shape[0]
-    Fv = np.empty(nF)
     for j in range(nF):
         Fv[j] = z[j] * std[j] + mean[j] if normalize else z[j]
     for c in range(C):
@@ -173,7 +173,6 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         out[pos[2]] = prev_raw[pos[2]] + dz if started else prev_raw[pos[2]]
         p, r = _rad(pitch), _rad(roll)
         cyy, syy, cp, sp, cr, sr = math.cos(yaw), math.sin(yaw), math.cos(p), math.sin(p), math.cos(r), math.sin(r)
-        R = np.empty((3, 3))
         R[0, 0] = cyy * cr + syy * sp * sr
         R[0, 1] = -cyy * sr + syy * sp * cr
         R[0, 2] = syy * cp
@@ -241,9 +240,8 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
         prev_raw[c] = out[c]
     new_yaw = prev_yaw
     if relative:
-        R2 = np.empty((3, 3))
-        _rxyz(_rad(out[rot[0]]), _rad(out[rot[1]]), _rad(out[rot[2]]), R2)
-        yaw2 = math.atan2(R2[0, 2], R2[2, 2])
+        _rxyz(_rad(out[rot[0]]), _rad(out[rot[1]]), _rad(out[rot[2]]), R)  # (the decode's R is done with)
+        yaw2 = math.atan2(R[0, 2], R[2, 2])
         new_yaw = prev_yaw + _rad(_wrap(_deg(yaw2 - prev_yaw)))
         if rate_seen:
             # the observed yaw rate's exponential average (ReprState.commit)
@@ -254,18 +252,22 @@ def finish1(z, zstd, frame, observed, prev_u, prev_raw, prev_yaw, started, root_
 @_jit
 def encode_many(frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, dr, df, dang, any_angle,
                 relative, rot, pos, rootf, fsrc, normalize, mean, std, F, fobs):  # pragma: no cover - compiled
+    x = np.empty(frames.shape[1])
+    R = np.empty((3, 3))
     for i in range(frames.shape[0]):
         encode1(frames[i], observed[i], prev_u[i], prev_raw[i], prev_yaw[i], started[i], root_st[i], center, dr, df, dang,
-                any_angle, relative, rot, pos, rootf, fsrc, normalize, mean, std, F[i], fobs[i])
+                any_angle, relative, rot, pos, rootf, fsrc, normalize, mean, std, F[i], fobs[i], x, R)
 
 
 @_jit
 def finish_many(z, zstd, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, center, const, dr, df, dang,
                 relative, rot, pos, rootf, rsrc, normalize, mean, std, root_damp, root_power, out, sd):  # pragma: no cover - compiled
+    Fv = np.empty(z.shape[1])
+    R = np.empty((3, 3))
     for i in range(frames.shape[0]):
         prev_yaw[i] = finish1(z[i], zstd[i], frames[i], observed[i], prev_u[i], prev_raw[i], prev_yaw[i], started[i],
                               root_st[i], center, const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize,
-                              mean, std, root_damp, root_power, out[i], sd[i])
+                              mean, std, root_damp, root_power, out[i], sd[i], Fv, R)
         started[i] = True
 
 
