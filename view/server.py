@@ -28,31 +28,43 @@ class Broadcast:
     """The newest update, numbered; readers wait for a number above the one they have.  Beside it
     the *snapshot*: every stream's newest entry and the newest stats, for a page that opens later
     (an update holds only the streams with a new frame that tick, and a stats-only tick a second
-    after a take ends would otherwise leave a late page with no pose at all)."""
+    after a take ends would otherwise leave a late page with no pose at all).  The snapshot is kept as
+    the object and turned into JSON only when a page opens or a script asks (once per update), not on
+    every tick."""
 
     def __init__(self) -> None:
         self.cond = threading.Condition()
         self.n = 0
         self.update: str = ""
-        self.snapshot: str = ""
+        self._snap: Any = None        # the snapshot's object (its entries are never changed after publish)
+        self._snap_json: tuple[int, str] = (-1, "")
         self.meta: str = "{}"
         self.meta_version = -1
 
-    def publish(self, update: str | None, meta: tuple[int, str] | None, snapshot: str | None = None) -> None:
+    def publish(self, update: str | None, meta: tuple[int, str] | None, snapshot: Any = None) -> None:
         with self.cond:
             if meta is not None:
                 self.meta_version, self.meta = meta
             if update is not None:
                 self.update = update
-                self.snapshot = update if snapshot is None else snapshot
+                self._snap = snapshot
                 self.n += 1
             self.cond.notify_all()
+
+    def snapshot(self) -> str:
+        """The snapshot as JSON ("" before any update; the update itself where none was given)."""
+        with self.cond:
+            if self._snap is None:
+                return self.update
+            if self._snap_json[0] != self.n:
+                self._snap_json = (self.n, dumps(self._snap))
+            return self._snap_json[1]
 
     def wait(self, have: int, timeout: float) -> tuple[int, str, int, str]:
         """(number, update, meta version, meta); a reader with nothing yet (``have`` < 0) gets the snapshot."""
         with self.cond:
             self.cond.wait_for(lambda: self.n > have, timeout)
-            return self.n, (self.snapshot if have < 0 else self.update), self.meta_version, self.meta
+            return self.n, (self.snapshot() if have < 0 else self.update), self.meta_version, self.meta
 
 
 class ViewServer:
@@ -112,7 +124,7 @@ class ViewServer:
                 if stats is not None:
                     snap["stats"] = stats
             if upd is not None or meta is not None:
-                self.bc.publish(None if upd is None else dumps(upd), meta, None if snap is None else dumps(snap))
+                self.bc.publish(None if upd is None else dumps(upd), meta, snap)
                 self.updates += upd is not None
             delay = next_t - time.monotonic()
             if delay < 0:  # fell behind (a stalled machine): do not try to catch up
@@ -148,7 +160,7 @@ class _Handler(BaseHTTPRequestHandler):
             self._events()
         elif path == "/state.json":
             bc = self.view.bc
-            body = '{{"meta":{},"update":{}}}'.format(bc.meta, bc.snapshot or "null")
+            body = '{{"meta":{},"update":{}}}'.format(bc.meta, bc.snapshot() or "null")
             self._send(200, "application/json", body.encode())
         else:
             self._send(404, "text/plain; charset=utf-8", b"not found\n")
