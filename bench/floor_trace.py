@@ -40,6 +40,12 @@ out = {"turns": [], "blocks": [], "gc": [], "overdue": []}
 T, B, G, O = out["turns"], out["blocks"], out["gc"], out["overdue"]
 pc = time.perf_counter
 tt = time.thread_time
+_ss = open("/proc/thread-self/schedstat", "rb", buffering=0)
+def rq():
+    """ns this thread has waited on a run queue (runnable, another task on its CPU)."""
+    _ss.seek(0)
+    f = _ss.read().split()
+    return int(f[1]) / 1e9 + int(f[2]) * 1e3  # (+ 1000 s per time it was switched in: split in analyse)
 _gc0 = [0.0, 0]
 def _gc(phase, info):
     if phase == "start":
@@ -54,26 +60,32 @@ def woke(self, due):
 stalls.Stalls.woke = woke
 _turn = loop.Daemon.turn
 def turn(self, now, ready=None, items=None, arrived=None):
-    t, c = pc(), tt()
+    t, c, q, m = pc(), tt(), rq(), len(sys.modules)
     r = _turn(self, now, ready, items, arrived)
     T.append((getattr(self.stalls, "_tr_due", 0.0), self.stalls._woke_at or 0.0, t, pc(), bool(ready), arrived,
-              tt() - c))
+              tt() - c, rq() - q, len(sys.modules) - m))
     return r
 loop.Daemon.turn = turn
+_hk = loop.Daemon._housekeeping
+def housekeeping(self, now):
+    t, c = pc(), tt()
+    _hk(self, now)
+    B.append(("house", t, pc() - t, tt() - c))
+loop.Daemon._housekeeping = housekeeping
 _batch = loop.Daemon._batch
 def batch(self, items):
-    B.append(("read", pc(), len(items), [a for _, _, a in items], tt()))
+    B.append(("read", pc(), len(items), [a for _, _, a in items], tt(), rq()))
     return _batch(self, items)
 loop.Daemon._batch = batch
 _sb = tickblock.BlockTick._serve_block
 def serve_block(self, bw):
-    t, c = pc(), tt()
+    t, c, q = pc(), tt(), rq()
     sc = self.sched
     est = (sc.send_cost, sc.encode_cost)
     c0 = (self.sessions.block_overdue, self.metrics.counters.get("overdue_after_step", 0))
     r = _sb(self, bw)
     c1 = (self.sessions.block_overdue, self.metrics.counters.get("overdue_after_step", 0))
-    B.append(("block", t, pc(), bw.arrived, len(bw.plan.table), est, c1[0] - c0[0], c1[1] - c0[1], r, c, tt() - c))
+    B.append(("block", t, pc(), bw.arrived, len(bw.plan.table), est, c1[0] - c0[0], c1[1] - c0[1], r, c, tt() - c, q, rq() - q))
     return r
 tickblock.BlockTick._serve_block = serve_block
 _ov = sessions_mod.SessionTable.overdue_seq
@@ -158,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         prof = None
         if args.pyspy:
             prof = subprocess.Popen([str(Path(sys.executable).parent / "py-spy"), "record", "--native", "-r", "500",
-                                     "-f", "speedscope", "-o", f"{args.pyspy}.{rep}.json", "-p", str(proc.pid),
+                                     "-f", "raw", "-o", f"{args.pyspy}.{rep}.txt", "-p", str(proc.pid),
                                      "-d", str(int(args.seconds) + 2)], stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)
         elif args.perf:
@@ -167,11 +179,13 @@ def main(argv: list[str] | None = None) -> int:
                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         time.sleep(0.5 if prof else 0.0)
         load0 = os.getloadavg()
+        st0 = _steal()
         c0 = cpu_seconds(proc.pid)
         res = loadgen.run_load(endpoint, channels, frames, observed, n_streams=64, rate=args.rate,
                                seconds=args.seconds, model="floor", prefix=f"tr{rep}", progress=False,
                                connections=1, bundle=True)
         c1 = cpu_seconds(proc.pid)
+        st1 = _steal()
         st = control(endpoint, "status", timeout_s=5.0).result
         if prof is not None:
             prof.wait(60)
@@ -183,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
             "drop_reasons": res.drop_reasons, **loadgen.percentiles(res.rtt_ms),
             "cpu_us_per_frame": 1e6 * (c1 - c0) / max(1, res.sent) if c0 is not None and c1 is not None else None,
             "loadavg": [load0, os.getloadavg()],
+            "machine_s": {k: round((st1[k] - st0[k]) / os.sysconf("SC_CLK_TCK"), 2) for k in st0},
             "daemon_loop": st.get("loop"), "counters": {k: v for k, v in st.get("counters", {}).items()
                                                          if "overdue" in k or k in ("ticks", "frames_out")}}
         if not args.no_trace:
@@ -205,15 +220,17 @@ def analyse(tr: dict[str, Any], budget: float) -> dict[str, Any]:
     turns = tr["turns"]
     late: list[dict[str, Any]] = []
     for b in blocks:
-        _, t0, t1, arrived, n, est, early, after, _, c0, cpu = b
+        _, t0, t1, arrived, n, est, early, after, _, c0, cpu, q0, qstep = b
         if not (early or after):
             continue
         turn = next((t for t in turns if t[2] <= t0 <= t[3]), None)
         near = [r for r in reads if arrived - 0.02 <= r[1] <= t1]
         rd = next((r for r in reads if arrived in r[3]), None)
         cpu_wait = None if rd is None else round((c0 - rd[4]) * 1e3, 3)
+        rq_wait = None if rd is None else _rq(q0 - rd[5])
         late.append({"t": round(t0 - blocks[0][1], 4), "waited_ms": round((t0 - arrived) * 1e3, 3),
-                     "cpu_read_to_tick_ms": cpu_wait,
+                     "cpu_read_to_tick_ms": cpu_wait, "runqueue_read_to_tick_ms": rq_wait,
+                     "runqueue_step_ms": _rq(qstep),
                      "step_ms": round((t1 - t0) * 1e3, 3), "step_cpu_ms": round(cpu * 1e3, 3), "early": early, "after": after, "n": n,
                      "send_cost_us": round(est[0] * 1e6, 2), "encode_cost_us": round(est[1] * 1e6, 2),
                      "turn": None if turn is None else {"late_wake_ms": round((turn[1] - turn[0]) * 1e3, 3),
@@ -232,12 +249,31 @@ def analyse(tr: dict[str, Any], budget: float) -> dict[str, Any]:
     return {"blocks": len(blocks), "blocks_with_drops": len(late), "served_ok": len(ok),
             "wait_ms_p50_p99_max": _pcts(waits), "send_fill_maps_us_p50_p99_max": _pcts(sends),
             "late_wake_ms_p50_p99_max": _pcts(wakes),
+            "housekeeping_wall_cpu_ms": [(round(e[2] * 1e3, 3), round(e[3] * 1e3, 3)) for e in ev if e[0] == "house"],
             "gc_runs": len(gcs), "gc_ms_max": round(max((g[1] for g in gcs), default=0.0) * 1e3, 3),
             "gc_by_gen": {g: sum(1 for x in gcs if x[2] == g) for g in (0, 1, 2)},
             "reads_with_2plus": sum(1 for r in reads if r[2] > 1),
             "gcs": [(round(g[1] * 1e3, 3), g[2], g[3]) for g in gcs if g[1] > 0.0005],
-            "long_turns": [(round((t[3] - t[2]) * 1e3, 3), round(t[6] * 1e3, 3)) for t in turns if t[3] - t[2] > 0.003],
+            "long_turns_wall_cpu_runqueue_ms": [(round((t[3] - t[2]) * 1e3, 3), round(t[6] * 1e3, 3), _rq(t[7]))
+                                                for t in turns if t[3] - t[2] > 0.003],
+            "turns_importing": [(round((t[2] - turns[0][2]), 3), t[8], round((t[3] - t[2]) * 1e3, 3)) for t in turns if t[8]],
+            "runqueue_ms_total_switches": _rq(sum(t[7] for t in turns)),
+            "turn_wall_ms_total": round(sum(t[3] - t[2] for t in turns) * 1e3, 3),
+            "turn_cpu_ms_total": round(sum(t[6] for t in turns) * 1e3, 3),
             "late": late[:40]}
+
+
+def _steal() -> dict[str, int]:
+    """The machine's CPU jiffies (both cores) from /proc/stat: busy, idle, steal."""
+    with open("/proc/stat") as fh:
+        f = [int(x) for x in fh.readline().split()[1:]]
+    return {"user_nice_sys": f[0] + f[1] + f[2] + f[5] + f[6], "nice": f[1], "idle": f[3] + f[4], "steal": f[7]}
+
+
+def _rq(x: float) -> tuple[float, int]:
+    """(ms waited on a run queue, times switched in) from rq()'s packed difference."""
+    k = round(x / 1e3)
+    return round((x - k * 1e3) * 1e3, 3), k
 
 
 def _pcts(xs: list[float]) -> list[float]:
