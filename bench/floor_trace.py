@@ -181,10 +181,12 @@ def main(argv: list[str] | None = None) -> int:
         load0 = os.getloadavg()
         st0 = _steal()
         c0 = cpu_seconds(proc.pid)
+        th0 = _threads(proc.pid)
         res = loadgen.run_load(endpoint, channels, frames, observed, n_streams=64, rate=args.rate,
                                seconds=args.seconds, model="floor", prefix=f"tr{rep}", progress=False,
                                connections=1, bundle=True)
         c1 = cpu_seconds(proc.pid)
+        th1 = _threads(proc.pid)
         st1 = _steal()
         st = control(endpoint, "status", timeout_s=5.0).result
         if prof is not None:
@@ -197,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
             "drop_reasons": res.drop_reasons, **loadgen.percentiles(res.rtt_ms),
             "cpu_us_per_frame": 1e6 * (c1 - c0) / max(1, res.sent) if c0 is not None and c1 is not None else None,
             "loadavg": [load0, os.getloadavg()],
+            "threads_us_per_frame": {k: round(1e6 * (v - th0.get(k, 0.0)) / max(1, res.sent), 2) for k, v in th1.items()},
             "machine_s": {k: round((st1[k] - st0[k]) / os.sysconf("SC_CLK_TCK"), 2) for k in st0},
             "daemon_loop": st.get("loop"), "counters": {k: v for k, v in st.get("counters", {}).items()
                                                          if "overdue" in k or k in ("ticks", "frames_out")}}
@@ -260,7 +263,45 @@ def analyse(tr: dict[str, Any], budget: float) -> dict[str, Any]:
             "runqueue_ms_total_switches": _rq(sum(t[7] for t in turns)),
             "turn_wall_ms_total": round(sum(t[3] - t[2] for t in turns) * 1e3, 3),
             "turn_cpu_ms_total": round(sum(t[6] for t in turns) * 1e3, 3),
+            "late_by_cause": _causes(late),
             "late": late[:40]}
+
+
+def _causes(late: list[dict[str, Any]]) -> dict[str, int]:
+    """Each dropped bundle's lost time (wall - thread CPU from read to the end of its step), by
+    where it went: waiting on a run queue (another task had the core), neither running nor
+    switched out (the vCPU itself stopped: hypervisor steal), or our own CPU (wall ~ CPU)."""
+    out = {"runqueue": 0, "steal_or_blocked": 0, "own_cpu": 0, "unknown": 0}
+    for x in late:
+        if x["cpu_read_to_tick_ms"] is None:
+            out["unknown"] += 1
+            continue
+        wall = x["waited_ms"] + x["step_ms"]
+        cpu = x["cpu_read_to_tick_ms"] + x["step_cpu_ms"]
+        rq = x["runqueue_read_to_tick_ms"][0] + x["runqueue_step_ms"][0]
+        off = wall - cpu
+        if off < 0.5 * wall:
+            out["own_cpu"] += 1
+        elif rq >= 0.5 * off:
+            out["runqueue"] += 1
+        else:
+            out["steal_or_blocked"] += 1
+    return out
+
+
+def _threads(pid: int) -> dict[str, float]:
+    """CPU seconds of each thread of ``pid`` (name/tid), from /proc."""
+    out: dict[str, float] = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat") as fh:
+                st = fh.read()
+        except OSError:
+            continue
+        name = st[st.index("(") + 1:st.rindex(")")]
+        f = st[st.rindex(")") + 2:].split()
+        out[f"{name}/{tid}"] = (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+    return out
 
 
 def _steal() -> dict[str, int]:
