@@ -34,7 +34,8 @@ def test_drain_reads_every_waiting_message_without_a_failing_recv():
                             "models": {"pt": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
     d = loop.Daemon(cfg)
     d.start()
-    peer = zmq.Context.instance().socket(zmq.DEALER)
+    ctx = zmq.Context()  # (its own, ended below: other tests count this process's ZeroMQ threads)
+    peer = ctx.socket(zmq.DEALER)
     try:
         peer.connect(d.endpoints()["router"])
         status = msgpack.packb({"v": 1, "type": "control", "cmd": "status"}, use_bin_type=True)
@@ -58,4 +59,5 @@ def test_drain_reads_every_waiting_message_without_a_failing_recv():
         assert replies == 3
     finally:
         peer.close(0)
+        ctx.term()
         d.close()
