@@ -375,4 +375,3 @@ def settle() -> None:
     m.step_summary()
     gc.collect()
     gc.freeze()
-

@@ -153,8 +153,8 @@ class Transports(Outbox):
             nbytes = 0
             for i in range(DRAIN_MAX):
                 # (after the first, which the poll said is there: read only while ZeroMQ says one
-                # is waiting, so the drain does not end in a failing recv; that zmq.Again, built
-                # in Python, cost ~30 us of a cold turn beside the check's ~30: floor-7.md)
+                # is waiting, so the drain does not end in a failing recv: cold, that recv and its
+                # zmq.Again, built in Python, cost ~60 us a turn, the check ~30: floor-7.md)
                 if i and not sock_.getsockopt(_EVENTS) & _POLLIN:  # type: ignore[operator]  # (an int for EVENTS)
                     break
                 try:
