@@ -355,10 +355,23 @@ def serve(path: str) -> int:
     except Exception:
         d.close()
         raise
-    # everything loaded so far lives as long as the daemon: keep it out of the collector's
-    # generations so the cyclic GC has less to walk in the middle of a frame
-    gc.collect()
-    gc.freeze()
+    settle()
     d.run()
     return 0
 
+
+def settle() -> None:
+    """Between start and the first frame: what the loop's first turns would otherwise do
+    in the middle of serving.  The housekeeping's percentiles (status, the systemd status
+    line) are first computed 0.5 s after the first frames, and numpy's first ``percentile``
+    imports ``numpy.ma`` (3 modules, 12-20 ms live, the turn's bundles then conflated:
+    bench/notebook/floor-7.md); computed once here, on a throwaway table, the import happens
+    before any frame.  Then everything loaded so far, which lives as long as the daemon, is
+    kept out of the collector's generations so the cyclic GC has less to walk mid-frame."""
+    m = Metrics()
+    m.latencies(0.001, 2)
+    m.step_time(0.001)
+    m.latency_summary()
+    m.step_summary()
+    gc.collect()
+    gc.freeze()
