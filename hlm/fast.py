@@ -507,3 +507,56 @@ def step_rows_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, 
                rp["root_st"], rt, cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, phase,
                *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)))
     return out, sd, style, phase
+
+
+# ---- a daemon tick's block, the checks and the outputs in the compiled call ---------------------------
+# A live tick starts cold (the daemon sleeps ~8 ms between ticks, and the caches are the other
+# processes' by then): each numpy call and each Python line of the glue then costs several
+# microseconds (bench/notebook/hlm64-7.md).  ``step_block_arrays`` is ``step_rows_arrays`` with the
+# pool rows' checks and the output arrays made in the compiled call instead of in numpy calls.
+
+
+@_jit
+def _block_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
+                live, live_stats, cond, cov, prec, shrink):  # pragma: no cover - compiled
+    """``_step_rows`` on pool rows prow after checking them (each in the pool, none twice):
+    returns (ok, completed, std, style posteriors, phases); ok False: the rows fail the checks and
+    nothing was changed."""
+    n, C = frames.shape
+    cap = post.shape[0]
+    K = post.shape[1]
+    out = np.empty((n, C))
+    sd = np.empty((n, C))
+    style = np.empty((n, K))
+    phase = np.empty(n)
+    seen = np.zeros(cap, np.bool_)
+    for i in range(n):
+        r = prow[i]
+        if r < 0 or r >= cap or seen[r]:
+            return False, out, sd, style, phase
+        seen[r] = True
+    _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
+               live, live_stats, out, sd, style, phase, cond, cov, prec, shrink)
+    return True, out, sd, style, phase
+
+
+def step_block_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observed: np.ndarray,
+                      live: float = 1e-10, live_stats: float = 1e-4, cond=None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`step_rows_arrays` for ``prow`` (n,) int64, frames (n, C) float64 and observed (n, C)
+    bool, both C-contiguous and writable (the caller checks): the same arithmetic and results, or
+    None, with nothing changed, where a row is outside the pool or given twice (the caller's slower
+    path then names the error)."""
+    rt, ht, zero = tables
+    rp, cp = pool.repr, pool.core
+    if "D" in cp:
+        ok, out, sd, style, phase = _block_rows(
+            prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
+            cp["post"], cp["t"], cp["D"], cp["W"], cp["G"], cp["GW"], True, ht, live, live_stats,
+            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)))
+    else:
+        ok, out, sd, style, phase = _block_rows(
+            prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
+            cp["post"], cp["t"], zero, zero, zero, zero, False, ht, live, live_stats,
+            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)))
+    return (out, sd, style, phase) if ok else None
