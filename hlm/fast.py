@@ -34,6 +34,8 @@ from lacuna.jit import jit_sums as _jit_sums
 from mocap import fastrepr
 from mocap.fastrepr import encode1, finish1
 
+_I64, _F64, _BOOL = np.dtype(np.int64), np.dtype(np.float64), np.dtype(np.bool_)
+
 
 @_jit
 def scratch(CM, F, M):  # pragma: no cover - compiled
@@ -483,80 +485,64 @@ def step_rows(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observe
 
 
 def step_rows_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observed: np.ndarray,
-                     live: float = 1e-10, live_stats: float = 1e-4, cond=None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                     live: float = 1e-10, live_stats: float = 1e-4, cond=None, distinct: bool = False
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """:func:`step_rows` with the extras as the arrays the kernel writes them in: (completed
-    (n, C), std (n, C), style posteriors (n, K), phases (n,)), no dict per stream."""
+    (n, C), std (n, C), style posteriors (n, K), phases (n,)), no dict per stream.  ``distinct``:
+    check that no row is given twice (None, nothing changed, if one is).  The rows' checks and
+    the output arrays are the compiled call's (``_block_rows``), and the inputs are converted
+    only where they need it: a live tick runs this glue cold, where each numpy call costs
+    microseconds (bench/notebook/hlm64-7.md)."""
     rt, ht, zero = tables
     rp, cp = pool.repr, pool.core
     n, C = frames.shape
-    prow = np.asarray(prow, dtype=np.int64)
-    if prow.shape != (n,) or (n and (prow.min() < 0 or prow.max() >= pool.capacity)):  # (compiled code has no bounds checks)
+    if type(prow) is not np.ndarray or prow.dtype != _I64:
+        prow = np.asarray(prow, dtype=np.int64)
+    if prow.shape != (n,):
         raise IndexError(f"pool rows {prow.tolist()} for {n} frames in a pool of {pool.capacity}")
-    out = np.empty((n, C))
-    sd = np.empty((n, C))
-    style = np.empty((n, ht[0].shape[0] // ht[2]))
-    phase = np.empty(n)
-    cyc = "D" in cp
-    D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
-    frames = np.ascontiguousarray(frames, dtype=np.float64)
-    observed = np.ascontiguousarray(observed, dtype=np.bool_)
+    if not (frames.dtype == _F64 and frames.flags.c_contiguous):
+        frames = np.ascontiguousarray(frames, dtype=np.float64)
+    if not (observed.dtype == _BOOL and observed.flags.c_contiguous):
+        observed = np.ascontiguousarray(observed, dtype=np.bool_)
     if not (frames.flags.writeable and observed.flags.writeable):  # (compiled for writable arrays: no second kernel)
         frames, observed = frames.copy(), observed.copy()
-    _step_rows(prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"],
-               rp["root_st"], rt, cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, phase,
-               *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)))
-    return out, sd, style, phase
-
-
-# ---- a daemon tick's block, the checks and the outputs in the compiled call ---------------------------
-# A live tick starts cold (the daemon sleeps ~8 ms between ticks, and the caches are the other
-# processes' by then): each numpy call and each Python line of the glue then costs several
-# microseconds (bench/notebook/hlm64-7.md).  ``step_block_arrays`` is ``step_rows_arrays`` with the
-# pool rows' checks and the output arrays made in the compiled call instead of in numpy calls.
+    if "D" in cp:
+        code, out, sd, style, phase = _block_rows(
+            prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
+            cp["post"], cp["t"], cp["D"], cp["W"], cp["G"], cp["GW"], True, ht, live, live_stats,
+            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), distinct)
+    else:
+        code, out, sd, style, phase = _block_rows(
+            prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
+            cp["post"], cp["t"], zero, zero, zero, zero, False, ht, live, live_stats,
+            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), distinct)
+    if code == 1:  # (compiled code has no bounds checks)
+        raise IndexError(f"pool rows {prow.tolist()} for {n} frames in a pool of {pool.capacity}")
+    return None if code else (out, sd, style, phase)
 
 
 @_jit
 def _block_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
-                live, live_stats, cond, cov, prec, shrink):  # pragma: no cover - compiled
-    """``_step_rows`` on pool rows prow after checking them (each in the pool, none twice):
-    returns (ok, completed, std, style posteriors, phases); ok False: the rows fail the checks and
-    nothing was changed."""
+                live, live_stats, cond, cov, prec, shrink, distinct):  # pragma: no cover - compiled
+    """``_step_rows`` on pool rows prow after checking them, with its output arrays made here:
+    returns (code, completed, std, style posteriors, phases); code 0: stepped; 1: a row outside
+    the pool; 2 (only if ``distinct``): a row given twice, or outside the pool (the caller's
+    slower path tells which first, as it checks); nothing is changed then."""
     n, C = frames.shape
     cap = post.shape[0]
-    K = post.shape[1]
     out = np.empty((n, C))
     sd = np.empty((n, C))
-    style = np.empty((n, K))
+    style = np.empty((n, post.shape[1]))
     phase = np.empty(n)
-    seen = np.zeros(cap, np.bool_)
     for i in range(n):
-        r = prow[i]
-        if r < 0 or r >= cap or seen[r]:
-            return False, out, sd, style, phase
-        seen[r] = True
+        if prow[i] < 0 or prow[i] >= cap:
+            return 2 if distinct else 1, out, sd, style, phase
+    if distinct:
+        seen = np.zeros(cap, np.bool_)
+        for i in range(n):
+            if seen[prow[i]]:
+                return 2, out, sd, style, phase
+            seen[prow[i]] = True
     _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
                live, live_stats, out, sd, style, phase, cond, cov, prec, shrink)
-    return True, out, sd, style, phase
-
-
-def step_block_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observed: np.ndarray,
-                      live: float = 1e-10, live_stats: float = 1e-4, cond=None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """:func:`step_rows_arrays` for ``prow`` (n,) int64, frames (n, C) float64 and observed (n, C)
-    bool, both C-contiguous and writable (the caller checks): the same arithmetic and results, or
-    None, with nothing changed, where a row is outside the pool or given twice (the caller's slower
-    path then names the error)."""
-    rt, ht, zero = tables
-    rp, cp = pool.repr, pool.core
-    if "D" in cp:
-        ok, out, sd, style, phase = _block_rows(
-            prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
-            cp["post"], cp["t"], cp["D"], cp["W"], cp["G"], cp["GW"], True, ht, live, live_stats,
-            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)))
-    else:
-        ok, out, sd, style, phase = _block_rows(
-            prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
-            cp["post"], cp["t"], zero, zero, zero, zero, False, ht, live, live_stats,
-            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)))
-    return (out, sd, style, phase) if ok else None
+    return 0, out, sd, style, phase

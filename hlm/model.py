@@ -169,13 +169,12 @@ class HLMModel(FeatureModel):
             tabs = self.__dict__["_block_tables"] = self.__dict__["_slot_tables"] if ok else False
         if (n > 1 and level is None and tabs is not False and type(frames) is np.ndarray and type(observed) is np.ndarray
                 and frames.dtype == _F64 and observed.dtype == _BOOL and frames.shape == observed.shape
-                and frames.flags.c_contiguous and frames.flags.writeable and observed.flags.c_contiguous):
+                and frames.flags.c_contiguous and observed.flags.c_contiguous):
             slots = [s.slot for s in states if type(s) is FeatureStream and s.model is self]
             if len(slots) == n:
-                got = fast.step_block_arrays(tabs, self.pool, np.array(slots, dtype=np.int64), frames,
-                                             observed if observed.flags.writeable else observed.copy(),
-                                             online.LIVE, LIVE_STATS, self.cond)
-                if got is not None:
+                got = fast.step_rows_arrays(tabs, self.pool, np.array(slots, dtype=np.int64), frames, observed,
+                                            online.LIVE, LIVE_STATS, self.cond, True)
+                if got is not None:  # (None: a stream given twice, which FeatureModel.step_block names)
                     return BlockFill(got[0], got[1], ~observed, got[2], got[3])
         return super().step_block(states, frames, observed, level)
 
