@@ -210,7 +210,7 @@ class Scheduler:
         avail = deadline - now - self.reply_cost * len(group)
         if gaps is None:
             gaps = [self._gap(s) for s in group] if seqs is None else [self._gap(s, q) for s, q in zip(group, seqs)]
-        rounds = 1 + max(min(g, self.max_gap) for g in gaps)
+        rounds = 1 + min(max(gaps), self.max_gap)  # (the largest of the gaps capped: one pass, no generator)
         levels = levels_of(model)
         # a model about as cheap as holding gains nothing from degrading: frames already late
         # (queued while the daemon was busy) are better served in full
