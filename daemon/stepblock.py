@@ -16,6 +16,7 @@ from daemon.session import Session, stepped_rows
 from lacuna.filler import BlockFill, Fill, FillsDoNotStack, Model
 
 Got = tuple[list[int], BlockFill | list[Fill], list[str]]
+_F64 = np.dtype(np.float64)
 
 
 def run_block(sched: Scheduler, model: Model, group: list[Session], seqs: list[int], arrived: float,
@@ -77,6 +78,7 @@ def _step(sched: Scheduler, model: Model, plan: StepPlan, seqs: list[int], frame
         for s, fill, q in zip(group, fills, seqs):
             s.stepped(fill.frame, q)
         return list(range(n)), fills, [status] * n
-    got.frame = np.asarray(got.frame, dtype=np.float64)
+    if type(got.frame) is not np.ndarray or got.frame.dtype != _F64:  # (a model's own frame type: the call only where needed)
+        got.frame = np.asarray(got.frame, dtype=np.float64)
     stepped_rows(group, got.frame, seqs)
     return list(range(n)), got, [status] * n

@@ -485,11 +485,12 @@ def step_rows(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observe
 
 
 def step_rows_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observed: np.ndarray,
-                     live: float = 1e-10, live_stats: float = 1e-4, cond=None, distinct: bool = False
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+                     live: float = 1e-10, live_stats: float = 1e-4, cond=None, block: bool = False
+                     ) -> tuple[np.ndarray, ...] | None:
     """:func:`step_rows` with the extras as the arrays the kernel writes them in: (completed
-    (n, C), std (n, C), style posteriors (n, K), phases (n,)), no dict per stream.  ``distinct``:
-    check that no row is given twice (None, nothing changed, if one is).  The rows' checks and
+    (n, C), std (n, C), style posteriors (n, K), phases (n,)), no dict per stream.  ``block``
+    (``HLMModel.step_block``'s call): also check that no row is given twice (None, nothing
+    changed, if one is) and return the filled mask (n, C) (not observed) fifth.  The rows' checks and
     the output arrays are the compiled call's (``_block_rows``), and the inputs are converted
     only where they need it: a live tick runs this glue cold, where each numpy call costs
     microseconds (bench/notebook/hlm64-7.md)."""
@@ -507,42 +508,50 @@ def step_rows_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, 
     if not (frames.flags.writeable and observed.flags.writeable):  # (compiled for writable arrays: no second kernel)
         frames, observed = frames.copy(), observed.copy()
     if "D" in cp:
-        code, out, sd, style, phase = _block_rows(
+        code, out, sd, style, phase, filled = _block_rows(
             prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
             cp["post"], cp["t"], cp["D"], cp["W"], cp["G"], cp["GW"], True, ht, live, live_stats,
-            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), distinct)
+            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), block)
     else:
-        code, out, sd, style, phase = _block_rows(
+        code, out, sd, style, phase, filled = _block_rows(
             prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
             cp["post"], cp["t"], zero, zero, zero, zero, False, ht, live, live_stats,
-            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), distinct)
+            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), block)
     if code == 1:  # (compiled code has no bounds checks)
         raise IndexError(f"pool rows {prow.tolist()} for {n} frames in a pool of {pool.capacity}")
-    return None if code else (out, sd, style, phase)
+    if code:
+        return None
+    return (out, sd, style, phase, filled) if block else (out, sd, style, phase)
 
 
 @_jit
 def _block_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
-                live, live_stats, cond, cov, prec, shrink, distinct):  # pragma: no cover - compiled
+                live, live_stats, cond, cov, prec, shrink, block):  # pragma: no cover - compiled
     """``_step_rows`` on pool rows prow after checking them, with its output arrays made here:
-    returns (code, completed, std, style posteriors, phases); code 0: stepped; 1: a row outside
-    the pool; 2 (only if ``distinct``): a row given twice, or outside the pool (the caller's
-    slower path tells which first, as it checks); nothing is changed then."""
+    returns (code, completed, std, style posteriors, phases, filled); code 0: stepped; 1: a row
+    outside the pool; 2 (only if ``block``): a row given twice, or outside the pool (the caller's
+    slower path tells which first, as it checks); nothing is changed then.  ``filled``: with
+    ``block``, not observed (the block's filled mask, which a numpy call would cost a cold tick
+    tens of microseconds for), else empty."""
     n, C = frames.shape
     cap = post.shape[0]
     out = np.empty((n, C))
     sd = np.empty((n, C))
     style = np.empty((n, post.shape[1]))
     phase = np.empty(n)
+    filled = np.empty((n if block else 0, C), np.bool_)
     for i in range(n):
         if prow[i] < 0 or prow[i] >= cap:
-            return 2 if distinct else 1, out, sd, style, phase
-    if distinct:
+            return 2 if block else 1, out, sd, style, phase, filled
+    if block:
         seen = np.zeros(cap, np.bool_)
         for i in range(n):
             if seen[prow[i]]:
-                return 2, out, sd, style, phase
+                return 2, out, sd, style, phase, filled
             seen[prow[i]] = True
+        for i in range(n):
+            for c in range(C):
+                filled[i, c] = not observed[i, c]
     _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
                live, live_stats, out, sd, style, phase, cond, cov, prec, shrink)
-    return 0, out, sd, style, phase
+    return 0, out, sd, style, phase, filled

@@ -175,7 +175,7 @@ class HLMModel(FeatureModel):
                 got = fast.step_rows_arrays(tabs, self.pool, np.array(slots, dtype=np.int64), frames, observed,
                                             online.LIVE, LIVE_STATS, self.cond, True)
                 if got is not None:  # (None: a stream given twice, which FeatureModel.step_block names)
-                    return BlockFill(got[0], got[1], ~observed, got[2], got[3])
+                    return BlockFill(got[0], got[1], got[4], got[2], got[3])
         return super().step_block(states, frames, observed, level)
 
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,

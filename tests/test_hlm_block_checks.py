@@ -56,7 +56,7 @@ def test_read_only_mask_takes_the_one_call_with_step_batchs_bits(walk, monkeypat
             np.testing.assert_array_equal(got.std[j], fl.std)
             np.testing.assert_array_equal(got.filled[j], fl.filled)
             assert got.style[j].tolist() == fl.extras["style"] and got.phase[j] == fl.extras["phase"]
-    # one call a tick for each path; the block path's asks for the distinct check
+    # one call a tick for each path; the block path's asks for the block call's checks and mask
     assert calls.count((True,)) == 80 and len(calls) == 160
     assert _pool(a) == _pool(b)
 
@@ -73,12 +73,12 @@ def test_failed_checks_change_nothing_and_name_the_error(walk):
         m.step_block([ss[0], ss[1], ss[0]], f[:3], obs[:3].copy())
     assert _pool(m) == before
     tabs = m._slot_tables
-    assert fast.step_rows_arrays(tabs, m.pool, np.array([1, 2, 1]), f[:3], obs[:3].copy(), distinct=True) is None
+    assert fast.step_rows_arrays(tabs, m.pool, np.array([1, 2, 1]), f[:3], obs[:3].copy(), block=True) is None
     assert _pool(m) == before
     for bad in ([0, m.pool.capacity], [-1, 0]):
         with pytest.raises(IndexError, match="pool rows"):
             fast.step_rows_arrays(tabs, m.pool, np.array(bad), f[:2], obs[:2].copy())
-        assert fast.step_rows_arrays(tabs, m.pool, np.array(bad), f[:2], obs[:2].copy(), distinct=True) is None
+        assert fast.step_rows_arrays(tabs, m.pool, np.array(bad), f[:2], obs[:2].copy(), block=True) is None
         assert _pool(m) == before
     got = m.step_block(ss, f, obs[:4].copy())                                # and the streams step on
     assert np.isfinite(got.frame).all() and _pool(m) != before
