@@ -197,18 +197,20 @@ class Scheduler:
         return seq - s.model_seq - 1
 
     def plan(self, model: Model, group: list[Session], now: float, arrived: float | None = None,
-             seqs: list[int] | None = None) -> StepPlan:
+             seqs: list[int] | None = None, gaps: list[int] | None = None) -> StepPlan:
         """Decide level and which streams step (the rest hold).  Pure apart from reading costs.
         (``arrived``, ``seqs``: the oldest receipt and each stream's frame, for a bundle served
-        as arrays, whose frames are in no pending slot.)"""
+        as arrays, whose frames are in no pending slot; ``gaps``: their :meth:`_gap`, where the
+        caller has them.)"""
         if model.passthrough:
             return StepPlan(group, [], None, False)
         if arrived is None:
             arrived = min(s.pending.arrived for s in group)  # type: ignore[union-attr]
         deadline = arrived + self.budget_s
         avail = deadline - now - self.reply_cost * len(group)
-        gaps = [self._gap(s) for s in group] if seqs is None else [self._gap(s, q) for s, q in zip(group, seqs)]
-        rounds = 1 + max(min(g, self.max_gap) for g in gaps)
+        if gaps is None:
+            gaps = [self._gap(s) for s in group] if seqs is None else [self._gap(s, q) for s, q in zip(group, seqs)]
+        rounds = 1 + min(max(gaps), self.max_gap)  # (the largest of the gaps capped: one pass, no generator)
         levels = levels_of(model)
         # a model about as cheap as holding gains nothing from degrading: frames already late
         # (queued while the daemon was busy) are better served in full

@@ -16,6 +16,7 @@ from daemon.session import Session, stepped_rows
 from lacuna.filler import BlockFill, Fill, FillsDoNotStack, Model
 
 Got = tuple[list[int], BlockFill | list[Fill], list[str]]
+_F64 = np.dtype(np.float64)
 
 
 def run_block(sched: Scheduler, model: Model, group: list[Session], seqs: list[int], arrived: float,
@@ -25,9 +26,12 @@ def run_block(sched: Scheduler, model: Model, group: list[Session], seqs: list[i
     statuses): the group rows answered, in the order :meth:`Scheduler.run` gives them, their fills
     in that order (a BlockFill, or Fills: a plan that holds streams, or fills that do not stack)
     and a status each."""
-    plan = sched.plan(model, group, sched.clock(), arrived, seqs)
+    # each stream's gap to its frame (Scheduler._gap), once for the plan and the step: a live
+    # tick runs this cold, where every pass over the streams costs (bench/notebook/hlm64-7.md)
+    gaps = [0 if s.model_seq is None else q - s.model_seq - 1 for s, q in zip(group, seqs)]
+    plan = sched.plan(model, group, sched.clock(), arrived, seqs, gaps)
     if not plan.hold:
-        return _step(sched, model, plan, seqs, frames, observed)
+        return _step(sched, model, plan, seqs, frames, observed, gaps)
     pos = {id(s): i for i, s in enumerate(group)}
     idx = [pos[id(s)] for s in plan.hold]
     t0 = sched.clock()
@@ -41,11 +45,13 @@ def run_block(sched: Scheduler, model: Model, group: list[Session], seqs: list[i
 
 
 def _step(sched: Scheduler, model: Model, plan: StepPlan, seqs: list[int], frames: np.ndarray,
-          observed: np.ndarray) -> Got:
-    """:meth:`Scheduler._step` of a whole group (``plan.step``, in the group's order) on rows."""
+          observed: np.ndarray, gaps: list[int]) -> Got:
+    """:meth:`Scheduler._step` of a whole group (``plan.step``, in the group's order) on rows;
+    ``gaps``: each stream's gap to its frame."""
     group = plan.step
     n = len(group)
-    gaps = sched._restart_gaps(group, seqs)
+    if max(gaps, default=0) > sched.max_gap:  # (else no stream restarts: the gaps stay)
+        gaps = sched._restart_gaps(group, seqs)
     C = group[0].mapping.n_model
     level = plan.iterations if plan.iterations != levels_of(model)[0] else None  # (None: full quality)
     t0 = sched.clock()
@@ -72,6 +78,7 @@ def _step(sched: Scheduler, model: Model, plan: StepPlan, seqs: list[int], frame
         for s, fill, q in zip(group, fills, seqs):
             s.stepped(fill.frame, q)
         return list(range(n)), fills, [status] * n
-    got.frame = np.asarray(got.frame, dtype=np.float64)
+    if type(got.frame) is not np.ndarray or got.frame.dtype != _F64:  # (a model's own frame type: the call only where needed)
+        got.frame = np.asarray(got.frame, dtype=np.float64)
     stepped_rows(group, got.frame, seqs)
     return list(range(n)), got, [status] * n

@@ -34,6 +34,8 @@ from lacuna.jit import jit_sums as _jit_sums
 from mocap import fastrepr
 from mocap.fastrepr import encode1, finish1
 
+_I64, _F64, _BOOL = np.dtype(np.int64), np.dtype(np.float64), np.dtype(np.bool_)
+
 
 @_jit
 def scratch(CM, F, M):  # pragma: no cover - compiled
@@ -483,27 +485,73 @@ def step_rows(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observe
 
 
 def step_rows_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, observed: np.ndarray,
-                     live: float = 1e-10, live_stats: float = 1e-4, cond=None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                     live: float = 1e-10, live_stats: float = 1e-4, cond=None, block: bool = False
+                     ) -> tuple[np.ndarray, ...] | None:
     """:func:`step_rows` with the extras as the arrays the kernel writes them in: (completed
-    (n, C), std (n, C), style posteriors (n, K), phases (n,)), no dict per stream."""
+    (n, C), std (n, C), style posteriors (n, K), phases (n,)), no dict per stream.  ``block``
+    (``HLMModel.step_block``'s call): also check that no row is given twice (None, nothing
+    changed, if one is) and return the filled mask (n, C) (not observed) fifth.  The rows' checks and
+    the output arrays are the compiled call's (``_block_rows``), and the inputs are converted
+    only where they need it: a live tick runs this glue cold, where each numpy call costs
+    microseconds (bench/notebook/hlm64-7.md)."""
     rt, ht, zero = tables
     rp, cp = pool.repr, pool.core
     n, C = frames.shape
-    prow = np.asarray(prow, dtype=np.int64)
-    if prow.shape != (n,) or (n and (prow.min() < 0 or prow.max() >= pool.capacity)):  # (compiled code has no bounds checks)
+    if type(prow) is not np.ndarray or prow.dtype != _I64:
+        prow = np.asarray(prow, dtype=np.int64)
+    if prow.shape != (n,):
         raise IndexError(f"pool rows {prow.tolist()} for {n} frames in a pool of {pool.capacity}")
-    out = np.empty((n, C))
-    sd = np.empty((n, C))
-    style = np.empty((n, ht[0].shape[0] // ht[2]))
-    phase = np.empty(n)
-    cyc = "D" in cp
-    D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
-    frames = np.ascontiguousarray(frames, dtype=np.float64)
-    observed = np.ascontiguousarray(observed, dtype=np.bool_)
+    if not (frames.dtype == _F64 and frames.flags.c_contiguous):
+        frames = np.ascontiguousarray(frames, dtype=np.float64)
+    if not (observed.dtype == _BOOL and observed.flags.c_contiguous):
+        observed = np.ascontiguousarray(observed, dtype=np.bool_)
     if not (frames.flags.writeable and observed.flags.writeable):  # (compiled for writable arrays: no second kernel)
         frames, observed = frames.copy(), observed.copy()
-    _step_rows(prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"],
-               rp["root_st"], rt, cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, phase,
-               *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)))
-    return out, sd, style, phase
+    if "D" in cp:
+        code, out, sd, style, phase, filled = _block_rows(
+            prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
+            cp["post"], cp["t"], cp["D"], cp["W"], cp["G"], cp["GW"], True, ht, live, live_stats,
+            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), block)
+    else:
+        code, out, sd, style, phase, filled = _block_rows(
+            prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
+            cp["post"], cp["t"], zero, zero, zero, zero, False, ht, live, live_stats,
+            *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), block)
+    if code == 1:  # (compiled code has no bounds checks)
+        raise IndexError(f"pool rows {prow.tolist()} for {n} frames in a pool of {pool.capacity}")
+    if code:
+        return None
+    return (out, sd, style, phase, filled) if block else (out, sd, style, phase)
+
+
+@_jit
+def _block_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
+                live, live_stats, cond, cov, prec, shrink, block):  # pragma: no cover - compiled
+    """``_step_rows`` on pool rows prow after checking them, with its output arrays made here:
+    returns (code, completed, std, style posteriors, phases, filled); code 0: stepped; 1: a row
+    outside the pool; 2 (only if ``block``): a row given twice, or outside the pool (the caller's
+    slower path tells which first, as it checks); nothing is changed then.  ``filled``: with
+    ``block``, not observed (the block's filled mask, which a numpy call would cost a cold tick
+    tens of microseconds for), else empty."""
+    n, C = frames.shape
+    cap = post.shape[0]
+    out = np.empty((n, C))
+    sd = np.empty((n, C))
+    style = np.empty((n, post.shape[1]))
+    phase = np.empty(n)
+    filled = np.empty((n if block else 0, C), np.bool_)
+    for i in range(n):
+        if prow[i] < 0 or prow[i] >= cap:
+            return 2 if block else 1, out, sd, style, phase, filled
+    if block:
+        seen = np.zeros(cap, np.bool_)
+        for i in range(n):
+            if seen[prow[i]]:
+                return 2, out, sd, style, phase, filled
+            seen[prow[i]] = True
+        for i in range(n):
+            for c in range(C):
+                filled[i, c] = not observed[i, c]
+    _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
+               live, live_stats, out, sd, style, phase, cond, cov, prec, shrink)
+    return 0, out, sd, style, phase, filled

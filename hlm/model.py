@@ -6,6 +6,7 @@ was trained on (``root_mode`` raw or relative, normalised or not, recorded in th
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -15,11 +16,12 @@ from hlm import condfill, fast, offline, online
 from hlm.params import HLMParams
 from hlm.streamcycle import LIVE_STATS
 from lacuna import modelfile
-from lacuna.filler import Fill, FillerError, check_frame
-from mocap.feature_model import CoreOut, FeatureModel
+from lacuna.filler import BlockFill, Fill, FillerError, FillerState, check_frame
+from mocap.feature_model import CoreOut, FeatureModel, FeatureStream
 from mocap.representation import Representation
 
 METHOD = "hlm"
+_F64, _BOOL = np.dtype(np.float64), np.dtype(np.bool_)
 
 
 @dataclass
@@ -149,6 +151,32 @@ class HLMModel(FeatureModel):
         if tabs is None:
             tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, self.representation)
         return fast.step_rows_arrays(tabs, self.pool, slots, frames, observed, online.LIVE, LIVE_STATS, self.cond)
+
+    def step_block(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
+                   level: int | None = None) -> BlockFill:
+        # FeatureModel.step_block's compiled case (n > 1 streams of this model at full quality,
+        # frames and mask as the daemon's block path gives them) with fewer Python and numpy
+        # calls on the way: a live tick runs them cold (bench/notebook/hlm64-7.md).  The pool rows'
+        # checks are in the compiled call; where they fail, or anything else is not the usual
+        # case, FeatureModel.step_block serves (and names the error).
+        n = len(states)
+        tabs = self.__dict__.get("_block_tables")
+        if tabs is None:
+            rep = self.representation
+            ok = fast.usable(self.tables) and not (rep.root is not None and rep.root_mode == "relative")
+            if ok and "_slot_tables" not in self.__dict__:
+                self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, rep)
+            tabs = self.__dict__["_block_tables"] = self.__dict__["_slot_tables"] if ok else False
+        if (n > 1 and level is None and tabs is not False and type(frames) is np.ndarray and type(observed) is np.ndarray
+                and frames.dtype == _F64 and observed.dtype == _BOOL and frames.shape == observed.shape
+                and frames.flags.c_contiguous and observed.flags.c_contiguous):
+            slots = [s.slot for s in states if type(s) is FeatureStream and s.model is self]
+            if len(slots) == n:
+                got = fast.step_rows_arrays(tabs, self.pool, np.array(slots, dtype=np.int64), frames, observed,
+                                            online.LIVE, LIVE_STATS, self.cond, True)
+                if got is not None:  # (None: a stream given twice, which FeatureModel.step_block names)
+                    return BlockFill(got[0], got[1], got[4], got[2], got[3])
+        return super().step_block(states, frames, observed, level)
 
     def core_step(self, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray,
                   rows: np.ndarray | None = None) -> CoreOut:
