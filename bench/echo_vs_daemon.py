@@ -66,6 +66,16 @@ def tree_env(root: Path) -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=str(root), PYTHONUNBUFFERED="1", OPENBLAS_NUM_THREADS="1")
 
 
+def tree_roots(specs: list[str]) -> dict[str, Path]:
+    """``--root NAME=DIR`` options -> {NAME: DIR}; none: this checkout as ``new``."""
+    return {s.split("=", 1)[0]: Path(s.split("=", 1)[1]).resolve() for s in (specs or [f"new={ROOT}"])}
+
+
+def rotated(names: list[str], k: int) -> list[str]:
+    """The trees' order in repeat k: rotated by k, so no tree always runs first."""
+    return names[k % len(names):] + names[:k % len(names)]
+
+
 def tree_hlm(root: Path, cache: Path) -> Path:
     """The HLM file of this tree (trained by its own code once, then cached by commit)."""
     rev = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
@@ -162,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from mocap.datasets import load_trial
 
-    roots = {s.split("=", 1)[0]: Path(s.split("=", 1)[1]).resolve() for s in (args.root or [f"new={ROOT}"])}
+    roots = tree_roots(args.root)
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
     test = load_trial(TEST)
@@ -175,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict[str, Any]] = []
     rtts: dict[str, list[np.ndarray]] = {}
     for rep in range(args.repeats):
-        order = list(roots)[rep % len(roots):] + list(roots)[:rep % len(roots)]
+        order = rotated(list(roots), rep)
         for name in order:
             work = Path(tempfile.mkdtemp(prefix=f"evd-{name}-", dir=cache))
             d = Served(roots[name], hlms.get(name, next(iter(hlms.values()), None)), channels, work, args.budget_ms)

@@ -127,12 +127,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="time Daemon.turn with its real sockets instead (a DEALER in process sends each bundle)")
     ap.add_argument("--json", dest="json_out", default=None)
     args = ap.parse_args(argv)
-    roots = {s.split("=", 1)[0]: Path(s.split("=", 1)[1]).resolve() for s in (args.root or [f"new={ROOT}"])}
+    sys.path.insert(0, str(ROOT))   # (here, not at the top: a child runs in another tree and imports nothing of this one's)
+    from bench.echo_vs_daemon import rotated, tree_env, tree_roots
+
+    roots = tree_roots(args.root)
     names = list(roots)
     rows = []
     for rnd in range(args.rounds):
-        for name in names[rnd % len(names):] + names[:rnd % len(names)]:
-            env = dict(os.environ, PYTHONPATH=str(roots[name]), OPENBLAS_NUM_THREADS="1")
+        for name in rotated(names, rnd):
+            env = tree_env(roots[name])
             r = subprocess.run([sys.executable, "-c", CHILD, str(args.ticks), str(args.gap_ms),
                                 "sockets" if args.sockets else "phases"], env=env,
                                cwd=roots[name], capture_output=True, text=True, check=False)

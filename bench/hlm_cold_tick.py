@@ -114,12 +114,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         print(json.dumps(child(args.model, args.gap_ms / 1000, args.ticks)))
         return 0
-    roots = {s.split("=", 1)[0]: Path(s.split("=", 1)[1]).resolve() for s in (args.root or [f"new={ROOT}"])}
+    sys.path.insert(0, str(ROOT))   # (here, not at the top: a child runs in another tree and imports nothing of this one's)
+    from bench.echo_vs_daemon import rotated, tree_env, tree_roots
+
+    roots = tree_roots(args.root)
     names = list(roots)
     rows = []
     for rnd in range(args.rounds):
-        for name in names[rnd % len(names):] + names[:rnd % len(names)]:
-            env = dict(os.environ, PYTHONPATH=str(roots[name]), OPENBLAS_NUM_THREADS="1")
+        for name in rotated(names, rnd):
+            env = tree_env(roots[name])
             out = subprocess.run([sys.executable, str(ROOT / "bench/hlm_cold_tick.py"), "--child", "--model", args.model,
                                   "--gap-ms", str(args.gap_ms), "--ticks", str(args.ticks)], env=env, cwd=roots[name],
                                  check=True, capture_output=True, text=True).stdout

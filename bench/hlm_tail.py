@@ -40,7 +40,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bench.echo_vs_daemon import MISSING, TEST, TRAIN, tree_env, tree_hlm  # noqa: E402
+from bench.echo_vs_daemon import MISSING, TEST, TRAIN, tree_env, tree_hlm, tree_roots  # noqa: E402
 from clients import loadgen  # noqa: E402
 from clients.client import control  # noqa: E402
 from clients.configfile import free_port, write_config  # noqa: E402
@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from mocap.datasets import load_trial
 
-    roots = {r.split("=", 1)[0]: Path(r.split("=", 1)[1]).resolve() for r in (args.root or [f"new={ROOT}"])}
+    roots = tree_roots(args.root)
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
     test = load_trial(TEST)

@@ -26,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bench.echo_vs_daemon import tree_hlm  # noqa: E402
+from bench.echo_vs_daemon import tree_hlm, tree_roots  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "lacuna-echo-vs-daemon"))
     ap.add_argument("--json", dest="json_out", default=str(ROOT / "bench/results/hotpath_ab.json"))
     args = ap.parse_args(argv)
-    roots = {s.split("=", 1)[0]: Path(s.split("=", 1)[1]).resolve() for s in (args.root or [f"new={ROOT}"])}
+    roots = tree_roots(args.root)
     hlms = {n: tree_hlm(r, Path(args.cache)) for n, r in roots.items()}
     rows = []
     names = list(roots)
