@@ -49,6 +49,21 @@ def data():
     return d
 
 
+@pytest.fixture(scope="session")
+def small_walk_hlm(data, tmp_path_factory) -> str:
+    """The path of a real HLM trained in seconds on three subject-35 walks (35_01, 35_06, 35_07;
+    3 EM iterations, 1 restart, 2 styles), trained once a session.  Load a copy of your own
+    (``lacuna.modelfile.load_model``): a model's pool holds the streams of whoever steps it."""
+    from hlm.methods import train_model
+    from mocap.datasets import load_trial
+
+    train = [load_trial(t) for t in ("35_01", "35_06", "35_07")]
+    model = train_model([m.frames for m in train], list(train[0].channels), n_iter=3, restarts=1, styles=2)
+    path = tmp_path_factory.mktemp("small-walk-hlm") / "hlm.npz"
+    model.save(str(path))
+    return str(path)
+
+
 @pytest.fixture(autouse=True)
 def _float_warnings():
     with np.errstate(over="raise", invalid="raise", divide="raise"):

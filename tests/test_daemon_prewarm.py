@@ -21,15 +21,12 @@ PERIOD = 1.0 / 120.0
 
 
 @pytest.fixture(scope="module")
-def hlm_walk(data, tmp_path_factory):
-    from hlm.methods import train_model
+def hlm_walk(small_walk_hlm):
+    from lacuna.modelfile import load_model
     from mocap.datasets import load_trial
 
-    train = [load_trial(t) for t in ("35_01", "35_06", "35_07")]
-    channels = list(train[0].channels)
-    model = train_model([m.frames for m in train], channels, n_iter=3, restarts=1, styles=2)
-    path = tmp_path_factory.mktemp("prewarm") / "hlm.npz"
-    model.save(str(path))
+    path = small_walk_hlm
+    channels = list(load_model(path).channels)
     test = load_trial("35_08").frames[:120].astype(np.float32)
     miss = np.array([c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand") for c in channels])
     test[:, miss] = np.nan

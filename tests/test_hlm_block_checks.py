@@ -13,13 +13,12 @@ pytestmark = pytest.mark.skipif(not fast.enabled(), reason="numba is not install
 
 
 @pytest.fixture(scope="module")
-def walk(data):
-    from hlm.methods import train_model
+def walk(small_walk_hlm):
+    from lacuna.modelfile import load_model
     from mocap.datasets import load_trial
 
-    train = [load_trial(t) for t in ("35_01", "35_06", "35_07")]
-    channels = train[0].channels
-    model = train_model([m.frames for m in train], channels, n_iter=3, restarts=1, styles=2)
+    model = load_model(small_walk_hlm)
+    channels = list(model.channels)
     test = load_trial("35_08").frames[:200]
     obs = np.ones(test.shape, bool)
     arm = [i for i, c in enumerate(channels) if c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand")]
