@@ -196,6 +196,13 @@ class Scheduler:
             seq = p.frame.seq
         return seq - s.model_seq - 1
 
+    def gaps(self, group: list[Session], seqs: list[int] | None = None) -> list[int]:
+        """:meth:`_gap` of every stream of ``group`` (to its frame of ``seqs``), in one pass (a live
+        tick runs this cold, where each call per stream costs: bench/notebook/hlm64-7.md)."""
+        if seqs is None:
+            return [self._gap(s) for s in group]
+        return [0 if s.model_seq is None else q - s.model_seq - 1 for s, q in zip(group, seqs)]
+
     def plan(self, model: Model, group: list[Session], now: float, arrived: float | None = None,
              seqs: list[int] | None = None, gaps: list[int] | None = None) -> StepPlan:
         """Decide level and which streams step (the rest hold).  Pure apart from reading costs.
@@ -209,7 +216,7 @@ class Scheduler:
         deadline = arrived + self.budget_s
         avail = deadline - now - self.reply_cost * len(group)
         if gaps is None:
-            gaps = [self._gap(s) for s in group] if seqs is None else [self._gap(s, q) for s, q in zip(group, seqs)]
+            gaps = self.gaps(group, seqs)
         rounds = 1 + min(max(gaps), self.max_gap)  # (the largest of the gaps capped: one pass, no generator)
         levels = levels_of(model)
         # a model about as cheap as holding gains nothing from degrading: frames already late
@@ -309,11 +316,11 @@ class Scheduler:
             for s in group:
                 if s.model_seq is not None and self._gap(s) > self.max_gap:
                     s.gap_restart()
-            return [self._gap(s) for s in group]
+            return self.gaps(group)
         for s, q in zip(group, seqs):
             if s.model_seq is not None and self._gap(s, q) > self.max_gap:
                 s.gap_restart()
-        return [self._gap(s, q) for s, q in zip(group, seqs)]
+        return self.gaps(group, seqs)
 
     def _step(self, model: Model, plan: StepPlan, rows: Rows | None = None) -> list[tuple[Session, Fill, str]]:
         """Step ``plan.step``: their waiting frames, or ``rows`` (seqs, frames, observed) of a

@@ -28,7 +28,7 @@ def run_block(sched: Scheduler, model: Model, group: list[Session], seqs: list[i
     and a status each."""
     # each stream's gap to its frame (Scheduler._gap), once for the plan and the step: a live
     # tick runs this cold, where every pass over the streams costs (bench/notebook/hlm64-7.md)
-    gaps = [0 if s.model_seq is None else q - s.model_seq - 1 for s, q in zip(group, seqs)]
+    gaps = sched.gaps(group, seqs)
     plan = sched.plan(model, group, sched.clock(), arrived, seqs, gaps)
     if not plan.hold:
         return _step(sched, model, plan, seqs, frames, observed, gaps)
