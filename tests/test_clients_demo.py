@@ -146,8 +146,11 @@ def test_demo_ctrl_c_stops_the_daemon_it_started(tmp_path):
     import sys
 
     out = tmp_path / "demo"
+    # PYTHONFAULTHANDLER: a demo that outlives its Ctrl-C is sent SIGABRT below, which dumps every
+    # thread's stack into its stderr, and the failure shows where it was stuck
     p = subprocess.Popen([sys.executable, "-m", "lacuna.cli", "demo", "--source", "synthetic", "--methods", "none",
-                          "--speed", "0.1", "--out", str(out), "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                          "--speed", "0.1", "--out", str(out), "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         env=dict(os.environ, PYTHONFAULTHANDLER="1"))
     log = out / "daemon" / "daemon.log"
     pid = None
     try:
@@ -158,7 +161,13 @@ def test_demo_ctrl_c_stops_the_daemon_it_started(tmp_path):
         assert p.poll() is None, "the demo ended before its replay"
         pid = next(json.loads(x) for x in log.read_text().splitlines() if '"ready"' in x)["pid"]
         p.send_signal(signal.SIGINT)
-        p.communicate(timeout=30)
+        try:
+            p.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            p.send_signal(signal.SIGABRT)
+            _, err = p.communicate(timeout=30)
+            pytest.fail("the demo did not exit within 30 s of its SIGINT; its stderr (stacks at SIGABRT):\n"
+                        + err.decode(errors="replace")[-6000:] + "\ndaemon log tail:\n" + log.read_text()[-2000:])
     finally:
         if p.poll() is None:
             p.kill()
