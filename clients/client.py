@@ -106,10 +106,16 @@ class _DealerLink:
             pass
 
     def close(self) -> None:
-        self._release(self._owned_streams())
-        self._close_socket()
-        if self._own_ctx:
-            self.ctx.term()
+        """Release our streams, close the socket and, if the context is ours, end it.  The context
+        is ended with ``destroy(linger=0)``, which closes any socket of it still open first: a
+        Ctrl-C that lands inside ``_open`` (the socket made, not yet kept in ``self.sock``) leaves
+        one behind that only its traceback holds, and ``term()`` would wait for it forever."""
+        try:
+            self._release(self._owned_streams())
+        finally:
+            self._close_socket()
+            if self._own_ctx:
+                self.ctx.destroy(linger=0)
 
     def _owned_streams(self) -> list[str]:
         return []

@@ -162,6 +162,30 @@ def test_no_daemon_raises_after_retries():
         assert c.session.reconnects == 1
 
 
+def test_close_does_not_wait_on_a_socket_an_interrupted_open_left_behind(daemon, hold_file):
+    """A Ctrl-C inside ``_open`` (the socket made, not yet kept) leaves a socket of the client's own
+    context that only the traceback holds; ``close`` must still end the context (``term()`` alone
+    waits for every socket forever) and give the stream up."""
+    import threading
+
+    import zmq
+
+    model = hold_file[1]
+    c = Client(daemon.endpoint, "orphaned", model.channels, timeout_s=2.0)
+    c.fill(np.zeros(len(model.channels)))
+    orphan = c.ctx.socket(zmq.DEALER)   # what the interrupted open leaves: open, referenced, never closed
+    orphan.connect(daemon.endpoint)
+    done = threading.Event()
+    t = threading.Thread(target=lambda: (c.close(), done.set()), daemon=True)
+    t.start()
+    t.join(20)
+    assert done.is_set(), "Client.close hung on a socket of its own context it did not know of"
+    assert orphan.closed and c.ctx.closed
+    # the stream was released: a second client owns it at once (no idle wait), with no claim of its own
+    with Client(daemon.endpoint, "orphaned", model.channels, timeout_s=2.0) as c2:
+        assert c2.fill(np.zeros(len(model.channels))).seq == 0
+
+
 def test_bad_frames_are_refused_before_sending(daemon):
     with Client(daemon.endpoint, "bad", ["a", "b"], timeout_s=1.0) as c:
         with pytest.raises(ValueError, match="2 channels; frame has 3"):
