@@ -99,6 +99,20 @@ the fill keeps its w.  Chosen on VALIDATION (bench/notebook/band-8.md): the band
 difference above 10% of the std) 2.4% -> 1.6% of erased values (walks 7.0% -> 3.2%), fills unchanged,
 within 2 std 0.9627 -> 0.9627, NLL 2.1977 -> 2.1992.  Files whose smooth table has no band_tau load
 with it off.
+
+Rate (``rate_a`` in the smooth table, ``rate_ref`` in the model file; off: a = 0).  Per stream and
+channel, decayed sums (exp(-1 / RATE_TAU) a frame, RATE_TAU = 120) of |dx| (wrapped for angles) and of
+1 over consecutive observed frames; a missing channel keeps the rate of its last observed frames, and
+its std is times clip((rate / ref)^a, RATE_LO, RATE_HI), ref the TRAIN data's mean |dx| a frame of that
+channel (``rate_ref``, computed by train_model; files without it load with the rate off), 1 with under
+one value's weight of history.  Fills unchanged; numpy and compiled mixing equal
+(tests/test_default_band_rate.py).  Tried for issue 17 (walks' band too wide) and not chosen
+(bench/notebook/band-12.md): on VALIDATION gaps seeds 0-2 / 3-4, a = 0.5 moves within 2 std walk
+0.990 -> 0.990 / 0.988 -> 0.986, turn 0.959 -> 0.922 / 0.959 -> 0.929, run 0.906 -> 0.964 /
+0.968 -> 0.986, non-locomotion 0.954 -> 0.918 / 0.947 -> 0.903, NLL +11% / +17%; with S refitted by
+its own rule the walks widen (0.994 / 0.992).  A walk moves at the training data's typical rate
+(median rate / ref 0.94), turns and non-locomotion at 0.4x, a run at 2.2x: the rate tells a run from a
+walk but cannot narrow the walks.
 """
 from __future__ import annotations
 
@@ -113,7 +127,7 @@ import numpy as np
 
 from blend import calib
 from blend.model import DefaultModel, checked_batch
-from blend.withhlm_fast import mix_row, observed_finite, shadow_counts
+from blend.withhlm_fast import mix_row, observed_finite, rate_band, shadow_counts
 from lacuna import jit, modelfile
 from lacuna.filler import BlockFill, Fill, FillerError, FillerState, Model, check_frame
 from mocap.representation import is_angle
@@ -344,7 +358,9 @@ class WithHLMModel(Model):
             eh, e0, nh = mix_row(F[i], O[i], HO[i], D[i], Dsd[i], H[i], Hsd[i], T[i] if has else D[i],   # type: ignore[index]
                                  has, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, s.logq),
                                  self._anc, s.k, s.o, out[i], std[i], self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
-                                 self.bdecay, s.wb, self._rpar, self._ref, s.rst)
+                                 self.bdecay, s.wb)
+            if self._rpar[1] > 0:   # the band's rate ("Rate")
+                rate_band(F[i], O[i], self.ang, std[i], self._rpar, self._ref, s.rst)
             if has and nh:
                 s._score(eh, e0)
         return BlockFill(out, std, ~O, hb.style, hb.phase)
@@ -421,7 +437,9 @@ class WithHLMModel(Model):
             eh, e0, nh = mix_row(F[i], O[i], HO[i], d.frame, d.std, h.frame, h.std, d.frame if T is None else T,
                                  T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, logq),
                                  self._anc, s.k, s.o, out, std, self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
-                                 self.bdecay, s.wb, self._rpar, self._ref, s.rst)
+                                 self.bdecay, s.wb)
+            if self._rpar[1] > 0:   # the band's rate ("Rate")
+                rate_band(F[i], O[i], self.ang, std, self._rpar, self._ref, s.rst)
             if T is not None and nh:
                 s._score(eh, e0)
             fills.append(Fill(out, std, d.filled, {**h.extras, "hlm_q": math.exp(logq)}))   # d.filled: ~O[i]

@@ -46,7 +46,7 @@ def shadow_counts(O, nonpos, sgroup, gmiss):
 
 @jit
 def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb, anchor, k, o, out, std,
-            knots, wk, pop, prel, pdecay, rp, vp, e, bdecay, wb, rpar, ref, rst):
+            knots, wk, pop, prel, pdecay, rp, vp, e, bdecay, wb):
     """One stream's frame: ``out``/``std`` from the experts' fills (D, Dsd), (H, Hsd); the state's
     frames since onset ``k`` and anchoring offsets ``o`` updated in place.  Returns the shadow
     check's squared errors of the HLM and of the twin T on the hidden angles (O and not HO) and
@@ -60,34 +60,17 @@ def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb
     (rp, vp, e updated in place).  With ``bdecay`` > 0 the band's share ``wb`` (updated in place)
     follows w from the gap's second frame on as wb += (w - wb) (1 - bdecay): the std's mixture uses
     it, the fill does not.  Without knots, with pop = 0 and bdecay = 0 this is the unsmoothed
-    mixing, bit for bit.
-
-    The band's rate (module doc, "Rate"): ``rpar`` = (decay, a, lo, hi); with a > 0 each observed
-    channel's decayed sums of |dx| over consecutive observed frames and of 1 (``rst`` rows 0, 1; its
-    last value and whether the last frame was observed, rows 2, 3) are updated in place, and a
-    missing channel's std is times clip((rate / ref)^a, lo, hi), rate = rst[0] / rst[1] (1 where
-    rst[1] < 1 or ref <= 0).  With a = 0 nothing is read or written: the band as before, bit for bit."""
+    mixing, bit for bit."""
     eh = 0.0
     e0 = 0.0
     nh = 0
     NT = t_edges.shape[0]
     NK = knots.shape[0]
-    rdecay = rpar[0]
-    ra = rpar[1]
     for j in range(F.shape[0]):
         if O[j]:
             k[j] = 0
             out[j] = F[j]
             std[j] = 0.0
-            if ra > 0.0:   # the channel's observed rate
-                if rst[3, j] > 0.0:
-                    dx = F[j] - rst[2, j]
-                    if ang[j]:
-                        dx = _wrap(dx)
-                    rst[0, j] = rst[0, j] * rdecay + abs(dx)
-                    rst[1, j] = rst[1, j] * rdecay + 1.0
-                rst[2, j] = F[j]
-                rst[3, j] = 1.0
             if has_twin and ang[j] and not HO[j]:
                 a = _wrap(H[j] - F[j])
                 b = _wrap(T[j] - F[j])
@@ -154,9 +137,32 @@ def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb
             w = wb[j]
         var = (1.0 - w) * Dsd[j] * Dsd[j] + w * Hsd[j] * Hsd[j] + w * (1.0 - w) * diff * diff
         std[j] = sc * np.sqrt(var)
-        if ra > 0.0:   # the band times the channel's rate against the training data's
+    return eh, e0, nh
+
+
+@jit
+def rate_band(F, O, ang, std, rpar, ref, rst):
+    """The band's rate (blend/withhlm.py's module doc, "Rate") after ``mix_row`` on one stream's
+    frame, called only where it is on: ``rpar`` = (decay, a, lo, hi).  Each missing channel's
+    ``std`` is times clip((rate / ref)^a, lo, hi), rate = rst[0] / rst[1] from its frames before
+    this one (1 where rst[1] < 1 or ref <= 0); each observed channel's decayed sums of |dx| over
+    consecutive observed frames and of 1 (``rst`` rows 0, 1; its last value and whether the last
+    frame was observed, rows 2, 3) are updated in place.  Off, it is not called: ``mix_row``'s
+    arguments and cost are as before the rate."""
+    rdecay = rpar[0]
+    ra = rpar[1]
+    for j in range(F.shape[0]):
+        if O[j]:
+            if rst[3, j] > 0.0:
+                dx = F[j] - rst[2, j]
+                if ang[j]:
+                    dx = _wrap(dx)
+                rst[0, j] = rst[0, j] * rdecay + abs(dx)
+                rst[1, j] = rst[1, j] * rdecay + 1.0
+            rst[2, j] = F[j]
+            rst[3, j] = 1.0
+        else:
             rst[3, j] = 0.0
             if rst[1, j] >= 1.0 and ref[j] > 0.0:
                 m = (rst[0, j] / rst[1, j] / ref[j]) ** ra
                 std[j] = std[j] * min(max(m, rpar[2]), rpar[3])
-    return eh, e0, nh

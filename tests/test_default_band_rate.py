@@ -1,5 +1,5 @@
 """``default``'s band scaled by the channel's observed rate (blend/withhlm.py, module doc "Rate"):
-on the compiled mixing itself (``blend.withhlm_fast.mix_row``) with a constructed channel whose rate
+on the compiled mixing itself (``blend.withhlm_fast.mix_row``, then ``rate_band``) with a constructed channel whose rate
 is worked out here, then the compiled step against the numpy reference on real takes with real
 gaps, the fills untouched, and the reference's persistence (files without it load with it off)."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from blend import withhlm
-from blend.withhlm_fast import mix_row
+from blend.withhlm_fast import mix_row, rate_band
 from lacuna import jit
 
 T = 80
@@ -18,7 +18,7 @@ OBS = 40   # frames 0..OBS-1 observed, the rest missing
 
 
 def _run(x, a=0.0, ref=1.0, lo=withhlm.RATE_LO, hi=withhlm.RATE_HI, rst=None, n_obs=OBS):
-    """One angle channel observed as ``x`` for OBS frames, then missing (the blend holds its last
+    """One angle channel observed as ``x`` for ``n_obs`` frames, then missing (the blend holds its last
     value, std 1; the HLM says 0, std 1; w 0.5, S 1): the mixing's std every frame, and the rate state."""
     TB, QB = len(withhlm.T_EDGES) + 1, 4
     W, S = np.full((1, TB, QB), 0.5), np.ones((1, TB))
@@ -32,7 +32,9 @@ def _run(x, a=0.0, ref=1.0, lo=withhlm.RATE_LO, hi=withhlm.RATE_HI, rst=None, n_
         F = np.array([x[min(t, n_obs - 1)]])
         mix_row(F, obs, obs, F.copy(), one, np.zeros(1), one, np.zeros(1), False,
                 np.array([True]), np.zeros(1, np.int64), W, S, withhlm.T_EDGES, 0, 0.0, k, o, out, std,
-                np.zeros(0), False, 0.0, 0.0, 0.0, rp, vp, e, 0.0, wb, rpar, np.array([ref]), rst)
+                np.zeros(0), False, 0.0, 0.0, 0.0, rp, vp, e, 0.0, wb)
+        if a > 0:   # as the model calls it: only where the rate is on
+            rate_band(F, obs, np.array([True]), std, rpar, np.array([ref]), rst)
         stds.append(std[0])
     return np.array(stds), rst
 

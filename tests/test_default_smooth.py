@@ -14,7 +14,6 @@ from blend.withhlm_fast import mix_row
 
 T = 60
 JUMP_AT = 25   # the HLM's fill jumps by 14 degrees on this frame (as its phase did on VALIDATION's walking_21)
-RATE_OFF = np.array([0.0, 0.0, 1.0, 1.0])   # the band's rate off (tests/test_default_band_rate.py)
 
 
 def _run(H, w=0.9, knots=False, pop=0.0, prel=0.0, tau=3.0, W=None, S=None, wk=None, band_tau=0.0, hsd=1.0):
@@ -36,7 +35,7 @@ def _run(H, w=0.9, knots=False, pop=0.0, prel=0.0, tau=3.0, W=None, S=None, wk=N
         obs = np.array([t == 0])
         mix_row(np.zeros(1), obs, obs, np.zeros(1), one, np.array([H[t]]), np.array([hsd]), np.zeros(1), False,
                 np.array([True]), np.zeros(1, np.int64), Wt, S, withhlm.T_EDGES, 0, 0.0, k, o, out, std,
-                kn, wk, pop, prel, pdecay, rp, vp, e, bdecay, wb, RATE_OFF, np.zeros(1), np.zeros((4, 1)))
+                kn, wk, pop, prel, pdecay, rp, vp, e, bdecay, wb)
         fills.append(out[0])
         stds.append(std[0])
     return np.array(fills), np.array(stds)
