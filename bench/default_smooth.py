@@ -8,9 +8,12 @@ mixing, not of the experts).
     OPENBLAS_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/default_smooth.py --model /tmp/default_train.npz \
         --settings off:0:0 knots:1:0 k-p2t4:1:2:4 --seeds 0-2 --json bench/results/default_smooth_validation.json
 
-A setting is NAME:KNOTS:POP[:POP_TAU[:POP_REL[:BAND_TAU]]] (KNOTS 0, 1 (W and S between the knots)
+A setting is NAME:KNOTS:POP[:POP_TAU[:POP_REL[:BAND_TAU[:RATE_A]]]] (KNOTS 0, 1 (W and S between the knots)
 or s (S only); POP degrees a frame, 0 = off; POP_TAU frames; POP_REL x the fill's last step;
-BAND_TAU frames, the band's low-passed share, 0 = off).  Besides mocap.metrics' figures, the band's
+BAND_TAU frames, the band's low-passed share, 0 = off; RATE_A the band's rate exponent, 0 = off:
+blend/withhlm.py "Rate").  A model file without the rate's reference (``rate_ref``, written before it)
+gets it from TRAIN as ``train_model`` computes it (blend.withhlm.rate_ref on protocols.Gaps()'s
+training set), so a setting with RATE_A > 0 is what a model trained now would do.  Besides mocap.metrics' figures, the band's
 kinks: over erased values from a gap's third frame on, |s[t] - 2 s[t-1] + s[t-2]| / s[t-1] of the
 std s (a band that ramps or curves has none; one that steps has one at each step): the share above
 10% and 25%.
@@ -45,7 +48,7 @@ def seeds(spec: str) -> list[int]:
 def setting(spec: str) -> tuple[str, dict]:
     name, knots, pop, *rest = spec.split(":")
     out = {"knots": knots == "1", "std_knots": knots == "s", "pop": float(pop)}
-    for key, v in zip(("pop_tau", "pop_rel", "band_tau"), rest):
+    for key, v in zip(("pop_tau", "pop_rel", "band_tau", "rate_a"), rest):
         out[key] = float(v)
     return name, out
 
@@ -94,6 +97,12 @@ def main() -> int:
         model.default.settings.gate_n0 = a.gate_n0
         model.default._par[12] = a.gate_n0
     sets = [setting(s) for s in a.settings]
+    if any(sm.get("rate_a", 0.0) > 0 for _, sm in sets) and getattr(model, "rate_ref", None) is None:
+        from blend.withhlm import rate_ref
+
+        ts = protocols.Gaps().training_set()
+        model.set_rate_ref(rate_ref(ts.sequences, list(model.channels)))
+        print("rate_ref from TRAIN (the model file has none)", file=sys.stderr)
     cases = []
     for sd in seeds(a.seeds):
         for c in protocols.Gaps(seed=sd, split=a.split).cases():

@@ -99,6 +99,20 @@ the fill keeps its w.  Chosen on VALIDATION (bench/notebook/band-8.md): the band
 difference above 10% of the std) 2.4% -> 1.6% of erased values (walks 7.0% -> 3.2%), fills unchanged,
 within 2 std 0.9627 -> 0.9627, NLL 2.1977 -> 2.1992.  Files whose smooth table has no band_tau load
 with it off.
+
+Rate (``rate_a`` in the smooth table, ``rate_ref`` in the model file; off: a = 0).  Per stream and
+channel, decayed sums (exp(-1 / RATE_TAU) a frame, RATE_TAU = 120) of |dx| (wrapped for angles) and of
+1 over consecutive observed frames; a missing channel keeps the rate of its last observed frames, and
+its std is times clip((rate / ref)^a, RATE_LO, RATE_HI), ref the TRAIN data's mean |dx| a frame of that
+channel (``rate_ref``, computed by train_model; files without it load with the rate off), 1 with under
+one value's weight of history.  Fills unchanged; numpy and compiled mixing equal
+(tests/test_default_band_rate.py).  Tried for issue 17 (walks' band too wide) and not chosen
+(bench/notebook/band-12.md): on VALIDATION gaps seeds 0-2 / 3-4, a = 0.5 moves within 2 std walk
+0.990 -> 0.990 / 0.988 -> 0.986, turn 0.959 -> 0.922 / 0.959 -> 0.929, run 0.906 -> 0.964 /
+0.968 -> 0.986, non-locomotion 0.954 -> 0.918 / 0.947 -> 0.903, NLL +11% / +17%; with S refitted by
+its own rule the walks widen (0.994 / 0.992).  A walk moves at the training data's typical rate
+(median rate / ref 0.94), turns and non-locomotion at 0.4x, a run at 2.2x: the rate tells a run from a
+walk but cannot narrow the walks.
 """
 from __future__ import annotations
 
@@ -113,7 +127,7 @@ import numpy as np
 
 from blend import calib
 from blend.model import DefaultModel, checked_batch
-from blend.withhlm_fast import mix_row, observed_finite, shadow_counts
+from blend.withhlm_fast import mix_row, observed_finite, rate_band, shadow_counts
 from lacuna import jit, modelfile
 from lacuna.filler import BlockFill, Fill, FillerError, FillerState, Model, check_frame
 from mocap.representation import is_angle
@@ -148,9 +162,14 @@ POP = 2.0        # degrees a frame the fill may depart from its own course, plus
 POP_REL = 1.0
 POP_TAU = 3.0    # frames: the decay of what the pop limit held back (all three chosen on VALIDATION: module doc)
 BAND_TAU = 12.0  # frames: the band's share w low-passed over this (module doc; chosen on VALIDATION, band-8.md)
-NO_SMOOTH = {"knots": False, "std_knots": False, "pop": 0.0, "pop_tau": POP_TAU, "pop_rel": 0.0, "band_tau": 0.0}   # files before smoothing
-SMOOTH = {"knots": False, "std_knots": True, "pop": POP, "pop_tau": POP_TAU, "pop_rel": POP_REL, "band_tau": BAND_TAU}   # the choice (withhlm.json's)
-SMOOTH_SINCE = {"band_tau": 0.0}   # keys a file's smooth table may lack (written before them): off
+RATE_A = 0.0     # the band's rate exponent (module doc, "Rate"; 0: off)
+RATE_TAU = 120.0   # frames: the decay of a channel's observed rate (1 s, about one walking cycle; fixed, not tuned)
+RATE_LO, RATE_HI = 0.5, 2.0   # the rate's factor on the band is clipped to these (fixed, not tuned)
+NO_SMOOTH = {"knots": False, "std_knots": False, "pop": 0.0, "pop_tau": POP_TAU, "pop_rel": 0.0, "band_tau": 0.0,
+             "rate_a": 0.0}   # files before smoothing
+SMOOTH = {"knots": False, "std_knots": True, "pop": POP, "pop_tau": POP_TAU, "pop_rel": POP_REL, "band_tau": BAND_TAU,
+          "rate_a": RATE_A}   # the choice (withhlm.json's)
+SMOOTH_SINCE = {"band_tau": 0.0, "rate_a": 0.0}   # keys a file's smooth table may lack (written before them): off
 
 
 def group_index(channels: list[str]) -> np.ndarray:
@@ -191,7 +210,8 @@ class WithHLMModel(Model):
     causal = True
 
     def __init__(self, default: Model, hlm: Model, W: np.ndarray, S: np.ndarray, meta: dict[str, Any] | None = None,
-                 tau: float = ANCHOR_TAU, cal: np.ndarray | None = None, smooth: dict[str, Any] | None = None):
+                 tau: float = ANCHOR_TAU, cal: np.ndarray | None = None, smooth: dict[str, Any] | None = None,
+                 rate_ref: np.ndarray | None = None):
         if list(default.channels) != list(hlm.channels):
             raise FillerError(f"{METHOD}: the experts' channels differ ({len(default.channels)} vs {len(hlm.channels)})")
         self.default, self.hlm = default, hlm
@@ -222,31 +242,60 @@ class WithHLMModel(Model):
         # S of its group times its calibration, so the calibration costs nothing there (same fills)
         self._kW = np.ascontiguousarray(self.W[self.group])
         self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
+        self.rate_ref: np.ndarray | None = None   # the training data's mean |dx| a frame per channel ("Rate")
+        self._ref = np.zeros(C)
+        if rate_ref is not None:
+            self.set_rate_ref(rate_ref)
         self.set_smooth(**(NO_SMOOTH if smooth is None else smooth))
 
     def set_smooth(self, knots: bool, pop: float, pop_tau: float = POP_TAU, pop_rel: float = POP_REL,
-                   std_knots: bool = False, band_tau: float = 0.0) -> None:
+                   std_knots: bool = False, band_tau: float = 0.0, rate_a: float = 0.0) -> None:
         """The smoothing (module doc, "Smooth"): W and S read between the time bins' knots
         (``knots``; S alone with ``std_knots``), the pop limit of ``pop`` + ``pop_rel`` |last
         step| degrees a frame (pop 0: off) with its decay over ``pop_tau`` frames, and the band's
-        share w low-passed over ``band_tau`` frames (0: off; the fill's w is not).  Applies to a
-        stream's gaps from their first frame on."""
+        share w low-passed over ``band_tau`` frames (0: off; the fill's w is not), and the band times
+        the channel's observed rate against the training data's to the power ``rate_a`` (0: off; off
+        too where the model has no ``rate_ref``).  Applies to a stream's gaps from their first frame on."""
         if not isinstance(std_knots, bool):
             raise FillerError(f"{METHOD}: smooth 'std_knots' must be true or false (got {std_knots!r})")
         if not isinstance(knots, bool):
             raise FillerError(f"{METHOD}: smooth 'knots' must be true or false (got {knots!r})")
-        for name, v in (("pop", pop), ("pop_tau", pop_tau), ("pop_rel", pop_rel), ("band_tau", band_tau)):
+        for name, v in (("pop", pop), ("pop_tau", pop_tau), ("pop_rel", pop_rel), ("band_tau", band_tau), ("rate_a", rate_a)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
                 raise FillerError(f"{METHOD}: smooth '{name}' must be a finite number >= 0 (got {v!r})")
         if pop > 0 and pop_tau <= 0:
             raise FillerError(f"{METHOD}: smooth 'pop_tau' must be > 0 when 'pop' is on (got {pop_tau!r})")
         self.smooth = {"knots": knots, "std_knots": std_knots, "pop": float(pop), "pop_tau": float(pop_tau),
-                       "pop_rel": float(pop_rel), "band_tau": float(band_tau)}
+                       "pop_rel": float(pop_rel), "band_tau": float(band_tau), "rate_a": float(rate_a)}
         self.bdecay = float(np.exp(-1.0 / band_tau)) if band_tau > 0 else 0.0
         self.knots = T_KNOTS.copy() if knots or std_knots else np.zeros(0)
         self._wk = knots
         self.pop, self.prel = float(pop), float(pop_rel)
         self.pdecay = float(np.exp(-1.0 / pop_tau)) if pop > 0 else 0.0
+        self._set_rate()
+
+    def set_scale(self, S: np.ndarray) -> None:
+        """A new std scale S (G, T) (a refit, bench/band12_refit.py); fills unchanged."""
+        S = np.asarray(S, dtype=float)
+        if S.shape != self.S.shape or not np.isfinite(S).all() or (S <= 0).any():
+            raise FillerError(f"{METHOD}: S must be {self.S.shape} finite numbers > 0 (got shape {S.shape})")
+        self.S = np.ascontiguousarray(S)
+        self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
+
+    def set_rate_ref(self, ref: np.ndarray) -> None:
+        """The training data's mean |dx| a frame per channel (``rate_ref``, module doc "Rate")."""
+        ref = np.asarray(ref, dtype=float)
+        if ref.shape != (self.n_channels,) or not np.isfinite(ref).all() or (ref < 0).any():
+            raise FillerError(f"{METHOD}: rate_ref must be {self.n_channels} finite numbers >= 0 (got shape {ref.shape})")
+        self.rate_ref = ref.copy()
+        self._ref = np.ascontiguousarray(ref)
+        if hasattr(self, "smooth"):
+            self._set_rate()
+
+    def _set_rate(self) -> None:
+        """The compiled mixing's (decay, a, lo, hi): a = 0 where the model has no rate_ref."""
+        a = self.smooth["rate_a"] if self.rate_ref is not None else 0.0
+        self._rpar = np.array([math.exp(-1.0 / RATE_TAU), a, RATE_LO, RATE_HI])
 
     def stream(self) -> WithHLMState:
         return WithHLMState(self)
@@ -310,6 +359,8 @@ class WithHLMModel(Model):
                                  has, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, s.logq),
                                  self._anc, s.k, s.o, out[i], std[i], self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
                                  self.bdecay, s.wb)
+            if self._rpar[1] > 0:   # the band's rate ("Rate")
+                rate_band(F[i], O[i], self.ang, std[i], self._rpar, self._ref, s.rst)
             if has and nh:
                 s._score(eh, e0)
         return BlockFill(out, std, ~O, hb.style, hb.phase)
@@ -387,6 +438,8 @@ class WithHLMModel(Model):
                                  T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, logq),
                                  self._anc, s.k, s.o, out, std, self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
                                  self.bdecay, s.wb)
+            if self._rpar[1] > 0:   # the band's rate ("Rate")
+                rate_band(F[i], O[i], self.ang, std, self._rpar, self._ref, s.rst)
             if T is not None and nh:
                 s._score(eh, e0)
             fills.append(Fill(out, std, d.filled, {**h.extras, "hlm_q": math.exp(logq)}))   # d.filled: ~O[i]
@@ -449,6 +502,8 @@ class WithHLMModel(Model):
             std = np.where(O, 0.0, sc * np.sqrt(var))
         else:
             std = np.where(O, 0.0, sc * np.sqrt(var)) * self.calib[self._rows, tb]
+        if self._rpar[1] > 0:   # the band times the channel's rate ("Rate")
+            std = std * self._rate_factor(states, F, O)
         fills = []
         for i, s in enumerate(states):
             s.k, s.o = K[i].copy(), off[i].copy()
@@ -460,6 +515,25 @@ class WithHLMModel(Model):
             fills.append(Fill(out[i], std[i], ~O[i], {**hfills[i].extras, "hlm_q": float(np.exp(logq[i]))}))
         return fills
 
+    def _rate_factor(self, states, F, O) -> np.ndarray:
+        """The numpy path's rate (module doc, "Rate"; mix_row's arithmetic): each missing channel's
+        factor clip((rate / ref)^a, lo, hi) from the frames before this one (1 where observed, or
+        with under one value's weight of history), then the observed channels' rates updated."""
+        rdecay, a, lo, hi = (float(x) for x in self._rpar)
+        rst = np.stack([s.rst for s in states])           # (n, 4, C)
+        rs, rn, rl, rv = rst[:, 0], rst[:, 1], rst[:, 2], rst[:, 3]
+        ok = ~O & (rn >= 1.0) & (self._ref > 0)
+        r = np.divide(rs, np.where(ok, rn, 1.0)) / np.where(self._ref > 0, self._ref, 1.0)
+        fac = np.where(ok, np.clip(np.where(ok, r, 1.0) ** a, lo, hi), 1.0)
+        Fo = np.where(O, F, rl)
+        dx = np.abs(np.where(self.ang, wrap(Fo - rl), Fo - rl))
+        upd = O & (rv > 0)
+        new = np.stack([np.where(upd, rs * rdecay + dx, rs), np.where(upd, rn * rdecay + 1.0, rn), Fo,
+                        np.where(O, 1.0, 0.0)], 1)
+        for i, s in enumerate(states):
+            s.rst = new[i].copy()
+        return fac
+
     def info(self) -> dict[str, Any]:
         return {**super().info(), "experts": [self.default.method, self.hlm.method]}
 
@@ -467,6 +541,8 @@ class WithHLMModel(Model):
     def save(self, path: str) -> None:
         parts: dict[str, Any] = {}
         arrays: dict[str, np.ndarray] = {"W": self.W, "S": self.S, "calib": self.calib}
+        if self.rate_ref is not None:
+            arrays["rate_ref"] = self.rate_ref
         with tempfile.TemporaryDirectory() as tmp:
             for key, m in (("d", self.default), ("h", self.hlm)):
                 p = str(Path(tmp) / f"{key}.npz")
@@ -496,6 +572,7 @@ class WithHLMModel(Model):
         W = modelfile.require(path, arrays, "W", (G, TB, QB))
         S = modelfile.require(path, arrays, "S", (G, TB))
         cal = modelfile.require(path, arrays, "calib", (len(d.channels), TB)) if "calib" in arrays else None   # older: 1
+        ref = modelfile.require(path, arrays, "rate_ref", (len(d.channels),)) if "rate_ref" in arrays else None   # older: off
         if list(meta["channels"]) != list(d.channels):
             raise modelfile.ModelFileError(f"{path}: channel list does not match its experts'")
         tau = meta.get("tau", ANCHOR_TAU)
@@ -508,7 +585,7 @@ class WithHLMModel(Model):
             raise modelfile.ModelFileError(f"{path}: {METHOD} 'smooth' must be a table of {sorted(NO_SMOOTH)} (got {smooth!r})")
         try:
             return cls(d, h, W, S, {k: v for k, v in meta.items() if k not in ("experts", "bins", "channels", "method", "tau", "smooth")},
-                       float(tau), cal, smooth)
+                       float(tau), cal, smooth, ref)
         except FillerError as e:
             raise modelfile.ModelFileError(f"{path}: {e}") from None
 
@@ -527,6 +604,7 @@ class WithHLMState(FillerState):
         self.o = np.zeros(C)         # the HLM's anchoring offset (module doc)
         self.rp, self.vp, self.e = np.zeros(C), np.zeros(C), np.zeros(C)   # the pop limit's course and offset ("Smooth")
         self.wb = np.zeros(C)        # the band's low-passed share w ("Smooth", band_tau)
+        self.rst = np.zeros((4, C))  # each channel's decayed sum of |dx|, of 1, last value, last observed ("Rate")
         self.lr_sum = self.lr_ss = self.lr_n = 0.0   # decayed sums of the windows' log r, log r^2, count
         self._lq = LOGQ_UNSCORED     # the pessimistic bound on log q (module doc), updated as windows close
         self.sh = -1                 # index into SHADOW_GROUPS of the hidden group, -1: none
@@ -637,4 +715,22 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
     cal = calib.from_json(json.loads(SHIPPED.read_text()).get("calib") if SHIPPED.exists() else None, list(ch),
                           group_index(list(ch)), GROUP_NAMES, len(T_EDGES) + 1)
     return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal,
-                        chosen.get("smooth", SMOOTH))
+                        chosen.get("smooth", SMOOTH), rate_ref(seqs, list(ch)))
+
+
+def rate_ref(sequences: list[np.ndarray], channels: list[str]) -> np.ndarray:
+    """Each channel's mean |dx| a frame (wrapped for angles) over the consecutive frames of the
+    training sequences where both are finite: the reference of the band's rate (module doc, "Rate");
+    0 for a channel with no such pair."""
+    ang = np.array([is_angle(c) for c in channels])
+    tot, n = np.zeros(len(channels)), np.zeros(len(channels))
+    for x in sequences:
+        x = np.asarray(x, dtype=float)
+        if len(x) < 2:
+            continue
+        ok = np.isfinite(x[1:]) & np.isfinite(x[:-1])
+        d = np.where(ok, x[1:], 0.0) - np.where(ok, x[:-1], 0.0)
+        d = np.abs(np.where(ang, wrap(d), d))
+        tot += np.where(ok, d, 0.0).sum(0)
+        n += ok.sum(0)
+    return np.divide(tot, n, out=np.zeros(len(channels)), where=n > 0)

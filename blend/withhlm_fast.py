@@ -138,3 +138,31 @@ def mix_row(F, O, HO, D, Dsd, H, Hsd, T, has_twin, ang, group, W, S, t_edges, qb
         var = (1.0 - w) * Dsd[j] * Dsd[j] + w * Hsd[j] * Hsd[j] + w * (1.0 - w) * diff * diff
         std[j] = sc * np.sqrt(var)
     return eh, e0, nh
+
+
+@jit
+def rate_band(F, O, ang, std, rpar, ref, rst):
+    """The band's rate (blend/withhlm.py's module doc, "Rate") after ``mix_row`` on one stream's
+    frame, called only where it is on: ``rpar`` = (decay, a, lo, hi).  Each missing channel's
+    ``std`` is times clip((rate / ref)^a, lo, hi), rate = rst[0] / rst[1] from its frames before
+    this one (1 where rst[1] < 1 or ref <= 0); each observed channel's decayed sums of |dx| over
+    consecutive observed frames and of 1 (``rst`` rows 0, 1; its last value and whether the last
+    frame was observed, rows 2, 3) are updated in place.  Off, it is not called: ``mix_row``'s
+    arguments and cost are as before the rate."""
+    rdecay = rpar[0]
+    ra = rpar[1]
+    for j in range(F.shape[0]):
+        if O[j]:
+            if rst[3, j] > 0.0:
+                dx = F[j] - rst[2, j]
+                if ang[j]:
+                    dx = _wrap(dx)
+                rst[0, j] = rst[0, j] * rdecay + abs(dx)
+                rst[1, j] = rst[1, j] * rdecay + 1.0
+            rst[2, j] = F[j]
+            rst[3, j] = 1.0
+        else:
+            rst[3, j] = 0.0
+            if rst[1, j] >= 1.0 and ref[j] > 0.0:
+                m = (rst[0, j] / rst[1, j] / ref[j]) ** ra
+                std[j] = std[j] * min(max(m, rpar[2]), rpar[3])

@@ -49,7 +49,8 @@ def cases(data):
 
 SMOOTHINGS = {"off": dict(knots=False, pop=0.0), "knots": dict(knots=True, pop=0.0),
               "knots+pop": dict(knots=True, pop=1.0, pop_tau=6.0), "std_knots+pop": dict(knots=False, std_knots=True, pop=2.0),
-              "band": dict(knots=False, pop=0.0, band_tau=12.0), "shipped": dict(withhlm.SMOOTH)}
+              "band": dict(knots=False, pop=0.0, band_tau=12.0), "shipped": dict(withhlm.SMOOTH),
+              "rate": {**withhlm.SMOOTH, "rate_a": 1.0}}
 
 
 @pytest.fixture(params=sorted(SMOOTHINGS))
@@ -80,7 +81,7 @@ def _run(model, compiled: bool, streams, truths, masks):
 
 def _same_state(a, b):
     assert (a.k == b.k).all() and np.allclose(a.o, b.o, rtol=0, atol=1e-9)
-    for name in ("rp", "vp", "e"):   # the pop limit's state
+    for name in ("rp", "vp", "e", "rst"):   # the pop limit's state, the band's rate
         assert np.allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-9), name
     assert abs(a.logq - b.logq) < 1e-9 and (a.sh, a.sh_n, a.sh_next) == (b.sh, b.sh_n, b.sh_next)
     assert (a.twin is None) == (b.twin is None)
@@ -164,8 +165,8 @@ def test_the_smoothing_is_saved_and_files_without_it_load_as_off(model, cases, t
     from lacuna import modelfile
 
     assert model.smooth == {"knots": False, "std_knots": True, "pop": withhlm.POP, "pop_tau": withhlm.POP_TAU,
-                            "pop_rel": withhlm.POP_REL, "band_tau": withhlm.BAND_TAU}
-    assert withhlm.shipped()[2]["smooth"] == model.smooth and model.pop > 0
+                            "pop_rel": withhlm.POP_REL, "band_tau": withhlm.BAND_TAU, "rate_a": withhlm.RATE_A}
+    assert {**withhlm.SMOOTH_SINCE, **withhlm.shipped()[2]["smooth"]} == model.smooth and model.pop > 0
     truth, obs = cases[0]
     path = tmp_path / "d.npz"
     model.save(str(path))
