@@ -12,7 +12,8 @@ R's quantiles per activity, the within-2-std share per (activity, q bin) before 
     OPENBLAS_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/default_band_q.py --model /tmp/band13_train.npz \
         --out bench/results/band13_fit.json
 
-``--check JSON`` instead compares the compiled and the numpy mixing with that fit on one VALIDATION take
+``--write JSON`` writes that fit into blend/withhlm.json ("band_q": M, gate, where fitted and chosen),
+which ``train_model`` then applies (blend.withhlm.shipped_band_q).  ``--check JSON`` instead compares the compiled and the numpy mixing with that fit on one VALIDATION take
 (fills equal to band_q off, stds equal to 1e-9 between the two paths) and prints the largest differences.
 """
 from __future__ import annotations
@@ -117,10 +118,22 @@ def check(model, fitted: dict) -> int:
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--model", required=True)
+    ap.add_argument("--model")
     ap.add_argument("--out", default="bench/results/band13_fit.json")
+    ap.add_argument("--write", help="a fit's JSON: write it into blend/withhlm.json as the shipped band_q")
     ap.add_argument("--check", help="a fit's JSON: compiled vs numpy mixing with it (see the module doc)")
     a = ap.parse_args()
+    if a.write:
+        fitted = json.loads(Path(a.write).read_text())
+        d = json.loads(withhlm.SHIPPED.read_text())
+        d["band_q"] = {"M": fitted["M"], "gate": fitted["gate"], "fitted_on": fitted["fitted_on"],
+                       "chosen_on": "VALIDATION gaps seeds 0-2 and 3-4 (rule), TEST 0-4 after the choice: "
+                                    "bench/notebook/band-13.md"}
+        withhlm.SHIPPED.write_text(json.dumps(d, indent=1) + "\n")
+        print(f"wrote {withhlm.SHIPPED}")
+        return 0
+    if not a.model:
+        ap.error("--model is needed to fit or check")
     model = load_model(a.model)
     if model.rate_ref is None:
         model.set_rate_ref(withhlm.rate_ref(protocols.Gaps().training_set().sequences, list(model.channels)))

@@ -113,6 +113,23 @@ one value's weight of history.  Fills unchanged; numpy and compiled mixing equal
 its own rule the walks widen (0.994 / 0.992).  A walk moves at the training data's typical rate
 (median rate / ref 0.94), turns and non-locomotion at 0.4x, a run at 2.2x: the rate tells a run from a
 walk but cannot narrow the walks.
+
+Band q (``band_q`` (G, Q) and ``band_gate`` (r0, r1) in the model file, from withhlm.json's "band_q";
+off: ones; files without them load with ones).  Where the HLM is clearly better (q bins 0, 1) only walks
+were left to set S, and their band was too wide (issue 17).  A missing channel of group g in q bin q has
+its std times mb, the low-passed (over band_tau, from the gap's first frame, as the band's share)
+1 + (band_q[g, q] - 1) gate, gate from the *stream's* rate R = the median over angle channels with a
+reference and one value's weight of history of rate / ref ("Rate"'s estimate, read before the frame's
+update): 1 for R <= r0, 0 for R >= r1, linear between, 0 without a rate.  So the narrowing, fitted on the
+walks, holds only at walking pace: band-10 (bench/notebook/band-10.md) had it ungated, and TEST's run
+35_25, which reaches q < 0.7, fell to 0.84 within 2 std.  Fitted on VALIDATION gaps seeds 100-102
+(bench/default_band_q.py: band_q by S's own rule per (group, q0/q1); r0 = the walks' 90% quantile of R,
+1.63, r1 = the run's 10% quantile, 1.77), chosen by bench/notebook/band-13.md's rule on VALIDATION seeds
+0-2 / 3-4: within 2 std walk 0.990 -> 0.976 / 0.988 -> 0.977 (into [0.90, 0.98]), turn, run and
+non-locomotion unchanged, NLL 2.199 -> 2.179 / 2.212 -> 2.170; then TEST seeds 0-4, after the choice:
+walk 0.967 -> 0.961, run 0.943 -> 0.942 (ungated: 0.861), turn and non-locomotion unchanged, NLL
+2.187 -> 2.186.  Fills unchanged; numpy and compiled mixing equal (tests/test_default_band_q.py); its
+compiled kernel ``q_band`` runs after ``mix_row`` only where band_q is on (off: main's mix_row).
 """
 from __future__ import annotations
 

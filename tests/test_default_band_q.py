@@ -103,7 +103,12 @@ def model(data):
     ts = protocols.TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, TRAIN_TAKES,
                                [splits.ACTIVITY[t] for t in TRAIN_TAKES])
     m = withhlm.train_model(ts, **SMALL_HLM)
-    assert not m._qon and m.band_gate is None   # main's withhlm.json: off
+    M, gate = withhlm.shipped_band_q()   # train_model applies blend/withhlm.json's band_q and gate
+    if M is None:
+        assert not m._qon and m.band_gate is None
+    else:
+        np.testing.assert_array_equal(m.band_q, M)
+        assert m._qon == bool((M != 1).any()) and list(m.band_gate) == list(gate)
     return m
 
 
