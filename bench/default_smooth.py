@@ -8,10 +8,11 @@ mixing, not of the experts).
     OPENBLAS_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/default_smooth.py --model /tmp/default_train.npz \
         --settings off:0:0 knots:1:0 k-p2t4:1:2:4 --seeds 0-2 --json bench/results/default_smooth_validation.json
 
-A setting is NAME:KNOTS:POP[:POP_TAU[:POP_REL[:BAND_TAU[:RATE_A]]]] (KNOTS 0, 1 (W and S between the knots)
+A setting is NAME:KNOTS:POP[:POP_TAU[:POP_REL[:BAND_TAU[:RATE_A[:BQ]]]]] (KNOTS 0, 1 (W and S between the knots)
 or s (S only); POP degrees a frame, 0 = off; POP_TAU frames; POP_REL x the fill's last step;
 BAND_TAU frames, the band's low-passed share, 0 = off; RATE_A the band's rate exponent, 0 = off:
-blend/withhlm.py "Rate").  A model file without the rate's reference (``rate_ref``, written before it)
+blend/withhlm.py "Rate"; BQ band_q from --band-q's fit (bench/default_band_q.py): 0 off, g with its rate
+gate, u ungated; blend/withhlm.py "Band q").  A model file without the rate's reference (``rate_ref``, written before it)
 gets it from TRAIN as ``train_model`` computes it (blend.withhlm.rate_ref on protocols.Gaps()'s
 training set), so a setting with RATE_A > 0 is what a model trained now would do.  Besides mocap.metrics' figures, the band's
 kinks: over erased values from a gap's third frame on, |s[t] - 2 s[t-1] + s[t-2]| / s[t-1] of the
@@ -50,7 +51,10 @@ def setting(spec: str) -> tuple[str, dict]:
     out = {"knots": knots == "1", "std_knots": knots == "s", "pop": float(pop)}
     for key, v in zip(("pop_tau", "pop_rel", "band_tau", "rate_a"), rest):
         out[key] = float(v)
-    return name, out
+    bq = rest[4] if len(rest) > 4 else "0"
+    if bq not in ("0", "g", "u"):
+        raise SystemExit(f"{spec}: BQ must be 0, g or u")
+    return name, {**out, "bq": bq}
 
 
 def band_kinks(std: np.ndarray, observed: np.ndarray) -> np.ndarray:
@@ -82,6 +86,7 @@ def main() -> int:
     ap.add_argument("--seeds", default="0-2")
     ap.add_argument("--split", default="validation", choices=["validation", "test"])
     ap.add_argument("--json")
+    ap.add_argument("--band-q", help="bench/default_band_q.py's fit (JSON), for settings with BQ g or u")
     ap.add_argument("--gate-n0", type=float, help="the blend's gate_n0 instead of the file's (blend/model.py Settings)")
     a = ap.parse_args()
     if a.model:
@@ -97,7 +102,11 @@ def main() -> int:
         model.default.settings.gate_n0 = a.gate_n0
         model.default._par[12] = a.gate_n0
     sets = [setting(s) for s in a.settings]
-    if any(sm.get("rate_a", 0.0) > 0 for _, sm in sets) and getattr(model, "rate_ref", None) is None:
+    fitted = json.loads(Path(a.band_q).read_text()) if a.band_q else None
+    if any(sm["bq"] != "0" for _, sm in sets) and fitted is None:
+        raise SystemExit("settings with BQ g or u need --band-q")
+    ones = np.ones_like(np.array(model.band_q, float)) if hasattr(model, "band_q") else None
+    if any(sm.get("rate_a", 0.0) > 0 or sm["bq"] == "g" for _, sm in sets) and getattr(model, "rate_ref", None) is None:
         from blend.withhlm import rate_ref
 
         ts = protocols.Gaps().training_set()
@@ -115,7 +124,11 @@ def main() -> int:
     for i, c in enumerate(cases):
         given = np.where(c.observed, c.truth, np.nan)
         for name, sm in sets:
-            model.set_smooth(**sm)
+            model.set_smooth(**{k: v for k, v in sm.items() if k != "bq"})
+            if sm["bq"] != "0":
+                model.set_band_q(np.array(fitted["M"]), fitted["gate"] if sm["bq"] == "g" else None)   # type: ignore[index]
+            elif ones is not None:
+                model.set_band_q(ones)
             fill, std = model.fill_offline(given, c.observed)
             tables[name][splits.ACTIVITY[c.test]].append(metrics.values(c, fill, std, c.info["groups"]))
             bends[name][splits.ACTIVITY[c.test]].append(band_kinks(std, c.observed))

@@ -113,6 +113,23 @@ one value's weight of history.  Fills unchanged; numpy and compiled mixing equal
 its own rule the walks widen (0.994 / 0.992).  A walk moves at the training data's typical rate
 (median rate / ref 0.94), turns and non-locomotion at 0.4x, a run at 2.2x: the rate tells a run from a
 walk but cannot narrow the walks.
+
+Band q (``band_q`` (G, Q) and ``band_gate`` (r0, r1) in the model file, from withhlm.json's "band_q";
+off: ones; files without them load with ones).  Where the HLM is clearly better (q bins 0, 1) only walks
+were left to set S, and their band was too wide (issue 17).  A missing channel of group g in q bin q has
+its std times mb, the low-passed (over band_tau, from the gap's first frame, as the band's share)
+1 + (band_q[g, q] - 1) gate, gate from the *stream's* rate R = the median over angle channels with a
+reference and one value's weight of history of rate / ref ("Rate"'s estimate, read before the frame's
+update): 1 for R <= r0, 0 for R >= r1, linear between, 0 without a rate.  So the narrowing, fitted on the
+walks, holds only at walking pace: band-10 (bench/notebook/band-10.md) had it ungated, and TEST's run
+35_25, which reaches q < 0.7, fell to 0.84 within 2 std.  Fitted on VALIDATION gaps seeds 100-102
+(bench/default_band_q.py: band_q by S's own rule per (group, q0/q1); r0 = the walks' 90% quantile of R,
+1.63, r1 = the run's 10% quantile, 1.77), chosen by bench/notebook/band-13.md's rule on VALIDATION seeds
+0-2 / 3-4: within 2 std walk 0.990 -> 0.976 / 0.988 -> 0.977 (into [0.90, 0.98]), turn, run and
+non-locomotion unchanged, NLL 2.199 -> 2.179 / 2.212 -> 2.170; then TEST seeds 0-4, after the choice:
+walk 0.967 -> 0.961, run 0.943 -> 0.942 (ungated: 0.861), turn and non-locomotion unchanged, NLL
+2.187 -> 2.186.  Fills unchanged; numpy and compiled mixing equal (tests/test_default_band_q.py); its
+compiled kernel ``q_band`` runs after ``mix_row`` only where band_q is on (off: main's mix_row).
 """
 from __future__ import annotations
 
@@ -127,7 +144,7 @@ import numpy as np
 
 from blend import calib
 from blend.model import DefaultModel, checked_batch
-from blend.withhlm_fast import mix_row, observed_finite, rate_band, shadow_counts
+from blend.withhlm_fast import mix_row, observed_finite, q_band, rate_band, shadow_counts
 from lacuna import jit, modelfile
 from lacuna.filler import BlockFill, Fill, FillerError, FillerState, Model, check_frame
 from mocap.representation import is_angle
@@ -211,7 +228,8 @@ class WithHLMModel(Model):
 
     def __init__(self, default: Model, hlm: Model, W: np.ndarray, S: np.ndarray, meta: dict[str, Any] | None = None,
                  tau: float = ANCHOR_TAU, cal: np.ndarray | None = None, smooth: dict[str, Any] | None = None,
-                 rate_ref: np.ndarray | None = None):
+                 rate_ref: np.ndarray | None = None, band_q: np.ndarray | None = None,
+                 band_gate: Any = None):
         if list(default.channels) != list(hlm.channels):
             raise FillerError(f"{METHOD}: the experts' channels differ ({len(default.channels)} vs {len(hlm.channels)})")
         self.default, self.hlm = default, hlm
@@ -247,6 +265,24 @@ class WithHLMModel(Model):
         if rate_ref is not None:
             self.set_rate_ref(rate_ref)
         self.set_smooth(**(NO_SMOOTH if smooth is None else smooth))
+        self.set_band_q(np.ones((len(GROUP_NAMES), len(Q_EDGES) + 1)) if band_q is None else band_q, band_gate)
+
+    def set_band_q(self, M: np.ndarray, gate: Any = None) -> None:
+        """The band's multiplier per (group, q bin) (module doc, "Band q"; ones: off) and its rate gate
+        (r0, r1) (None: ungated); fills unchanged."""
+        M = np.asarray(M, dtype=float)
+        shape = (len(GROUP_NAMES), len(Q_EDGES) + 1)
+        if M.shape != shape or not np.isfinite(M).all() or (M <= 0).any():
+            raise FillerError(f"{METHOD}: band_q must be {shape} finite numbers > 0 (got shape {M.shape})")
+        if gate is not None:
+            g = np.asarray(gate, dtype=float)
+            if g.shape != (2,) or not np.isfinite(g).all() or (g < 0).any() or g[1] < g[0]:
+                raise FillerError(f"{METHOD}: band_gate must be (r0, r1), finite, 0 <= r0 <= r1 (got {gate!r})")
+            gate = g.copy()
+        self.band_q, self.band_gate = M.copy(), gate
+        self._kM = np.ascontiguousarray(M[self.group])   # per channel, as _kW
+        self._qon = bool((M != 1.0).any())
+        self._gpar = np.array([0.0, 0.0, 0.0]) if gate is None else np.array([gate[0], gate[1], 1.0])
 
     def set_smooth(self, knots: bool, pop: float, pop_tau: float = POP_TAU, pop_rel: float = POP_REL,
                    std_knots: bool = False, band_tau: float = 0.0, rate_a: float = 0.0) -> None:
@@ -359,6 +395,9 @@ class WithHLMModel(Model):
                                  has, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, s.logq),
                                  self._anc, s.k, s.o, out[i], std[i], self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
                                  self.bdecay, s.wb)
+            if self._qon:   # band_q ("Band q")
+                q_band(F[i], O[i], self.ang, std[i], s.k, self._kM, bisect_right(self._qe, s.logq), self.bdecay, s.mb,
+                       self._gpar, self._ref, s.rst, self._rpar[0], self._rpar[1] <= 0, s.buf)
             if self._rpar[1] > 0:   # the band's rate ("Rate")
                 rate_band(F[i], O[i], self.ang, std[i], self._rpar, self._ref, s.rst)
             if has and nh:
@@ -438,6 +477,9 @@ class WithHLMModel(Model):
                                  T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, logq),
                                  self._anc, s.k, s.o, out, std, self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
                                  self.bdecay, s.wb)
+            if self._qon:   # band_q ("Band q")
+                q_band(F[i], O[i], self.ang, std, s.k, self._kM, bisect_right(self._qe, logq), self.bdecay, s.mb,
+                       self._gpar, self._ref, s.rst, self._rpar[0], self._rpar[1] <= 0, s.buf)
             if self._rpar[1] > 0:   # the band's rate ("Rate")
                 rate_band(F[i], O[i], self.ang, std, self._rpar, self._ref, s.rst)
             if T is not None and nh:
@@ -502,8 +544,14 @@ class WithHLMModel(Model):
             std = np.where(O, 0.0, sc * np.sqrt(var))
         else:
             std = np.where(O, 0.0, sc * np.sqrt(var)) * self.calib[self._rows, tb]
+        if self._qon:   # band_q, from the rates before this frame's update ("Band q")
+            mfac = self._q_factor(states, K, qb[:, 0], O)
         if self._rpar[1] > 0:   # the band times the channel's rate ("Rate")
             std = std * self._rate_factor(states, F, O)
+        elif self._qon:
+            self._rate_factor(states, F, O)   # only its update of the rates
+        if self._qon:
+            std = std * mfac
         fills = []
         for i, s in enumerate(states):
             s.k, s.o = K[i].copy(), off[i].copy()
@@ -514,6 +562,28 @@ class WithHLMModel(Model):
                     "sH": Hsd[i, j], "logq": np.full(len(j), logq[i])}
             fills.append(Fill(out[i], std[i], ~O[i], {**hfills[i].extras, "hlm_q": float(np.exp(logq[i]))}))
         return fills
+
+    def _q_factor(self, states, K, qb, O) -> np.ndarray:
+        """The numpy path's band_q (module doc, "Band q"; q_band's arithmetic): each missing channel's
+        low-passed 1 + (band_q - 1) gate, the gate from the stream's rate before this frame."""
+        n = len(states)
+        gate = np.ones(n)
+        if self._gpar[2] > 0:
+            r0, r1 = self._gpar[0], self._gpar[1]
+            for i, s in enumerate(states):
+                rs, rn = s.rst[0], s.rst[1]
+                ok = self.ang & (self._ref > 0) & (rn >= 1.0)
+                if not ok.any():
+                    gate[i] = 0.0
+                    continue
+                r = float(np.median(rs[ok] / rn[ok] / self._ref[ok]))
+                gate[i] = 1.0 if r <= r0 else 0.0 if r >= r1 else (r1 - r) / (r1 - r0)
+        m = 1.0 + (self._kM[:, qb].T - 1.0) * gate[:, None]          # (n, C)
+        mb = np.stack([s.mb for s in states])
+        mb = np.where((K == 1) | (self.bdecay <= 0), m, mb + (m - mb) * (1.0 - self.bdecay))
+        for i, s in enumerate(states):
+            s.mb = np.where(O[i], s.mb, mb[i])
+        return np.where(O, 1.0, mb)
 
     def _rate_factor(self, states, F, O) -> np.ndarray:
         """The numpy path's rate (module doc, "Rate"; mix_row's arithmetic): each missing channel's
@@ -543,6 +613,10 @@ class WithHLMModel(Model):
         arrays: dict[str, np.ndarray] = {"W": self.W, "S": self.S, "calib": self.calib}
         if self.rate_ref is not None:
             arrays["rate_ref"] = self.rate_ref
+        if self._qon:
+            arrays["band_q"] = self.band_q
+            if self.band_gate is not None:
+                arrays["band_gate"] = self.band_gate
         with tempfile.TemporaryDirectory() as tmp:
             for key, m in (("d", self.default), ("h", self.hlm)):
                 p = str(Path(tmp) / f"{key}.npz")
@@ -573,6 +647,8 @@ class WithHLMModel(Model):
         S = modelfile.require(path, arrays, "S", (G, TB))
         cal = modelfile.require(path, arrays, "calib", (len(d.channels), TB)) if "calib" in arrays else None   # older: 1
         ref = modelfile.require(path, arrays, "rate_ref", (len(d.channels),)) if "rate_ref" in arrays else None   # older: off
+        bq = modelfile.require(path, arrays, "band_q", (G, QB)) if "band_q" in arrays else None   # older: ones (off)
+        bg = modelfile.require(path, arrays, "band_gate", (2,)) if "band_gate" in arrays else None
         if list(meta["channels"]) != list(d.channels):
             raise modelfile.ModelFileError(f"{path}: channel list does not match its experts'")
         tau = meta.get("tau", ANCHOR_TAU)
@@ -585,7 +661,7 @@ class WithHLMModel(Model):
             raise modelfile.ModelFileError(f"{path}: {METHOD} 'smooth' must be a table of {sorted(NO_SMOOTH)} (got {smooth!r})")
         try:
             return cls(d, h, W, S, {k: v for k, v in meta.items() if k not in ("experts", "bins", "channels", "method", "tau", "smooth")},
-                       float(tau), cal, smooth, ref)
+                       float(tau), cal, smooth, ref, bq, bg)
         except FillerError as e:
             raise modelfile.ModelFileError(f"{path}: {e}") from None
 
@@ -605,6 +681,8 @@ class WithHLMState(FillerState):
         self.rp, self.vp, self.e = np.zeros(C), np.zeros(C), np.zeros(C)   # the pop limit's course and offset ("Smooth")
         self.wb = np.zeros(C)        # the band's low-passed share w ("Smooth", band_tau)
         self.rst = np.zeros((4, C))  # each channel's decayed sum of |dx|, of 1, last value, last observed ("Rate")
+        self.mb = np.ones(C)         # band_q's low-passed multiplier ("Band q")
+        self.buf = np.zeros(C)       # scratch for the stream's rate ("Band q")
         self.lr_sum = self.lr_ss = self.lr_n = 0.0   # decayed sums of the windows' log r, log r^2, count
         self._lq = LOGQ_UNSCORED     # the pessimistic bound on log q (module doc), updated as windows close
         self.sh = -1                 # index into SHADOW_GROUPS of the hidden group, -1: none
@@ -715,7 +793,18 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
     cal = calib.from_json(json.loads(SHIPPED.read_text()).get("calib") if SHIPPED.exists() else None, list(ch),
                           group_index(list(ch)), GROUP_NAMES, len(T_EDGES) + 1)
     return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal,
-                        chosen.get("smooth", SMOOTH), rate_ref(seqs, list(ch)))
+                        chosen.get("smooth", SMOOTH), rate_ref(seqs, list(ch)), *shipped_band_q())
+
+
+def shipped_band_q() -> tuple[np.ndarray | None, list[float] | None]:
+    """(band_q, band_gate) from blend/withhlm.json ("band_q": {"M": G x Q, "gate": [r0, r1] or null});
+    (None, None), i.e. off, where it has none."""
+    if not SHIPPED.exists():
+        return None, None
+    bq = json.loads(SHIPPED.read_text()).get("band_q")
+    if not bq:
+        return None, None
+    return np.array(bq["M"], float), bq.get("gate")
 
 
 def rate_ref(sequences: list[np.ndarray], channels: list[str]) -> np.ndarray:

@@ -166,3 +166,59 @@ def rate_band(F, O, ang, std, rpar, ref, rst):
             if rst[1, j] >= 1.0 and ref[j] > 0.0:
                 m = (rst[0, j] / rst[1, j] / ref[j]) ** ra
                 std[j] = std[j] * min(max(m, rpar[2]), rpar[3])
+
+
+@jit
+def stream_rate(ang, ref, rst, buf):
+    """The stream's rate (blend/withhlm.py's module doc, "Band q"): the median over angle channels
+    with ref > 0 and at least one value's weight of history (rst[1] >= 1) of rst[0] / rst[1] / ref;
+    -1 where no channel has any.  ``buf``: scratch of the channels' length."""
+    n = 0
+    for j in range(ang.shape[0]):
+        if ang[j] and ref[j] > 0.0 and rst[1, j] >= 1.0:
+            buf[n] = rst[0, j] / rst[1, j] / ref[j]
+            n += 1
+    if n == 0:
+        return -1.0
+    return np.median(buf[:n])
+
+
+@jit
+def q_band(F, O, ang, std, k, M, qb, bdecay, mb, gpar, ref, rst, rdecay, upd, buf):
+    """band_q after ``mix_row`` on one stream's frame, called only where it is on (module doc,
+    "Band q"): each missing channel j's ``std`` times mb[j], the low-passed (over ``bdecay``, from
+    the gap's first frame k[j] == 1) target 1 + (M[j, qb] - 1) gate, gate from the stream's rate
+    read before this frame's update (gpar = (r0, r1, gated): 1 for rate <= r0, 0 for >= r1, linear
+    between, 0 without a rate; gated 0: 1).  With ``upd`` (the band's rate off: rate_band is not
+    called) the observed channels' rate sums ``rst`` are updated here, as rate_band does."""
+    gate = 1.0
+    if gpar[2] > 0.0:
+        r = stream_rate(ang, ref, rst, buf)
+        if r < 0.0:
+            gate = 0.0
+        elif r <= gpar[0]:
+            gate = 1.0
+        elif r >= gpar[1]:
+            gate = 0.0
+        else:
+            gate = (gpar[1] - r) / (gpar[1] - gpar[0])
+    for j in range(F.shape[0]):
+        if O[j]:
+            if upd:
+                if rst[3, j] > 0.0:
+                    dx = F[j] - rst[2, j]
+                    if ang[j]:
+                        dx = _wrap(dx)
+                    rst[0, j] = rst[0, j] * rdecay + abs(dx)
+                    rst[1, j] = rst[1, j] * rdecay + 1.0
+                rst[2, j] = F[j]
+                rst[3, j] = 1.0
+        else:
+            if upd:
+                rst[3, j] = 0.0
+            m = 1.0 + (M[j, qb] - 1.0) * gate
+            if k[j] == 1 or bdecay <= 0.0:
+                mb[j] = m
+            else:
+                mb[j] = mb[j] + (m - mb[j]) * (1.0 - bdecay)
+            std[j] = std[j] * mb[j]

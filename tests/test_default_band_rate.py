@@ -166,9 +166,14 @@ def test_the_reference_is_saved_and_files_without_it_load_with_the_rate_off(mode
     old = modelfile.load_model(str(tmp_path / "old.npz"))
     assert old.rate_ref is None and old.smooth["rate_a"] == 1.0
     f_old, s_old = old.fill_offline(given, obs)
-    f0, s0 = _fill(model, jit.enabled(), 0.0, truth, obs)
+    bq, gate = model.band_q.copy(), model.band_gate
+    model.set_band_q(np.ones_like(bq))   # no reference: no rate, so band_q's gate is shut too ("Band q")
+    try:
+        f0, s0 = _fill(model, jit.enabled(), 0.0, truth, obs)
+    finally:
+        model.set_band_q(bq, gate)
     np.testing.assert_array_equal(f_old, f1)
-    np.testing.assert_allclose(s_old, s0, rtol=0, atol=1e-12)   # no reference: the band as at a = 0
+    np.testing.assert_allclose(s_old, s0, rtol=0, atol=1e-12)   # no reference: the band as at a = 0, band_q off
     before = {k: v for k, v in meta["smooth"].items() if k != "rate_a"}   # a smooth table before rate_a: off
     modelfile.save_arrays(str(tmp_path / "before.npz"), {**meta, "smooth": before}, arrays)
     assert modelfile.load_model(str(tmp_path / "before.npz")).smooth["rate_a"] == 0.0
