@@ -297,9 +297,11 @@ def main() -> int:
                              "SHADOW_EAGER": eager, "Q_PRIOR_N": prior, "SHADOW_REVOKE": revoke,
                              "worst_take": [round(bad, 4), where]}}
         out = {"W": W.round(4).tolist(), "S": S.round(4).tolist(), "chosen": chosen}
-        if withhlm.SHIPPED.exists() and "calib" in (old := json.loads(withhlm.SHIPPED.read_text())):
-            out["calib"] = old["calib"]   # kept as it was: refit it after W/S change (bench/default_calib.py fit --write)
-            print("kept the calibration (\"calib\") as it was: refit it (bench/default_calib.py)")
+        old = json.loads(withhlm.SHIPPED.read_text()) if withhlm.SHIPPED.exists() else {}
+        for key, how in (("calib", "bench/default_calib.py fit --write"), ("band_q", "bench/default_band_q.py --write")):
+            if key in old:   # kept as it was, fitted on the old W/S: refit it after a W/S change
+                out[key] = old[key]
+                print(f"kept \"{key}\" as it was: refit it ({how})")
         withhlm.SHIPPED.write_text(json.dumps(out, indent=1) + "\n")
         print(f"wrote {withhlm.SHIPPED}")
     return 0

@@ -144,7 +144,7 @@ import numpy as np
 
 from blend import calib
 from blend.model import DefaultModel, checked_batch
-from blend.withhlm_fast import mix_row, observed_finite, q_band, rate_band, shadow_counts
+from blend.withhlm_fast import RATE_FTZ, mix_row, observed_finite, q_band, rate_band, shadow_counts
 from lacuna import jit, modelfile
 from lacuna.filler import BlockFill, Fill, FillerError, FillerState, Model, check_frame
 from mocap.representation import is_angle
@@ -598,7 +598,9 @@ class WithHLMModel(Model):
         Fo = np.where(O, F, rl)
         dx = np.abs(np.where(self.ang, wrap(Fo - rl), Fo - rl))
         upd = O & (rv > 0)
-        new = np.stack([np.where(upd, rs * rdecay + dx, rs), np.where(upd, rn * rdecay + 1.0, rn), Fo,
+        rs1 = rs * rdecay + dx
+        rs1[rs1 < RATE_FTZ] = 0.0   # subnormals (withhlm_fast._ftz)
+        new = np.stack([np.where(upd, rs1, rs), np.where(upd, rn * rdecay + 1.0, rn), Fo,
                         np.where(O, 1.0, 0.0)], 1)
         for i, s in enumerate(states):
             s.rst = new[i].copy()

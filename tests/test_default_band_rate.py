@@ -177,3 +177,29 @@ def test_the_reference_is_saved_and_files_without_it_load_with_the_rate_off(mode
     before = {k: v for k, v in meta["smooth"].items() if k != "rate_a"}   # a smooth table before rate_a: off
     modelfile.save_arrays(str(tmp_path / "before.npz"), {**meta, "smooth": before}, arrays)
     assert modelfile.load_model(str(tmp_path / "before.npz")).smooth["rate_a"] == 0.0
+
+
+def test_a_channel_held_exactly_still_flushes_its_rate_to_zero_not_into_subnormals():
+    """A channel that never moves decays its |dx| sum geometrically: after ~85,000 frames (12 minutes
+    at 120 Hz) it would be a subnormal float, each operation on which costs ~100x.  Below RATE_FTZ it is
+    0, in the compiled kernel and in the numpy path alike (the rate's factor is then its clip's floor
+    either way)."""
+    from types import SimpleNamespace
+
+    from blend.withhlm_fast import RATE_FTZ
+
+    still = np.full(OBS, 12.5)
+    rst = np.array([[RATE_FTZ * 1.2], [120.0], [12.5], [1.0]])    # ~22 frames of decay from the floor
+    s1, rst = _run(still, a=1.0, ref=0.5, rst=rst)
+    assert rst[0, 0] == 0.0 and rst[1, 0] > 1.0
+    s0, _ = _run(still)
+    np.testing.assert_allclose(s1[OBS:], s0[OBS:] * withhlm.RATE_LO, rtol=1e-12)
+    # the numpy reference, frame by frame from the same state
+    rpar = np.array([math.exp(-1.0 / withhlm.RATE_TAU), 1.0, withhlm.RATE_LO, withhlm.RATE_HI])
+    me = SimpleNamespace(_rpar=rpar, ang=np.array([True]), _ref=np.array([0.5]))
+    st = SimpleNamespace(rst=np.array([[RATE_FTZ * 1.2], [120.0], [12.5], [1.0]]))
+    seen = []
+    for _ in range(OBS):
+        withhlm.WithHLMModel._rate_factor(me, [st], np.array([[12.5]]), np.array([[True]]))
+        seen.append(st.rst[0, 0])
+    assert seen[-1] == 0.0 and all(v == 0.0 or v >= RATE_FTZ for v in seen)
