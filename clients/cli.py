@@ -275,9 +275,19 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
+    """SIGTERM (a ``kill``, a CI job's timeout) stops the demo as Ctrl-C does: it unwinds through the
+    demo's ``finally``, which stops the daemon it started (the default SIGTERM would end this process
+    at once and leave that daemon running, orphaned)."""
     from clients import demo
 
-    return demo.run(args)
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    before = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        return demo.run(args)
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 def _check_skeleton(model_path: str, motion: Any, skeleton: str | None) -> None:
