@@ -50,13 +50,13 @@ def _gc(phase, info):
 gc.callbacks.append(_gc)
 _turn = loop.Daemon.turn
 def turn(self, now, ready=None, items=None, arrived=None):
-    t = pc()
+    t, c = pc(), time.thread_time()
     st["in_turn"] = True
     try:
         return _turn(self, now, ready, items, arrived)
     finally:
         st["in_turn"] = False
-        T.append((t, pc() - t, len(self.sessions.sessions)))
+        T.append((t, pc() - t, len(self.sessions.sessions), time.thread_time() - c))
 loop.Daemon.turn = turn
 _hk = loop.Daemon._housekeeping
 def housekeeping(self, now):
@@ -128,12 +128,18 @@ def one_run(root: Path, args: argparse.Namespace, frames: Any, observed: Any, ch
     # the join: the first turn that saw more sessions than the first group's
     join_t = next((t[0] for t in turns if t[2] > args.streams), t_join)
     after = [t for t in turns if join_t - 0.01 <= t[0] <= join_t + 1.0]
+    # the turns that admitted the joining streams (their session count grew): wall and thread CPU
+    adm = [t for p, t in zip(turns, turns[1:]) if t[2] > p[2] and t[2] > args.streams]
     ov_a = [o for o in tr["overdue"] if o[1].startswith(f"{tag}a")]
     return {"tree": tag, "a_sent": a.sent, "a_served": a.served, "a_dropped": a.dropped,
             "a_drop_reasons": a.drop_reasons, "b_sent": b.sent, "b_served": b.served, "b_dropped": b.dropped,
             "a_overdue_in_daemon": len(ov_a),
             "a_overdue_within_1s_of_join": sum(1 for o in ov_a if join_t - 0.01 <= o[0] <= join_t + 1.0),
             "join_turn_max_ms": round(max((t[1] for t in after), default=0.0) * 1e3, 3),
+            "admitting_turns": len(adm),
+            "admitting_cpu_ms_total": round(sum(t[3] for t in adm) * 1e3, 3),
+            "admitting_cpu_ms_max": round(max((t[3] for t in adm), default=0.0) * 1e3, 3),
+            "admitting_wall_ms_max": round(max((t[1] for t in adm), default=0.0) * 1e3, 3),
             "turn_ms_max": round(max((t[1] for t in turns), default=0.0) * 1e3, 3),
             "turns_over_4ms": sum(1 for t in turns if t[1] > 0.004),
             "gc_by_gen": {g: sum(1 for x in gcs if x[2] == g) for g in (0, 1, 2)},
