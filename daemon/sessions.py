@@ -216,7 +216,7 @@ class SessionTable:
             if s.model_name != name:
                 continue
             chans = list(model.channels) or s.mapping.channels
-            mp = Mapping.build(s.mapping.channels, chans)
+            mp = self._mapping(s.mapping.channels, chans)  # (a reload rebinds every stream in one turn)
             if chans and mp.s_idx.size == 0:
                 continue
             if s.fk is not None:  # a stream that asked for positions keeps them, or keeps its old model

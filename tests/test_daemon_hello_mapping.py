@@ -38,3 +38,16 @@ def test_the_kept_mappings_are_bounded():
         t.hello(wire.Hello(f"s{i}", CH + [f"extra{i}"]))
         assert t.sessions[f"s{i}"].mapping.passthrough == [f"extra{i}"]
     assert len(t._maps) <= MAPPINGS_KEPT
+
+
+def test_a_reload_rebinds_streams_to_shared_mappings_of_the_new_model():
+    t = _table()
+    studio = ["b.y", "a.x", "b.x", "a.y"]
+    for i in range(3):
+        t.hello(wire.Hello(f"s{i}", list(studio)))
+    new = PassThroughModel(["a.x", "b.x"])
+    assert t.rebind("pt", new) == 3
+    maps = [t.sessions[f"s{i}"].mapping for i in range(3)]
+    assert maps[0] is maps[1] is maps[2] and maps[0].n_model == 2
+    assert maps[0].s_idx.tolist() == [1, 2] and maps[0].m_idx.tolist() == [0, 1]
+    assert maps[0].passthrough == ["b.y", "a.y"]
