@@ -33,7 +33,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 
 CHILD = r'''
-import atexit, gc, json, os, sys, time
+import atexit, gc, json, os, sys, time, traceback
 sys.path.insert(0, os.environ["PYTHONPATH"])
 from daemon import loop, stalls, tickblock, sessions as sessions_mod, outbox
 out = {"turns": [], "blocks": [], "gc": [], "overdue": []}
@@ -46,12 +46,14 @@ def rq():
     _ss.seek(0)
     f = _ss.read().split()
     return int(f[1]) / 1e9 + int(f[2]) * 1e3  # (+ 1000 s per time it was switched in: split in analyse)
-_gc0 = [0.0, 0]
+_gc0 = [0.0, ""]
 def _gc(phase, info):
     if phase == "start":
         _gc0[0] = pc()
-    else:
-        G.append((_gc0[0], pc() - _gc0[0], info["generation"], info["collected"]))
+        _gc0[1] = " < ".join(f"{os.path.basename(f.filename)}:{f.name}" for f in
+                             traceback.extract_stack(limit=6)[-6:-1][::-1]) if info["generation"] == 2 else ""
+    else:  # (the caller of a full collection: an explicit gc.collect, or the allocation that set it off)
+        G.append((_gc0[0], pc() - _gc0[0], info["generation"], info["collected"], _gc0[1]))
 gc.callbacks.append(_gc)
 _woke = stalls.Stalls.woke
 def woke(self, due):
@@ -256,7 +258,8 @@ def analyse(tr: dict[str, Any], budget: float) -> dict[str, Any]:
             "gc_runs": len(gcs), "gc_ms_max": round(max((g[1] for g in gcs), default=0.0) * 1e3, 3),
             "gc_by_gen": {g: sum(1 for x in gcs if x[2] == g) for g in (0, 1, 2)},
             "reads_with_2plus": sum(1 for r in reads if r[2] > 1),
-            "gcs": [(round(g[1] * 1e3, 3), g[2], g[3]) for g in gcs if g[1] > 0.0005],
+            "gcs": [(round(g[1] * 1e3, 3), g[2], g[3], g[4] if len(g) > 4 else "") for g in gcs
+                    if g[1] > 0.0005 or g[2] == 2],
             "long_turns_wall_cpu_runqueue_ms": [(round((t[3] - t[2]) * 1e3, 3), round(t[6] * 1e3, 3), _rq(t[7]))
                                                 for t in turns if t[3] - t[2] > 0.003],
             "turns_importing": [(round((t[2] - turns[0][2]), 3), t[8], round((t[3] - t[2]) * 1e3, 3)) for t in turns if t[8]],

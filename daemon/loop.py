@@ -5,10 +5,10 @@ One thread serves everything: ``poll(timeout)`` over the ZeroMQ sockets and the 
 what arrived (bounded) is decoded and handed to its sessions (daemon/dispatch.py, conflating per
 stream), one batched scheduler step per model answers the frames waiting (daemon/tick.py), then
 the frames of the burst that a newer frame of their stream superseded are answered; then
-housekeeping against deadlines (watchdog, idle expiry, metrics snapshot, signal flags).  Signal
-handlers only set flags.  A reload (daemon/reload.py) loads and checks the new models on a helper
-thread and swaps them between two turns, so no frame is dropped or held up by the load; a file
-that fails keeps the old model and the log says why.  Control requests: daemon/control.py.  The
+housekeeping against deadlines (watchdog, idle expiry, metrics snapshot, signal flags, the cyclic
+GC's full collection: `settle`).  Signal handlers only set flags.  A reload (daemon/reload.py)
+loads and checks the new models on a helper thread and swaps them between two turns, so no frame
+is dropped or held up by the load; a file that fails keeps the old model and the log says why.  Control requests: daemon/control.py.  The
 data flow, file by file: transport.py -> dispatch.py (decode -> session.py) -> tick.py
 (scheduler.py -> wire.py's encode) -> outbox.py; a studio's regular bundle takes the same steps as
 arrays: blockpath.py (decode -> sessions) -> tickblock.py.
@@ -51,6 +51,8 @@ from view import in_daemon
 
 PROM_STREAMS = 64  # streams with per-stream series in the metrics snapshot
 HOUSEKEEPING_S = 0.5
+GEN2_EVERY = 10  # gen-1 collections between two full ones run by housekeeping (CPython's default)
+GEN2_HELD = 1 << 30  # the gen-2 threshold while serving: no automatic full collection (settle)
 DRAIN_LINGER_MS = 1000  # on SIGTERM, let answers already queued reach their peers
 
 
@@ -308,6 +310,7 @@ class Daemon(Dispatch, Tick, Control, Reloading, Waiting):
         if self.http is not None:  # (per-stream series for the most recently active only)
             self._prom = self.metrics.prometheus(self.status(PROM_STREAMS))
         self.notify.status(self._status_line())
+        collect_old()
 
     def _drain(self) -> None:
         """SIGTERM: answer what has already arrived, then stop."""
@@ -367,7 +370,12 @@ def settle() -> None:
     imports ``numpy.ma`` (3 modules, 12-20 ms live, the turn's bundles then conflated:
     bench/notebook/floor-7.md); computed once here, on a throwaway table, the import happens
     before any frame.  Then everything loaded so far, which lives as long as the daemon, is
-    kept out of the collector's generations so the cyclic GC has less to walk mid-frame."""
+    kept out of the collector's generations so the cyclic GC has less to walk mid-frame; and
+    the automatic collections stop at generation 1 from now on: a full one (it walks every
+    object not frozen) would otherwise run inside whichever turn allocated past the threshold,
+    a performer's hello in the middle of the others' frames, say.  Housekeeping runs it instead
+    (:func:`collect_old`), after a turn's answers went out, as often as CPython would at most,
+    so cyclic garbage that reaches the oldest generation is still reclaimed."""
     m = Metrics()
     m.latencies(0.001, 2)
     m.step_time(0.001)
@@ -375,3 +383,14 @@ def settle() -> None:
     m.step_summary()
     gc.collect()
     gc.freeze()
+    t0, t1, _ = gc.get_threshold()
+    gc.set_threshold(t0, t1, GEN2_HELD)
+
+
+def collect_old() -> bool:
+    """Housekeeping's full collection, once GEN2_EVERY gen-1 collections ran since the last
+    (only when :func:`settle` holds the automatic ones back).  True when it ran."""
+    if gc.get_threshold()[2] < GEN2_HELD or gc.get_count()[2] < GEN2_EVERY:
+        return False
+    gc.collect()
+    return True

@@ -22,6 +22,8 @@ from daemon.session import (
 )
 from lacuna.filler import Model
 
+MAPPINGS_KEPT = 64  # distinct (studio, model) channel lists whose Mapping is kept for the next hello
+
 
 class SessionTable:
     """All live sessions.  ``resolve(name)`` gives (model name, Model) for a requested model."""
@@ -52,6 +54,9 @@ class SessionTable:
         self.block_path = True  # (False: every bundle frame by frame; tests compare the two)
         self.block_served = 0  # bundles served as arrays
         self.block_overdue = 0  # of them, bundles with frames dropped overdue before the step
+        # (studio channels, model channels) -> their Mapping, shared (a mapping is never changed):
+        # performers of one studio send the same list, and building one is most of a hello's cost
+        self._maps: dict[tuple[tuple[str, ...], tuple[str, ...]], Mapping] = {}
 
     def materialize(self) -> None:
         """The blocks waiting become the pending slots they stand for (before anything that
@@ -97,7 +102,7 @@ class SessionTable:
             chans = studio if studio is not None else [f"ch{i}" for i in range(width)]
         if studio is None:
             studio = chans
-        mp = Mapping.build(studio, chans)
+        mp = self._mapping(studio, chans)
         if chans and mp.s_idx.size == 0:
             raise SessionError("bad_channels", f"none of the {len(studio)} channels is a channel of model {name!r} "
                                                f"(got {studio[:3]}..., model has {chans[:3]}...)")
@@ -112,6 +117,15 @@ class SessionTable:
         self.recent[sid] = None
         self.recent.move_to_end(sid)
         return s
+
+    def _mapping(self, studio: list[str], chans: list[str]) -> Mapping:
+        key = (tuple(studio), tuple(chans))
+        mp = self._maps.get(key)
+        if mp is None:
+            if len(self._maps) >= MAPPINGS_KEPT:
+                self._maps.clear()
+            mp = self._maps[key] = Mapping.build(studio, chans)
+        return mp
 
     def hello(self, msg: wire.Hello, who: Any = None) -> tuple[wire.HelloAck, Out]:
         """(ack, answers for a frame that was waiting under the old handshake)."""
@@ -202,7 +216,7 @@ class SessionTable:
             if s.model_name != name:
                 continue
             chans = list(model.channels) or s.mapping.channels
-            mp = Mapping.build(s.mapping.channels, chans)
+            mp = self._mapping(s.mapping.channels, chans)  # (a reload rebinds every stream in one turn)
             if chans and mp.s_idx.size == 0:
                 continue
             if s.fk is not None:  # a stream that asked for positions keeps them, or keeps its old model
