@@ -85,6 +85,8 @@ class Mapping:
         s_idx = np.array([i for i, c in enumerate(studio) if c in pos], dtype=np.intp)
         m_idx = np.array([pos[c] for c in studio if c in pos], dtype=np.intp)
         sent = set(studio)
+        s_idx.setflags(write=False)   # shared by every stream that sent the same list (SessionTable)
+        m_idx.setflags(write=False)
         return cls(list(studio), s_idx, m_idx, [c for c in studio if c not in pos],
                    [c for c in model_channels if c not in sent], len(model_channels))
 
