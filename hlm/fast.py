@@ -352,13 +352,21 @@ def _extras(style: np.ndarray, phase: np.ndarray) -> list[dict]:
 
 @_jit
 def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
-               live, live_stats, out, sd, style, cond, cov, prec, shrink):  # pragma: no cover - compiled
+               live, live_stats, cond, cov, prec, shrink):  # pragma: no cover - compiled
     """fastrepr.encode1 -> _step_in (-> condfill.correct1) -> fastrepr.finish1 for pool row r: the arithmetic of
-    ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Writes the
-    completed frame to out, its std to sd, the style posterior to style; returns the phase."""
+    ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Returns (completed frame,
+    its std, filled mask (not observed), style posterior, phase), the arrays made here: after the daemon's
+    wait each numpy call of the Python around a lone stream's step costs 10-45 us, so none is left there
+    (bench/notebook/hlm9.md)."""
     center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF, root_tau, root_power = rt
     prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin = ht
     C = frame.shape[0]
+    out = np.empty(C)
+    sd = np.empty(C)
+    style = np.empty(post.shape[1])
+    filled = np.empty(C, np.bool_)
+    for c in range(C):
+        filled[c] = not observed[c]
     x = np.empty(C)
     for c in range(C):
         x[c] = frame[c] if observed[c] else np.nan
@@ -383,7 +391,7 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
                           const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power,
                           out, sd, z, R)  # (z: done with, finish1's working row)
     started[r] = True
-    return phase
+    return out, sd, filled, style, phase
 
 
 def slot_tables(tab, rep) -> tuple:
@@ -401,26 +409,27 @@ def slot_tables(tab, rep) -> tuple:
 
 
 def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarray,
-              live: float = 1e-10, live_stats: float = 1e-4, cond=None) -> tuple[np.ndarray, np.ndarray, dict]:
+              live: float = 1e-10, live_stats: float = 1e-4, cond=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """One frame of the stream in pool row r (a ``mocap.feature_model.StatePool`` of an HLM):
     frame (C,) float64, observed (C,) bool.  Updates the row in place; returns (completed (C,),
-    std (C,), extras).  ``tables``: ``slot_tables``'s; ``cond``: the model's ``condfill.CondTables``
-    or None (no conditional correction)."""
+    std (C,), filled (C,) (not observed), extras).  ``tables``: ``slot_tables``'s; ``cond``: the
+    model's ``condfill.CondTables`` or None (no conditional correction).  No numpy call here: the
+    kernel makes the outputs (a lone live stream runs this cold, bench/notebook/hlm9.md)."""
     rt, ht, zero = tables
     rp, cp = pool.repr, pool.core
-    C = frame.shape[0]
-    out = np.empty(C)
-    sd = np.empty(C)
-    style = np.empty(ht[0].shape[0] // ht[2])
-    cyc = "D" in cp
-    D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
-    if cond is None:
-        on, cov, prec, shrink = False, zero, zero, 0.0
+    if "D" in cp:
+        D, W, G, GW, cyc = cp["D"], cp["W"], cp["G"], cp["GW"], True
     else:
-        on, cov, prec, shrink = True, cond.cov, cond.prec, cond.shrink
-    phase = _step_slot(r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
-                       cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, on, cov, prec, shrink)
-    return out, sd, {"style": style.tolist(), "phase": phase}
+        D, W, G, GW, cyc = zero, zero, zero, zero, False
+    if cond is None:
+        out, sd, filled, style, phase = _step_slot(
+            r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
+            cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, False, zero, zero, 0.0)
+    else:
+        out, sd, filled, style, phase = _step_slot(
+            r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
+            cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, True, cond.cov, cond.prec, cond.shrink)
+    return out, sd, filled, {"style": style.tolist(), "phase": phase}
 
 
 # ---- a batch on pool rows, the whole step in one call -----------------------------------------------
