@@ -31,6 +31,7 @@ from hlm.condfill import STYLE_LIVE, correct1
 from lacuna.jit import enabled  # noqa: F401  (enabled: re-exported for callers)
 from lacuna.jit import jit as _jit
 from lacuna.jit import jit_sums as _jit_sums
+from lacuna.jit import numba as _numba
 from mocap import fastrepr
 from mocap.fastrepr import encode1, finish1
 
@@ -352,13 +353,21 @@ def _extras(style: np.ndarray, phase: np.ndarray) -> list[dict]:
 
 @_jit
 def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
-               live, live_stats, out, sd, style, cond, cov, prec, shrink):  # pragma: no cover - compiled
+               live, live_stats, cond, cov, prec, shrink):  # pragma: no cover - compiled
     """fastrepr.encode1 -> _step_in (-> condfill.correct1) -> fastrepr.finish1 for pool row r: the arithmetic of
-    ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Writes the
-    completed frame to out, its std to sd, the style posterior to style; returns the phase."""
+    ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Returns (completed frame,
+    its std, filled mask (not observed), style posterior, phase), the arrays made here: after the daemon's
+    wait each numpy call of the Python around a lone stream's step costs 10-45 us, so none is left there
+    (bench/notebook/hlm9.md)."""
     center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF, root_tau, root_power = rt
     prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin = ht
     C = frame.shape[0]
+    out = np.empty(C)
+    sd = np.empty(C)
+    style = np.empty(post.shape[1])
+    filled = np.empty(C, np.bool_)
+    for c in range(C):
+        filled[c] = not observed[c]
     x = np.empty(C)
     for c in range(C):
         x[c] = frame[c] if observed[c] else np.nan
@@ -383,7 +392,7 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
                           const, dr, df, dang, relative, rot, pos, rootf, rsrc, normalize, mean, std, root_tau, root_power,
                           out, sd, z, R)  # (z: done with, finish1's working row)
     started[r] = True
-    return phase
+    return out, sd, filled, style, phase
 
 
 def slot_tables(tab, rep) -> tuple:
@@ -400,27 +409,79 @@ def slot_tables(tab, rep) -> tuple:
     return rt, ht, z
 
 
-def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarray,
-              live: float = 1e-10, live_stats: float = 1e-4, cond=None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """One frame of the stream in pool row r (a ``mocap.feature_model.StatePool`` of an HLM):
-    frame (C,) float64, observed (C,) bool.  Updates the row in place; returns (completed (C,),
-    std (C,), extras).  ``tables``: ``slot_tables``'s; ``cond``: the model's ``condfill.CondTables``
-    or None (no conditional correction)."""
+# The lone stream's fixed arguments (the pool's arrays, the tables, the constants) packed in one
+# object, a numba structref made once per pool size: a cold call of a compiled function costs
+# ~1 us an argument it unboxes and ~5 us a tuple, so the 23-argument ``_step_slot`` call costs
+# ~45-50 us cold where a call with four arguments costs ~25-30 (bench/notebook/hlm9.md).  Without
+# numba's structref (an older numba) step_slot calls ``_step_slot`` with its arguments as before.
+SLOT_ARGS = ("prev_u", "prev_raw", "prev_yaw", "started", "root_st", "rt", "post", "t", "D", "W", "G", "GW", "cyc",
+             "ht", "live", "live_stats", "cond", "cov", "prec", "shrink")
+try:
+    if _numba is None:
+        raise ImportError("numba")
+    from numba.core import types as _nbtypes
+    from numba.experimental import structref as _structref
+
+    @_structref.register
+    class _SlotArgsType(_nbtypes.StructRef):
+        def preprocess_fields(self, fields):
+            return tuple((name, _nbtypes.unliteral(typ)) for name, typ in fields)
+
+    class SlotArgs(_structref.StructRefProxy):
+        """``_step_slot``'s arguments after the frame, in one object (``SLOT_ARGS``)."""
+
+    _structref.define_proxy(SlotArgs, _SlotArgsType, list(SLOT_ARGS))
+
+    @_jit
+    def _slot_args(prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht, live, live_stats,
+                   cond, cov, prec, shrink):  # pragma: no cover - compiled
+        return SlotArgs(prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht, live,
+                        live_stats, cond, cov, prec, shrink)
+
+    @_jit
+    def _step_packed(r, frame, observed, a):  # pragma: no cover - compiled
+        """``_step_slot`` with its fixed arguments from ``a`` (a ``SlotArgs``)."""
+        return _step_slot(r, frame, observed, a.prev_u, a.prev_raw, a.prev_yaw, a.started, a.root_st, a.rt, a.post,
+                          a.t, a.D, a.W, a.G, a.GW, a.cyc, a.ht, a.live, a.live_stats, a.cond, a.cov, a.prec, a.shrink)
+except ImportError:
+    _slot_args = _step_packed = None
+
+_STEP_SLOT = _step_slot   # (step_slot packs the arguments only for this kernel, not a stand-in put in its place)
+
+
+def _slot_call(tables: tuple, pool, live: float, live_stats: float, cond) -> tuple:
+    """``_step_slot``'s arguments after the frame for this pool, tables and constants."""
     rt, ht, zero = tables
     rp, cp = pool.repr, pool.core
-    C = frame.shape[0]
-    out = np.empty(C)
-    sd = np.empty(C)
-    style = np.empty(ht[0].shape[0] // ht[2])
-    cyc = "D" in cp
-    D, W, G, GW = (cp["D"], cp["W"], cp["G"], cp["GW"]) if cyc else (zero, zero, zero, zero)
-    if cond is None:
-        on, cov, prec, shrink = False, zero, zero, 0.0
+    if "D" in cp:
+        D, W, G, GW, cyc = cp["D"], cp["W"], cp["G"], cp["GW"], True
     else:
-        on, cov, prec, shrink = True, cond.cov, cond.prec, cond.shrink
-    phase = _step_slot(r, frame, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
-                       cp["post"], cp["t"], D, W, G, GW, cyc, ht, live, live_stats, out, sd, style, on, cov, prec, shrink)
-    return out, sd, {"style": style.tolist(), "phase": phase}
+        D, W, G, GW, cyc = zero, zero, zero, zero, False
+    on, cov, prec, shrink = (False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)
+    return (rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt, cp["post"], cp["t"], D, W,
+            G, GW, cyc, ht, live, live_stats, on, cov, prec, shrink)
+
+
+def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarray,
+              live: float = 1e-10, live_stats: float = 1e-4, cond=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """One frame of the stream in pool row r (a ``mocap.feature_model.StatePool`` of an HLM):
+    frame (C,) float64, observed (C,) bool.  Updates the row in place; returns (completed (C,),
+    std (C,), filled (C,) (not observed), extras).  ``tables``: ``slot_tables``'s; ``cond``: the
+    model's ``condfill.CondTables`` or None (no conditional correction).  No numpy call here (the
+    kernel makes the outputs) and the fixed arguments go as one packed object, made again when
+    the pool grows (its arrays are new then) or anything else of them changes: a lone live
+    stream runs this cold (bench/notebook/hlm9.md)."""
+    pk = pool.__dict__.get("_slot_args")
+    if (pk is None or pk[0] != pool.capacity or pk[1] is not tables or pk[2] is not cond or pk[3] != live
+            or pk[4] != live_stats):
+        args = _slot_call(tables, pool, live, live_stats, cond)
+        pk = pool.__dict__["_slot_args"] = (pool.capacity, tables, cond, live, live_stats, args,
+                                            None if _slot_args is None else _slot_args(*args))
+    if pk[6] is not None and _step_slot is _STEP_SLOT:
+        out, sd, filled, style, phase = _step_packed(r, frame, observed, pk[6])
+    else:
+        out, sd, filled, style, phase = _step_slot(r, frame, observed, *pk[5])
+    return out, sd, filled, {"style": style.tolist(), "phase": phase}
 
 
 # ---- a batch on pool rows, the whole step in one call -----------------------------------------------

@@ -133,8 +133,42 @@ class HLMModel(FeatureModel):
         tabs = self.__dict__.get("_slot_tables")
         if tabs is None:
             tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, self.representation)
-        done, std, extras = fast.step_slot(tabs, self.pool, slot, frame, observed, online.LIVE, LIVE_STATS, self.cond)
-        return Fill(done, std, ~observed, extras)
+        done, std, filled, extras = fast.step_slot(tabs, self.pool, slot, frame, observed, online.LIVE, LIVE_STATS,
+                                                   self.cond)
+        return Fill(done, std, filled, extras)
+
+    def step_batch(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
+                   level: int | None = None) -> list[Fill]:
+        # FeatureModel.step_batch's lone-stream compiled case (one stream of this model at full
+        # quality, (1, C) writable C-contiguous float64 frames and bool mask of the model's width, as
+        # the daemon's scheduler gives them) straight to step_one's call, without the seam's
+        # conversions: a live stream runs this cold, where each numpy call costs 10-45 us
+        # (bench/notebook/hlm9.md).  Anything else goes to FeatureModel.step_batch as before.
+        if len(states) == 1 and level is None:
+            tabs = self.__dict__.get("_one_tables")
+            if tabs is None:
+                tabs = self.__dict__["_one_tables"] = self._lone_tables()
+            st = states[0]
+            if (tabs is not False and type(st) is FeatureStream and st.model is self
+                    and type(frames) is np.ndarray and type(observed) is np.ndarray
+                    and frames.dtype == _F64 and observed.dtype == _BOOL and frames.shape == observed.shape == (1, tabs[1])
+                    and frames.flags.c_contiguous and observed.flags.c_contiguous
+                    and frames.flags.writeable and observed.flags.writeable):
+                done, std, filled, extras = fast.step_slot(tabs[0], self.pool, st.slot, frames[0], observed[0], online.LIVE,
+                                                           LIVE_STATS, self.cond)
+                return [Fill(done, std, filled, extras)]
+        return super().step_batch(states, frames, observed, level)
+
+    def _lone_tables(self) -> tuple | bool:
+        # (step_slot's tables, the model's width) (step_batch's lone-stream case), or False: the
+        # compiled step does not serve this filter (step_one's condition)
+        rep = self.representation
+        if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative"):
+            return False
+        tabs = self.__dict__.get("_slot_tables")
+        if tabs is None:
+            tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, rep)
+        return tabs, len(self.channels)
 
     def step_rows(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple | None:
         # a batch's encoders, compiled filters and decoders in one call (hlm.fast.step_rows), where
