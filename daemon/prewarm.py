@@ -47,7 +47,6 @@ class Prewarm:
         self._last: tuple[Session, wire.Frame] | None = None
         self._arrived: float | None = None       # receipt of the last frame served
         self._gaps: list[float] = []
-        self._took: list[float] = []              # the last GAPS rehearsals' own times (s)
         self._shadows: dict[int, tuple[Model, FillerState]] = {}  # id(model) -> (model, shadow state)
         self.count = 0
         self.errors = 0
@@ -79,20 +78,14 @@ class Prewarm:
         step = cm.estimate(1) if cm.seen else 0.0
         if step > MAX_STEP_S:
             return
-        # rehearse lead_s and the rehearsal's own time before the frame is due, so that it has
-        # ended when the frame lands: a rehearsal runs the whole path cold (decode, plan, step,
-        # encode), for an HLM stream ~260 us where the step alone is estimated at ~120, and a frame
-        # landing while it runs waits for it (bench/notebook/hlm9.md)
-        took = sorted(self._took)
-        own = min(took[len(took) // 2], MAX_STEP_S) if took else 0.0
-        self.due = arrived + per - self.lead_s - max(step, own)
+        # rehearse lead_s (and the step's own time) before the frame is due
+        self.due = arrived + per - self.lead_s - step
 
     def forget_models(self) -> None:
         """Models were swapped (a reload): their shadows go with them."""
         self._shadows.clear()
         self._last = None
         self.due = None
-        self._took.clear()
 
     def rehearse(self, sessions: dict[str, Session], sched: Scheduler, encode: Any) -> None:
         """One rehearsal of the last frame served, if its stream is still the one it was."""
@@ -118,8 +111,6 @@ class Prewarm:
             fill = model.step_batch([sh.state], mf, mo)[0]
             encode(fill_message(sh, fill, "ok", time.perf_counter()))
             self.count += 1
-            self._took.append(time.perf_counter() - t0)
-            del self._took[:-GAPS]
         except Exception as e:  # noqa: BLE001 - a rehearsal must never cost a frame: count it and go on
             self.errors += 1
             self.last_error = f"{type(e).__name__}: {e}"[:300]
