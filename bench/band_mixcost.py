@@ -1,9 +1,10 @@
-"""band-13: the compiled mixing's call cost, alternated in one process, 62 channels: another tree's
-``mix_row`` (main's), this tree's (band_q off: ``q_band`` not called), and this tree's with band_q on
-and its rate gate (``mix_row`` then ``q_band``, which updates the rate sums: the band's rate off).
-Writes nothing into either tree (numba's caches in a scratch directory).
+"""The compiled mixing's call cost with the band's extras (blend/withhlm.py "Rate", "Band q"),
+alternated in one process, 62 channels: another tree's ``mix_row`` (``--main``), this tree's with the
+extras off (the kernels not called), and this tree's with one on: ``--on rate`` (band-12: ``mix_row``
+then ``rate_band``) or ``--on q`` (band-13: ``mix_row`` then ``q_band`` with its rate gate, which updates
+the rate sums itself).  Writes nothing into either tree (numba's caches in a scratch directory).
 
-    OPENBLAS_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/band13_mixcost.py --main /work/main
+    OPENBLAS_NUM_THREADS=1 nice -n 19 .venv/bin/python bench/band_mixcost.py --main /work/main --on q
 """
 import argparse
 import importlib.util
@@ -15,7 +16,7 @@ from pathlib import Path
 
 # numba's on-disk caches go to a scratch directory, never beside the other tree's sources (a read-only
 # tree for this bench), and python writes no bytecode there either
-os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="band13-mixcost-")
+os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="band-mixcost-")
 sys.dont_write_bytecode = True
 
 import numpy as np  # noqa: E402
@@ -23,11 +24,13 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from blend import withhlm  # noqa: E402
 from blend.withhlm_fast import mix_row as new  # noqa: E402
-from blend.withhlm_fast import q_band  # noqa: E402
+from blend.withhlm_fast import q_band, rate_band  # noqa: E402
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--main", default="/work/main")
-spec = importlib.util.spec_from_file_location("main_fast", str(Path(ap.parse_args().main) / "blend/withhlm_fast.py"))
+ap.add_argument("--on", choices=["rate", "q"], default="q", help="which extra the 'on' row runs")
+args = ap.parse_args()
+spec = importlib.util.spec_from_file_location("main_fast", str(Path(args.main) / "blend/withhlm_fast.py"))
 assert spec is not None and spec.loader is not None
 mf = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(mf)
@@ -56,6 +59,7 @@ rst[0], rst[1] = rng.random(C) * 10, 8.0   # every channel with history: the med
 kM = np.full((C, 4), 0.6)
 mb, buf = np.ones(C), np.zeros(C)
 gpar = np.array([1.6, 1.8, 1.0])
+rpar_on = np.array([0.99, 1.0, 0.5, 2.0])   # decay, a 1, clip 0.5-2 (still channels' sums flush to 0: _ftz)
 
 
 def a():
@@ -68,8 +72,10 @@ def b():
 
 def c():
     b()
-    q_band(F, O, ang, std, k, kM, 0, 0.92, mb, gpar, ref, rst, 1.0, True, buf)   # decay 1: the still frames' sums
-    # stay as they are (with < 1 they decay into denormals over the 420,000 calls, which no stream meets)
+    if args.on == "rate":
+        rate_band(F, O, ang, std, rpar_on, ref, rst)
+    else:   # decay 1: the history of the still frames stays as it is (every channel keeps a rate)
+        q_band(F, O, ang, std, k, kM, 0, 0.92, mb, gpar, ref, rst, 1.0, True, buf)
 
 
 a()
