@@ -14,12 +14,14 @@ import argparse
 import json
 import platform
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from default_smooth_cost import step_ab  # noqa: E402  (bench/: the A/B loop)
 
 from blend import withhlm  # noqa: E402
 from lacuna.modelfile import load_model  # noqa: E402
@@ -48,17 +50,7 @@ def main() -> int:
     out: dict = {"model": a.model, "take": a.take, "machine": f"{platform.machine()} {platform.processor()}",
                  "load": list(__import__("os").getloadavg()), "cases": {}}
     for n in a.n:
-        sa, sb = [A.stream() for _ in range(n)], [B.stream() for _ in range(n)]
-        ta, tb = [], []
-        T = min(a.frames, F.shape[0])
-        for t in range(T):
-            rows = [(t + 37 * i) % F.shape[0] for i in range(n)]   # streams at different places of the take
-            f, o = np.ascontiguousarray(F[rows]), np.ascontiguousarray(obs[rows])
-            for model, st, acc in ((A, sa, ta), (B, sb, tb)) if t % 2 == 0 else ((B, sb, tb), (A, sa, ta)):
-                t0 = time.perf_counter_ns()
-                model.step_block(st, f, o)
-                acc.append((time.perf_counter_ns() - t0) / 1000.0 / n)
-        ta_, tb_ = np.array(ta[50:]), np.array(tb[50:])   # the first frames compile and warm
+        ta_, tb_ = step_ab(A, B, F, obs, n, a.frames)
         r = {"A_off_us": {"p50": float(np.median(ta_)), "p90": float(np.percentile(ta_, 90))},
              "B_band_q_us": {"p50": float(np.median(tb_)), "p90": float(np.percentile(tb_, 90))},
              "ratio_p50": float(np.median(tb_ / ta_)), "frames": int(len(ta_))}

@@ -25,6 +25,23 @@ from lacuna.modelfile import load_model  # noqa: E402
 from mocap import protocols, splits  # noqa: E402
 
 
+def step_ab(A, B, F: np.ndarray, obs: np.ndarray, n: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Models A and B stepped alternately frame by frame (``step_block``, n streams each, at different
+    places of the take, the order swapping every frame): each one's us per frame and stream, the first
+    50 frames (compiling, warming) left out."""
+    sa, sb = [A.stream() for _ in range(n)], [B.stream() for _ in range(n)]
+    ta: list[float] = []
+    tb: list[float] = []
+    for t in range(min(frames, F.shape[0])):
+        rows = [(t + 37 * i) % F.shape[0] for i in range(n)]   # streams at different places of the take
+        f, o = np.ascontiguousarray(F[rows]), np.ascontiguousarray(obs[rows])
+        for model, st, acc in ((A, sa, ta), (B, sb, tb)) if t % 2 == 0 else ((B, sb, tb), (A, sa, ta)):
+            t0 = time.perf_counter_ns()
+            model.step_block(st, f, o)
+            acc.append((time.perf_counter_ns() - t0) / 1000.0 / n)
+    return np.array(ta[50:]), np.array(tb[50:])
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("model")
@@ -43,17 +60,7 @@ def main() -> int:
     out: dict = {"model": a.model, "take": a.take, "machine": f"{platform.machine()} {platform.processor()}",
                  "load": list(__import__("os").getloadavg()), "cases": {}}
     for n in a.n:
-        sa, sb = [A.stream() for _ in range(n)], [B.stream() for _ in range(n)]
-        ta, tb = [], []
-        T = min(a.frames, F.shape[0])
-        for t in range(T):
-            rows = [(t + 37 * i) % F.shape[0] for i in range(n)]   # streams at different places of the take
-            f, o = np.ascontiguousarray(F[rows]), np.ascontiguousarray(obs[rows])
-            for model, st, acc in ((A, sa, ta), (B, sb, tb)) if t % 2 == 0 else ((B, sb, tb), (A, sa, ta)):
-                t0 = time.perf_counter_ns()
-                model.step_block(st, f, o)
-                acc.append((time.perf_counter_ns() - t0) / 1000.0 / n)
-        ta_, tb_ = np.array(ta[50:]), np.array(tb[50:])   # the first frames compile and warm
+        ta_, tb_ = step_ab(A, B, F, obs, n, a.frames)
         r = {"A_off_us": {"p50": float(np.median(ta_)), "p90": float(np.percentile(ta_, 90))},
              "B_pop_us": {"p50": float(np.median(tb_)), "p90": float(np.percentile(tb_, 90))},
              "ratio_p50": float(np.median(tb_ / ta_)), "frames": int(len(ta_))}

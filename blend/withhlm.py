@@ -332,6 +332,7 @@ class WithHLMModel(Model):
         """The compiled mixing's (decay, a, lo, hi): a = 0 where the model has no rate_ref."""
         a = self.smooth["rate_a"] if self.rate_ref is not None else 0.0
         self._rpar = np.array([math.exp(-1.0 / RATE_TAU), a, RATE_LO, RATE_HI])
+        self._rdecay, self._rate_on = float(self._rpar[0]), a > 0   # (read per stream-frame: plain scalars)
 
     def stream(self) -> WithHLMState:
         return WithHLMState(self)
@@ -391,14 +392,15 @@ class WithHLMModel(Model):
         for i, s in enumerate(states):
             has = j < len(tw) and tw[j] == i
             j += has
+            qb = bisect_right(self._qe, s.logq)
             eh, e0, nh = mix_row(F[i], O[i], HO[i], D[i], Dsd[i], H[i], Hsd[i], T[i] if has else D[i],   # type: ignore[index]
-                                 has, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, s.logq),
+                                 has, self.ang, self._rows, self._kW, self._kS, T_EDGES, qb,
                                  self._anc, s.k, s.o, out[i], std[i], self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
                                  self.bdecay, s.wb)
             if self._qon:   # band_q ("Band q")
-                q_band(F[i], O[i], self.ang, std[i], s.k, self._kM, bisect_right(self._qe, s.logq), self.bdecay, s.mb,
-                       self._gpar, self._ref, s.rst, self._rpar[0], self._rpar[1] <= 0, s.buf)
-            if self._rpar[1] > 0:   # the band's rate ("Rate")
+                q_band(F[i], O[i], self.ang, std[i], s.k, self._kM, qb, self.bdecay, s.mb,
+                       self._gpar, self._ref, s.rst, self._rdecay, not self._rate_on, s.buf)
+            if self._rate_on:   # the band's rate ("Rate")
                 rate_band(F[i], O[i], self.ang, std[i], self._rpar, self._ref, s.rst)
             if has and nh:
                 s._score(eh, e0)
@@ -473,14 +475,15 @@ class WithHLMModel(Model):
             logq = s.logq
             T = twin.get(i)
             out, std = np.empty(C), np.empty(C)
+            qb = bisect_right(self._qe, logq)
             eh, e0, nh = mix_row(F[i], O[i], HO[i], d.frame, d.std, h.frame, h.std, d.frame if T is None else T,
-                                 T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, bisect_right(self._qe, logq),
+                                 T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, qb,
                                  self._anc, s.k, s.o, out, std, self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
                                  self.bdecay, s.wb)
             if self._qon:   # band_q ("Band q")
-                q_band(F[i], O[i], self.ang, std, s.k, self._kM, bisect_right(self._qe, logq), self.bdecay, s.mb,
-                       self._gpar, self._ref, s.rst, self._rpar[0], self._rpar[1] <= 0, s.buf)
-            if self._rpar[1] > 0:   # the band's rate ("Rate")
+                q_band(F[i], O[i], self.ang, std, s.k, self._kM, qb, self.bdecay, s.mb,
+                       self._gpar, self._ref, s.rst, self._rdecay, not self._rate_on, s.buf)
+            if self._rate_on:   # the band's rate ("Rate")
                 rate_band(F[i], O[i], self.ang, std, self._rpar, self._ref, s.rst)
             if T is not None and nh:
                 s._score(eh, e0)
@@ -546,7 +549,7 @@ class WithHLMModel(Model):
             std = np.where(O, 0.0, sc * np.sqrt(var)) * self.calib[self._rows, tb]
         if self._qon:   # band_q, from the rates before this frame's update ("Band q")
             mfac = self._q_factor(states, K, qb[:, 0], O)
-        if self._rpar[1] > 0:   # the band times the channel's rate ("Rate")
+        if self._rate_on:   # the band times the channel's rate ("Rate")
             std = std * self._rate_factor(states, F, O)
         elif self._qon:
             self._rate_factor(states, F, O)   # only its update of the rates

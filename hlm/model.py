@@ -127,12 +127,9 @@ class HLMModel(FeatureModel):
     def step_one(self, slot: int, frame: np.ndarray, observed: np.ndarray) -> Fill | None:
         # encoder, compiled filter and decoder in one call (hlm.fast.step_slot), where the compiled
         # step serves this filter at all
-        rep = self.representation
-        if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative"):
-            return None  # another skeleton's root frame is numpy's (mocap.rootframe), not compiled
-        tabs = self.__dict__.get("_slot_tables")
-        if tabs is None:
-            tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, self.representation)
+        tabs = self._compiled()
+        if tabs is False:
+            return None
         done, std, filled, extras = fast.step_slot(tabs, self.pool, slot, frame, observed, online.LIVE, LIVE_STATS,
                                                    self.cond)
         return Fill(done, std, filled, extras)
@@ -145,30 +142,28 @@ class HLMModel(FeatureModel):
         # conversions: a live stream runs this cold, where each numpy call costs 10-45 us
         # (bench/notebook/hlm9.md).  Anything else goes to FeatureModel.step_batch as before.
         if len(states) == 1 and level is None:
-            tabs = self.__dict__.get("_one_tables")
-            if tabs is None:
-                tabs = self.__dict__["_one_tables"] = self._lone_tables()
+            tabs = self._compiled()
             st = states[0]
             if (tabs is not False and type(st) is FeatureStream and st.model is self
                     and type(frames) is np.ndarray and type(observed) is np.ndarray
-                    and frames.dtype == _F64 and observed.dtype == _BOOL and frames.shape == observed.shape == (1, tabs[1])
+                    and frames.dtype == _F64 and observed.dtype == _BOOL and frames.shape == observed.shape == (1, len(self.channels))
                     and frames.flags.c_contiguous and observed.flags.c_contiguous
                     and frames.flags.writeable and observed.flags.writeable):
-                done, std, filled, extras = fast.step_slot(tabs[0], self.pool, st.slot, frames[0], observed[0], online.LIVE,
+                done, std, filled, extras = fast.step_slot(tabs, self.pool, st.slot, frames[0], observed[0], online.LIVE,
                                                            LIVE_STATS, self.cond)
                 return [Fill(done, std, filled, extras)]
         return super().step_batch(states, frames, observed, level)
 
-    def _lone_tables(self) -> tuple | bool:
-        # (step_slot's tables, the model's width) (step_batch's lone-stream case), or False: the
-        # compiled step does not serve this filter (step_one's condition)
-        rep = self.representation
-        if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative"):
-            return False
+    def _compiled(self) -> tuple | bool:
+        # the compiled step's tables (hlm.fast.slot_tables) for step_one, step_batch's lone stream,
+        # step_rows and step_block, made once (a model is immutable), or False where the compiled step
+        # does not serve this filter: another skeleton's root frame is numpy's (mocap.rootframe)
         tabs = self.__dict__.get("_slot_tables")
         if tabs is None:
-            tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, rep)
-        return tabs, len(self.channels)
+            rep = self.representation
+            ok = fast.usable(self.tables) and not (rep.root is not None and rep.root_mode == "relative")
+            tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, rep) if ok else False
+        return tabs
 
     def step_rows(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple | None:
         # a batch's encoders, compiled filters and decoders in one call (hlm.fast.step_rows), where
@@ -178,12 +173,9 @@ class HLMModel(FeatureModel):
 
     def step_rows_arrays(self, slots: np.ndarray, frames: np.ndarray, observed: np.ndarray) -> tuple | None:
         # step_rows's call with the style posteriors and phases as the kernel's arrays (step_block)
-        rep = self.representation
-        if not fast.usable(self.tables) or (rep.root is not None and rep.root_mode == "relative"):
+        tabs = self._compiled()
+        if tabs is False:
             return None
-        tabs = self.__dict__.get("_slot_tables")
-        if tabs is None:
-            tabs = self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, self.representation)
         return fast.step_rows_arrays(tabs, self.pool, slots, frames, observed, online.LIVE, LIVE_STATS, self.cond)
 
     def step_block(self, states: Sequence[FillerState], frames: np.ndarray, observed: np.ndarray,
@@ -194,13 +186,7 @@ class HLMModel(FeatureModel):
         # checks are in the compiled call; where they fail, or anything else is not the usual
         # case, FeatureModel.step_block serves (and names the error).
         n = len(states)
-        tabs = self.__dict__.get("_block_tables")
-        if tabs is None:
-            rep = self.representation
-            ok = fast.usable(self.tables) and not (rep.root is not None and rep.root_mode == "relative")
-            if ok and "_slot_tables" not in self.__dict__:
-                self.__dict__["_slot_tables"] = fast.slot_tables(self.tables, rep)
-            tabs = self.__dict__["_block_tables"] = self.__dict__["_slot_tables"] if ok else False
+        tabs = self._compiled()
         if (n > 1 and level is None and tabs is not False and type(frames) is np.ndarray and type(observed) is np.ndarray
                 and frames.dtype == _F64 and observed.dtype == _BOOL and frames.shape == observed.shape
                 and frames.flags.c_contiguous and observed.flags.c_contiguous):
