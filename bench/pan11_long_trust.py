@@ -4,7 +4,8 @@ scored with ``lacuna eval --model FILE`` (the same fills as the in-process train
 
     .venv/bin/python bench/pan11_long_trust.py --protocol pan2009|gaps --out bench/out/p11/dh_pan [--trust 120,1.5 ...]
 
-Writes OUT.npz (trust off, as trained) and OUT_K_QMAX.npz per --trust.
+Writes OUT.npz (as trained: since pan-11 with the shipped trust; the figures of pan-11 section 1 used
+one trained before it, i.e. off) and OUT_K_QMAX.npz per --trust (`--trust 0,0`: off).
 """
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ def main(argv=None) -> int:
         ts = proto.training_set()
         registry.get_method("default").train(ts, **proto.options).save(base)
         print("trained on", ts.names, flush=True)
-    for t in a.trust:
+    for t in a.trust:   # "0,0": the trust off
         k, q = t.split(",")
         m = load_model(base)
         m.set_long_trust(int(k), float(q))
