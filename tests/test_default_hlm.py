@@ -329,18 +329,18 @@ def test_long_erasure_trust_takes_the_hlms_share_only_after_k_frames_with_the_le
     np.testing.assert_allclose(numpy_on, on, rtol=0, atol=1e-9)
 
 
-def test_long_erasure_trust_is_in_the_model_file_and_older_files_load_without_it(model, tmp_path):
-    """A trained model carries the shipped trust through its file; a file without the key (written
-    before it) loads with the trust off."""
+def test_long_erasure_trust_is_off_by_default_and_kept_by_the_model_file(model, tmp_path):
+    """A trained model has the trust off (bench/notebook/pan-11.md: it opens on non-locomotion); one
+    set on keeps it through its file, and a file without the key loads with it off."""
     from blend import withhlm
 
-    assert tuple(model.long_trust) == withhlm.LONG_TRUST
+    assert model.long_trust == withhlm.LONG_TRUST_OFF == (0, 0.0)
     p = tmp_path / "m.npz"
-    model.save(str(p))
-    assert tuple(modelfile.load_model(str(p)).long_trust) == withhlm.LONG_TRUST
-    model.set_long_trust(0, 0.0)
+    model.set_long_trust(120, 1.5)
     try:
         model.save(str(p))
-        assert modelfile.load_model(str(p)).long_trust == (0, 0.0)
+        assert modelfile.load_model(str(p)).long_trust == (120, 1.5)
     finally:
-        model.set_long_trust(*withhlm.LONG_TRUST)
+        model.set_long_trust(*withhlm.LONG_TRUST_OFF)
+    model.save(str(p))
+    assert modelfile.load_model(str(p)).long_trust == (0, 0.0)
