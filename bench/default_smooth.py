@@ -12,7 +12,7 @@ A setting is NAME:KNOTS:POP[:POP_TAU[:POP_REL[:BAND_TAU[:RATE_A[:BQ]]]]] (KNOTS 
 or s (S only); POP degrees a frame, 0 = off; POP_TAU frames; POP_REL x the fill's last step;
 BAND_TAU frames, the band's low-passed share, 0 = off; RATE_A the band's rate exponent, 0 = off:
 blend/withhlm.py "Rate"; BQ band_q from --band-q's fit (bench/default_band_q.py): 0 off, g with its rate
-gate, u ungated, m the model file's own; blend/withhlm.py "Band q"; then [:PACE_TAU[:PACE_K]], the fill's pace,
+gate, u ungated, m the model file's own; blend/withhlm.py "Band q"; then [:PACE_TAU[:PACE_K[:PACE_A]]], the fill's pace,
 blend/withhlm.py "Pace", 0 = off).  Per take, each setting's and hold's rms_deg are in the JSON ("takes_rms").  A model file without the rate's reference (``rate_ref``, written before it)
 gets it from TRAIN as ``train_model`` computes it (blend.withhlm.rate_ref on protocols.Gaps()'s
 training set), so a setting with RATE_A > 0 is what a model trained now would do.  Besides mocap.metrics' figures, the band's
@@ -55,7 +55,7 @@ def setting(spec: str) -> tuple[str, dict]:
     bq = rest[4] if len(rest) > 4 else "0"
     if bq not in ("0", "g", "u", "m"):
         raise SystemExit(f"{spec}: BQ must be 0, g, u or m")
-    for key, v in zip(("pace_tau", "pace_k"), rest[5:]):
+    for key, v in zip(("pace_tau", "pace_k", "pace_a"), rest[5:]):
         out[key] = float(v)
     return name, {**out, "bq": bq}
 
@@ -106,7 +106,7 @@ def main() -> int:
         model.default._par[12] = a.gate_n0
     sets = [setting(s) for s in a.settings]
     fitted = json.loads(Path(a.band_q).read_text()) if a.band_q else None
-    if any(sm["bq"] != "0" for _, sm in sets) and fitted is None:
+    if any(sm["bq"] in ("g", "u") for _, sm in sets) and fitted is None:
         raise SystemExit("settings with BQ g or u need --band-q")
     ones = np.ones_like(np.array(model.band_q, float)) if hasattr(model, "band_q") else None
     own = (np.array(model.band_q, float), model.band_gate) if hasattr(model, "band_q") else None

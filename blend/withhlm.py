@@ -184,11 +184,12 @@ RATE_TAU = 120.0   # frames: the decay of a channel's observed rate (1 s, about 
 RATE_LO, RATE_HI = 0.5, 2.0   # the rate's factor on the band is clipped to these (fixed, not tuned)
 PACE_TAU = 0.0   # frames: the decay of the observed body's fast rate for the pace (module doc, "Pace"; 0: off)
 PACE_K = 1.0     # the pace is 1 while the fast rate is at least PACE_K x the slow rate at the gap's onset
+PACE_A = 0.0     # ... or at least this (x rate_ref; 0: no such level): the pace's reference is the smaller
 NO_SMOOTH = {"knots": False, "std_knots": False, "pop": 0.0, "pop_tau": POP_TAU, "pop_rel": 0.0, "band_tau": 0.0,
-             "rate_a": 0.0, "pace_tau": 0.0, "pace_k": PACE_K}   # files before smoothing
+             "rate_a": 0.0, "pace_tau": 0.0, "pace_k": PACE_K, "pace_a": PACE_A}   # files before smoothing
 SMOOTH = {"knots": False, "std_knots": True, "pop": POP, "pop_tau": POP_TAU, "pop_rel": POP_REL, "band_tau": BAND_TAU,
-          "rate_a": RATE_A, "pace_tau": PACE_TAU, "pace_k": PACE_K}   # the choice (withhlm.json's)
-SMOOTH_SINCE = {"band_tau": 0.0, "rate_a": 0.0, "pace_tau": 0.0, "pace_k": PACE_K}   # keys a file's smooth table may lack (written before them): off
+          "rate_a": RATE_A, "pace_tau": PACE_TAU, "pace_k": PACE_K, "pace_a": PACE_A}   # the choice (withhlm.json's)
+SMOOTH_SINCE = {"band_tau": 0.0, "rate_a": 0.0, "pace_tau": 0.0, "pace_k": PACE_K, "pace_a": PACE_A}   # keys a file's smooth table may lack (written before them): off
 
 
 def group_index(channels: list[str]) -> np.ndarray:
@@ -288,7 +289,7 @@ class WithHLMModel(Model):
 
     def set_smooth(self, knots: bool, pop: float, pop_tau: float = POP_TAU, pop_rel: float = POP_REL,
                    std_knots: bool = False, band_tau: float = 0.0, rate_a: float = 0.0,
-                   pace_tau: float = 0.0, pace_k: float = PACE_K) -> None:
+                   pace_tau: float = 0.0, pace_k: float = PACE_K, pace_a: float = PACE_A) -> None:
         """The smoothing (module doc, "Smooth"): W and S read between the time bins' knots
         (``knots``; S alone with ``std_knots``), the pop limit of ``pop`` + ``pop_rel`` |last
         step| degrees a frame (pop 0: off) with its decay over ``pop_tau`` frames, and the band's
@@ -296,14 +297,14 @@ class WithHLMModel(Model):
         the channel's observed rate against the training data's to the power ``rate_a`` (0: off; off
         too where the model has no ``rate_ref``), and the fill paced by the observed body's rate over
         ``pace_tau`` frames against its rate at the gap's onset (module doc, "Pace"; 0: off; off too
-        without ``rate_ref``), 1 while at least ``pace_k`` x it (> 0).  Applies to a stream's gaps from
+        without ``rate_ref``), 1 while at least ``pace_k`` x it (> 0) or at least ``pace_a`` (x rate_ref; 0: no such level).  Applies to a stream's gaps from
         their first frame on."""
         if not isinstance(std_knots, bool):
             raise FillerError(f"{METHOD}: smooth 'std_knots' must be true or false (got {std_knots!r})")
         if not isinstance(knots, bool):
             raise FillerError(f"{METHOD}: smooth 'knots' must be true or false (got {knots!r})")
         for name, v in (("pop", pop), ("pop_tau", pop_tau), ("pop_rel", pop_rel), ("band_tau", band_tau), ("rate_a", rate_a),
-                        ("pace_tau", pace_tau), ("pace_k", pace_k)):
+                        ("pace_tau", pace_tau), ("pace_k", pace_k), ("pace_a", pace_a)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
                 raise FillerError(f"{METHOD}: smooth '{name}' must be a finite number >= 0 (got {v!r})")
         if pop > 0 and pop_tau <= 0:
@@ -312,7 +313,7 @@ class WithHLMModel(Model):
             raise FillerError(f"{METHOD}: smooth 'pace_k' must be > 0 when 'pace_tau' is on (got {pace_k!r})")
         self.smooth = {"knots": knots, "std_knots": std_knots, "pop": float(pop), "pop_tau": float(pop_tau),
                        "pop_rel": float(pop_rel), "band_tau": float(band_tau), "rate_a": float(rate_a),
-                       "pace_tau": float(pace_tau), "pace_k": float(pace_k)}
+                       "pace_tau": float(pace_tau), "pace_k": float(pace_k), "pace_a": float(pace_a)}
         self.bdecay = float(np.exp(-1.0 / band_tau)) if band_tau > 0 else 0.0
         self.knots = T_KNOTS.copy() if knots or std_knots else np.zeros(0)
         self._wk = knots
@@ -344,7 +345,8 @@ class WithHLMModel(Model):
         self._rpar = np.array([math.exp(-1.0 / RATE_TAU), a, RATE_LO, RATE_HI])
         self._rdecay, self._rate_on = float(self._rpar[0]), a > 0   # (read per stream-frame: plain scalars)
         pt = self.smooth["pace_tau"] if self.rate_ref is not None else 0.0
-        self._ppar = np.array([math.exp(-1.0 / pt) if pt > 0 else 0.0, math.exp(-1.0 / RATE_TAU), self.smooth["pace_k"]])
+        self._ppar = np.array([math.exp(-1.0 / pt) if pt > 0 else 0.0, math.exp(-1.0 / RATE_TAU), self.smooth["pace_k"],
+                               self.smooth["pace_a"]])
         self._pace_on = pt > 0
 
     def stream(self) -> WithHLMState:
@@ -610,8 +612,9 @@ class WithHLMModel(Model):
     def _pace(self, states, F, O, K, out) -> np.ndarray:
         """The numpy path's pace (module doc, "Pace"; pace_row's arithmetic): the observed channels'
         fast and slow rates updated, then each missing channel's fill moves its own step times
-        s = clip(R / (pace_k r0), 0, 1) from where it was (from its last value on a gap's first frame)."""
-        fd, sd, kf = (float(x) for x in self._ppar)
+        s = clip(R / ref, 0, 1), ref = pace_k r0 (or the smaller of it and pace_a where pace_a > 0), from
+        where it was (from its last value on a gap's first frame)."""
+        fd, sd, kf, pa = (float(x) for x in self._ppar)
         out = out.copy()
         for i, s in enumerate(states):
             ps, o = s.ps, O[i]
@@ -636,7 +639,10 @@ class WithHLMModel(Model):
                 s.py = np.where(had, ps[4], np.where(onset, out[i], s.py))
             ps[5] = np.where(o, 1.0, 0.0)
             ok0 = (r >= 0) & (s.pr > 0)
-            sc = np.where(ok0, np.clip(r / (kf * np.where(ok0, s.pr, 1.0)), 0.0, 1.0), 1.0)
+            den = kf * np.where(ok0, s.pr, 1.0)
+            if pa > 0:
+                den = np.minimum(den, pa)
+            sc = np.where(ok0, np.clip(r / den, 0.0, 1.0), 1.0)
             d = out[i] - s.py
             d = np.where(self.ang, wrap(d), d)
             z = s.pz + sc * d

@@ -252,18 +252,20 @@ def _obs_median(O, ang, ref, num, den, buf):
 @jit
 def pace_row(F, O, ang, out, k, ref, ps, pz, py, pr, ppar, buf):
     """The pace (blend/withhlm.py's module doc, "Pace") after ``mix_row`` (and the band's kernels) on
-    one stream's frame, called only where it is on: ``ppar`` = (fast decay, slow decay, kfac).  First
+    one stream's frame, called only where it is on: ``ppar`` = (fast decay, slow decay, kfac, a).  First
     each observed channel's decayed sums of |dx| over consecutive observed frames and of 1, fast
     (``ps`` rows 0, 1) and slow (rows 2, 3), its last value (row 4) and whether it was observed the
     frame before (row 5) are updated; then R = the observed body's fast rate now (_obs_median of rows
     0, 1).  A missing channel j on its gap's first frame (k[j] == 1) keeps pr[j] = the observed body's
     slow rate (rows 2, 3) now, and its fill starts from its last value; on every frame of the gap the
-    fill y (``out[j]``) moves its own step times s = clip(R / (kfac pr[j]), 0, 1) (1 where either
+    fill y (``out[j]``) moves its own step times s = clip(R / min(kfac pr[j], a), 0, 1) (a = 0: no
+    such level, kfac pr[j] alone; s = 1 where either
     rate is undefined, or the channel has no last value): z = z_prev + s wrap(y - y_prev), z written to
     ``out[j]``; pz, py hold z and y."""
     fd = ppar[0]
     sd = ppar[1]
     kf = ppar[2]
+    pa = ppar[3]
     for j in range(F.shape[0]):
         if O[j]:
             if ps[5, j] > 0.0:
@@ -297,7 +299,10 @@ def pace_row(F, O, ang, out, k, ref, ps, pz, py, pr, ppar, buf):
         ps[5, j] = 0.0
         s = 1.0
         if r >= 0.0 and pr[j] > 0.0:
-            s = min(max(r / (kf * pr[j]), 0.0), 1.0)
+            den = kf * pr[j]
+            if pa > 0.0 and pa < den:
+                den = pa
+            s = min(max(r / den, 0.0), 1.0)
         d = y - py[j]
         if ang[j]:
             d = _wrap(d)
