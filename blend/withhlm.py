@@ -130,6 +130,20 @@ non-locomotion unchanged, NLL 2.199 -> 2.179 / 2.212 -> 2.170; then TEST seeds 0
 walk 0.967 -> 0.961, run 0.943 -> 0.942 (ungated: 0.861), turn and non-locomotion unchanged, NLL
 2.187 -> 2.186.  Fills unchanged; numpy and compiled mixing equal (tests/test_default_band_q.py); its
 compiled kernel ``q_band`` runs after ``mix_row`` only where band_q is on (off: main's mix_row).
+
+Pace (``pace_tau``, ``pace_k``, ``pace_a`` in the smooth table; off: pace_tau 0; files without them load
+with it off; off too without ``rate_ref``).  For issue 17's stops (robust-10: a performer holds a limb
+still inside a gap while the fill moves it): per stream, every channel's decayed sums over consecutive
+observed frames of |dx| and of 1, fast (exp(-1 / pace_tau)) and slow (RATE_TAU); R = the median over the
+angle channels observed now of fast rate / rate_ref; on a gap's first frame a missing channel keeps r0,
+the same median of the slow rate.  The fill y (the mixing's output) then moves only its own step times
+s = clip(R / ref, 0, 1), ref = pace_k r0 (or min(pace_k r0, pace_a) where pace_a > 0):
+z[t] = z[t-1] + s wrap(y[t] - y[t-1]), from the last observed value (no pop); s = 1 where a rate is
+undefined; std unchanged.  Numpy ``_pace`` and compiled ``pace_row`` equal (tests/test_default_pace.py).
+Tried and not chosen (bench/notebook/pace-11.md): on VALIDATION, pace_k 1 finds the stops (stress gaps
+above hold 14 -> 9, 49_19 4.87 -> 4.49 against hold 4.53) but slows the walks, whose fast rate swings
+within a stride (walk rms +10-23%); pace_k 0.5 and the stillness level pace_a (0.15, 0.25) spare the
+walks and find no stop: where 49_19 is above hold the observed body keeps moving (0.35-0.67 x rate_ref).
 """
 from __future__ import annotations
 
@@ -618,7 +632,7 @@ class WithHLMModel(Model):
         out = out.copy()
         for i, s in enumerate(states):
             ps, o = s.ps, O[i]
-            dx = F[i] - ps[4]
+            dx = np.where(o, F[i], ps[4]) - ps[4]   # (a missing value may be nan)
             dx = np.abs(np.where(self.ang, wrap(dx), dx))
             upd = o & (ps[5] > 0)
             f1, s1 = ps[0] * fd + dx, ps[2] * sd + dx
