@@ -12,7 +12,8 @@ A setting is NAME:KNOTS:POP[:POP_TAU[:POP_REL[:BAND_TAU[:RATE_A[:BQ]]]]] (KNOTS 
 or s (S only); POP degrees a frame, 0 = off; POP_TAU frames; POP_REL x the fill's last step;
 BAND_TAU frames, the band's low-passed share, 0 = off; RATE_A the band's rate exponent, 0 = off:
 blend/withhlm.py "Rate"; BQ band_q from --band-q's fit (bench/default_band_q.py): 0 off, g with its rate
-gate, u ungated; blend/withhlm.py "Band q").  A model file without the rate's reference (``rate_ref``, written before it)
+gate, u ungated, m the model file's own; blend/withhlm.py "Band q"; then [:PACE_TAU[:PACE_K[:PACE_A]]], the fill's pace,
+blend/withhlm.py "Pace", 0 = off).  Per take, each setting's and hold's rms_deg are in the JSON ("takes_rms").  A model file without the rate's reference (``rate_ref``, written before it)
 gets it from TRAIN as ``train_model`` computes it (blend.withhlm.rate_ref on protocols.Gaps()'s
 training set), so a setting with RATE_A > 0 is what a model trained now would do.  Besides mocap.metrics' figures, the band's
 kinks: over erased values from a gap's third frame on, |s[t] - 2 s[t-1] + s[t-2]| / s[t-1] of the
@@ -52,8 +53,10 @@ def setting(spec: str) -> tuple[str, dict]:
     for key, v in zip(("pop_tau", "pop_rel", "band_tau", "rate_a"), rest):
         out[key] = float(v)
     bq = rest[4] if len(rest) > 4 else "0"
-    if bq not in ("0", "g", "u"):
-        raise SystemExit(f"{spec}: BQ must be 0, g or u")
+    if bq not in ("0", "g", "u", "m"):
+        raise SystemExit(f"{spec}: BQ must be 0, g, u or m")
+    for key, v in zip(("pace_tau", "pace_k", "pace_a"), rest[5:]):
+        out[key] = float(v)
     return name, {**out, "bq": bq}
 
 
@@ -103,9 +106,10 @@ def main() -> int:
         model.default._par[12] = a.gate_n0
     sets = [setting(s) for s in a.settings]
     fitted = json.loads(Path(a.band_q).read_text()) if a.band_q else None
-    if any(sm["bq"] != "0" for _, sm in sets) and fitted is None:
+    if any(sm["bq"] in ("g", "u") for _, sm in sets) and fitted is None:
         raise SystemExit("settings with BQ g or u need --band-q")
     ones = np.ones_like(np.array(model.band_q, float)) if hasattr(model, "band_q") else None
+    own = (np.array(model.band_q, float), model.band_gate) if hasattr(model, "band_q") else None
     if any(sm.get("rate_a", 0.0) > 0 or sm["bq"] == "g" for _, sm in sets) and getattr(model, "rate_ref", None) is None:
         from blend.withhlm import rate_ref
 
@@ -125,7 +129,10 @@ def main() -> int:
         given = np.where(c.observed, c.truth, np.nan)
         for name, sm in sets:
             model.set_smooth(**{k: v for k, v in sm.items() if k != "bq"})
-            if sm["bq"] != "0":
+            if sm["bq"] == "m":
+                if own is not None:
+                    model.set_band_q(*own)
+            elif sm["bq"] != "0":
                 model.set_band_q(np.array(fitted["M"]), fitted["gate"] if sm["bq"] == "g" else None)   # type: ignore[index]
             elif ones is not None:
                 model.set_band_q(ones)
@@ -135,7 +142,16 @@ def main() -> int:
         print(f"  [{i + 1}/{len(cases)}] {c.test} seed {c.info['seed']} ({time.perf_counter() - t0:.0f} s)",
               file=sys.stderr, flush=True)
     out: dict = {"split": a.split, "takes": sorted({c.test for c in cases}), "seeds": seeds(a.seeds),
-                 "settings": dict(sets), "activities": {}}
+                 "settings": dict(sets), "activities": {}, "takes_rms": {}}
+    for t in out["takes"]:
+        row = {}
+        for name, _ in sets:
+            vs = metrics.Values.concat([v for c, v in zip([c for c in cases if splits.ACTIVITY[c.test] == splits.ACTIVITY[t]],
+                                                            tables[name][splits.ACTIVITY[t]]) if c.test == t])
+            ok = np.isfinite(vs.hold_err)   # both over the values hold has (a gap at frame 0 has no last value)
+            row[name] = float(np.sqrt(np.mean(vs.err[ok] ** 2)))
+            row["hold"] = float(np.sqrt(np.mean(vs.hold_err[ok] ** 2)))
+        out["takes_rms"][t] = row
     for act in acts + ["all"]:
         row: dict = {}
         for name, _ in sets:
@@ -155,6 +171,9 @@ def main() -> int:
         for f in FIGS:
             vals = [row[n].get(f) for n in names]
             print(f"  {f:28s} " + "  ".join("-" if v is None else f"{v:8.4f}" for v in vals))
+    print("\nper take rms_deg: " + " | ".join(names))
+    for t, row in out["takes_rms"].items():
+        print(f"  {t:22s} " + "  ".join(f"{row[n]:8.4f}" for n in names))
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps(out, indent=1) + "\n")

@@ -115,6 +115,8 @@ def main() -> int:
                     help="run under this check instead of the module's (0 0: main 5b13b52's)")
     ap.add_argument("--gate-n0", type=float, help="run with this gate_n0 (checks before the regression's whole gate) instead of the file's")
     ap.add_argument("--n0", type=float, help="run with this guard_n0 (the ridge's strength) instead of the file's")
+    ap.add_argument("--pace", type=float, nargs=3, metavar=("PACE_TAU", "PACE_K", "PACE_A"),
+                    help="run with the fill's pace (blend/withhlm.py \"Pace\") set so instead of the file's")
     a = ap.parse_args()
     import blend.methods  # noqa: F401  (loaders)
 
@@ -128,6 +130,8 @@ def main() -> int:
     if a.n0 is not None:
         model.default.settings.guard_n0 = a.n0
         model.default.guard_par[1] = a.n0
+    if a.pace is not None:
+        model.set_smooth(**{**model.smooth, "pace_tau": a.pace[0], "pace_k": a.pace[1], "pace_a": a.pace[2]})
     rows = []
     t0 = time.time()
     for kind, label, act, x, obs in cases(a):

@@ -131,6 +131,20 @@ walk 0.967 -> 0.961, run 0.943 -> 0.942 (ungated: 0.861), turn and non-locomotio
 2.187 -> 2.186.  Fills unchanged; numpy and compiled mixing equal (tests/test_default_band_q.py); its
 compiled kernel ``q_band`` runs after ``mix_row`` only where band_q is on (off: main's mix_row).
 
+Pace (``pace_tau``, ``pace_k``, ``pace_a`` in the smooth table; off: pace_tau 0; files without them load
+with it off; off too without ``rate_ref``).  For issue 17's stops (robust-10: a performer holds a limb
+still inside a gap while the fill moves it): per stream, every channel's decayed sums over consecutive
+observed frames of |dx| and of 1, fast (exp(-1 / pace_tau)) and slow (RATE_TAU); R = the median over the
+angle channels observed now of fast rate / rate_ref; on a gap's first frame a missing channel keeps r0,
+the same median of the slow rate.  The fill y (the mixing's output) then moves only its own step times
+s = clip(R / ref, 0, 1), ref = pace_k r0 (or min(pace_k r0, pace_a) where pace_a > 0):
+z[t] = z[t-1] + s wrap(y[t] - y[t-1]), from the last observed value (no pop); s = 1 where a rate is
+undefined; std unchanged.  Numpy ``_pace`` and compiled ``pace_row`` equal (tests/test_default_pace.py).
+Tried and not chosen (bench/notebook/pace-11.md): on VALIDATION, pace_k 1 finds the stops (stress gaps
+above hold 14 -> 9, 49_19 4.87 -> 4.49 against hold 4.53) but slows the walks, whose fast rate swings
+within a stride (walk rms +10-23%); pace_k 0.5 and the stillness level pace_a (0.15, 0.25) spare the
+walks and find no stop: where 49_19 is above hold the observed body keeps moving (0.35-0.67 x rate_ref).
+
 Long erasures (``long_trust`` (K, QMAX) in the model file's metadata; files without it: off).  The
 shadow check judges the HLM on a hidden limb over 0.5 s windows, and only while <= SHADOW_MAX_MISS
 channels are missing: with the whole upper body erased (pan2009's pattern) no window runs and q+
@@ -161,7 +175,7 @@ import numpy as np
 
 from blend import calib
 from blend.model import DefaultModel, checked_batch
-from blend.withhlm_fast import RATE_FTZ, mix_row, observed_finite, q_band, rate_band, shadow_counts
+from blend.withhlm_fast import RATE_FTZ, mix_row, observed_finite, pace_row, q_band, rate_band, shadow_counts
 from lacuna import jit, modelfile
 from lacuna.filler import BlockFill, Fill, FillerError, FillerState, Model, check_frame
 from mocap.representation import is_angle
@@ -202,11 +216,14 @@ LONG_TRUST = LONG_TRUST_OFF   # what models trained now carry; (120, 1.5) passed
 LEG_GROUPS = (5, 6)     # left-leg, right-leg: observed legs are what lock the HLM's gait phase
 RATE_TAU = 120.0   # frames: the decay of a channel's observed rate (1 s, about one walking cycle; fixed, not tuned)
 RATE_LO, RATE_HI = 0.5, 2.0   # the rate's factor on the band is clipped to these (fixed, not tuned)
+PACE_TAU = 0.0   # frames: the decay of the observed body's fast rate for the pace (module doc, "Pace"; 0: off)
+PACE_K = 1.0     # the pace is 1 while the fast rate is at least PACE_K x the slow rate at the gap's onset
+PACE_A = 0.0     # ... or at least this (x rate_ref; 0: no such level): the pace's reference is the smaller
 NO_SMOOTH = {"knots": False, "std_knots": False, "pop": 0.0, "pop_tau": POP_TAU, "pop_rel": 0.0, "band_tau": 0.0,
-             "rate_a": 0.0}   # files before smoothing
+             "rate_a": 0.0, "pace_tau": 0.0, "pace_k": PACE_K, "pace_a": PACE_A}   # files before smoothing
 SMOOTH = {"knots": False, "std_knots": True, "pop": POP, "pop_tau": POP_TAU, "pop_rel": POP_REL, "band_tau": BAND_TAU,
-          "rate_a": RATE_A}   # the choice (withhlm.json's)
-SMOOTH_SINCE = {"band_tau": 0.0, "rate_a": 0.0}   # keys a file's smooth table may lack (written before them): off
+          "rate_a": RATE_A, "pace_tau": PACE_TAU, "pace_k": PACE_K, "pace_a": PACE_A}   # the choice (withhlm.json's)
+SMOOTH_SINCE = {"band_tau": 0.0, "rate_a": 0.0, "pace_tau": 0.0, "pace_k": PACE_K, "pace_a": PACE_A}   # keys a file's smooth table may lack (written before them): off
 
 
 def group_index(channels: list[str]) -> np.ndarray:
@@ -333,24 +350,32 @@ class WithHLMModel(Model):
         self._gpar = np.array([0.0, 0.0, 0.0]) if gate is None else np.array([gate[0], gate[1], 1.0])
 
     def set_smooth(self, knots: bool, pop: float, pop_tau: float = POP_TAU, pop_rel: float = POP_REL,
-                   std_knots: bool = False, band_tau: float = 0.0, rate_a: float = 0.0) -> None:
+                   std_knots: bool = False, band_tau: float = 0.0, rate_a: float = 0.0,
+                   pace_tau: float = 0.0, pace_k: float = PACE_K, pace_a: float = PACE_A) -> None:
         """The smoothing (module doc, "Smooth"): W and S read between the time bins' knots
         (``knots``; S alone with ``std_knots``), the pop limit of ``pop`` + ``pop_rel`` |last
         step| degrees a frame (pop 0: off) with its decay over ``pop_tau`` frames, and the band's
         share w low-passed over ``band_tau`` frames (0: off; the fill's w is not), and the band times
         the channel's observed rate against the training data's to the power ``rate_a`` (0: off; off
-        too where the model has no ``rate_ref``).  Applies to a stream's gaps from their first frame on."""
+        too where the model has no ``rate_ref``), and the fill paced by the observed body's rate over
+        ``pace_tau`` frames against its rate at the gap's onset (module doc, "Pace"; 0: off; off too
+        without ``rate_ref``), 1 while at least ``pace_k`` x it (> 0) or at least ``pace_a`` (x rate_ref; 0: no such level).  Applies to a stream's gaps from
+        their first frame on."""
         if not isinstance(std_knots, bool):
             raise FillerError(f"{METHOD}: smooth 'std_knots' must be true or false (got {std_knots!r})")
         if not isinstance(knots, bool):
             raise FillerError(f"{METHOD}: smooth 'knots' must be true or false (got {knots!r})")
-        for name, v in (("pop", pop), ("pop_tau", pop_tau), ("pop_rel", pop_rel), ("band_tau", band_tau), ("rate_a", rate_a)):
+        for name, v in (("pop", pop), ("pop_tau", pop_tau), ("pop_rel", pop_rel), ("band_tau", band_tau), ("rate_a", rate_a),
+                        ("pace_tau", pace_tau), ("pace_k", pace_k), ("pace_a", pace_a)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
                 raise FillerError(f"{METHOD}: smooth '{name}' must be a finite number >= 0 (got {v!r})")
         if pop > 0 and pop_tau <= 0:
             raise FillerError(f"{METHOD}: smooth 'pop_tau' must be > 0 when 'pop' is on (got {pop_tau!r})")
+        if pace_tau > 0 and pace_k <= 0:
+            raise FillerError(f"{METHOD}: smooth 'pace_k' must be > 0 when 'pace_tau' is on (got {pace_k!r})")
         self.smooth = {"knots": knots, "std_knots": std_knots, "pop": float(pop), "pop_tau": float(pop_tau),
-                       "pop_rel": float(pop_rel), "band_tau": float(band_tau), "rate_a": float(rate_a)}
+                       "pop_rel": float(pop_rel), "band_tau": float(band_tau), "rate_a": float(rate_a),
+                       "pace_tau": float(pace_tau), "pace_k": float(pace_k), "pace_a": float(pace_a)}
         self.bdecay = float(np.exp(-1.0 / band_tau)) if band_tau > 0 else 0.0
         self.knots = T_KNOTS.copy() if knots or std_knots else np.zeros(0)
         self._wk = knots
@@ -381,6 +406,10 @@ class WithHLMModel(Model):
         a = self.smooth["rate_a"] if self.rate_ref is not None else 0.0
         self._rpar = np.array([math.exp(-1.0 / RATE_TAU), a, RATE_LO, RATE_HI])
         self._rdecay, self._rate_on = float(self._rpar[0]), a > 0   # (read per stream-frame: plain scalars)
+        pt = self.smooth["pace_tau"] if self.rate_ref is not None else 0.0
+        self._ppar = np.array([math.exp(-1.0 / pt) if pt > 0 else 0.0, math.exp(-1.0 / RATE_TAU), self.smooth["pace_k"],
+                               self.smooth["pace_a"]])
+        self._pace_on = pt > 0
 
     def stream(self) -> WithHLMState:
         return WithHLMState(self)
@@ -450,6 +479,8 @@ class WithHLMModel(Model):
                        self._gpar, self._ref, s.rst, self._rdecay, not self._rate_on, s.buf)
             if self._rate_on:   # the band's rate ("Rate")
                 rate_band(F[i], O[i], self.ang, std[i], self._rpar, self._ref, s.rst)
+            if self._pace_on:   # the fill paced by the observed body ("Pace")
+                pace_row(F[i], O[i], self.ang, out[i], s.k, self._ref, s.ps, s.pz, s.py, s.pr, self._ppar, s.buf)
             if has and nh:
                 s._score(eh, e0)
         return BlockFill(out, std, ~O, hb.style, hb.phase)
@@ -533,6 +564,8 @@ class WithHLMModel(Model):
                        self._gpar, self._ref, s.rst, self._rdecay, not self._rate_on, s.buf)
             if self._rate_on:   # the band's rate ("Rate")
                 rate_band(F[i], O[i], self.ang, std, self._rpar, self._ref, s.rst)
+            if self._pace_on:   # the fill paced by the observed body ("Pace")
+                pace_row(F[i], O[i], self.ang, out, s.k, self._ref, s.ps, s.pz, s.py, s.pr, self._ppar, s.buf)
             if T is not None and nh:
                 s._score(eh, e0)
             fills.append(Fill(out, std, d.filled, {**h.extras, "hlm_q": math.exp(logq)}))   # d.filled: ~O[i]
@@ -603,6 +636,8 @@ class WithHLMModel(Model):
             self._rate_factor(states, F, O)   # only its update of the rates
         if self._qon:
             std = std * mfac
+        if self._pace_on:   # the fill paced by the observed body ("Pace")
+            out = self._pace(states, F, O, K, out)
         fills = []
         for i, s in enumerate(states):
             s.k, s.o = K[i].copy(), off[i].copy()
@@ -635,6 +670,48 @@ class WithHLMModel(Model):
         for i, s in enumerate(states):
             s.mb = np.where(O[i], s.mb, mb[i])
         return np.where(O, 1.0, mb)
+
+    def _pace(self, states, F, O, K, out) -> np.ndarray:
+        """The numpy path's pace (module doc, "Pace"; pace_row's arithmetic): the observed channels'
+        fast and slow rates updated, then each missing channel's fill moves its own step times
+        s = clip(R / ref, 0, 1), ref = pace_k r0 (or the smaller of it and pace_a where pace_a > 0), from
+        where it was (from its last value on a gap's first frame)."""
+        fd, sd, kf, pa = (float(x) for x in self._ppar)
+        out = out.copy()
+        for i, s in enumerate(states):
+            ps, o = s.ps, O[i]
+            dx = np.where(o, F[i], ps[4]) - ps[4]   # (a missing value may be nan)
+            dx = np.abs(np.where(self.ang, wrap(dx), dx))
+            upd = o & (ps[5] > 0)
+            f1, s1 = ps[0] * fd + dx, ps[2] * sd + dx
+            f1[f1 < RATE_FTZ] = 0.0
+            s1[s1 < RATE_FTZ] = 0.0
+            ps[0], ps[1] = np.where(upd, f1, ps[0]), np.where(upd, ps[1] * fd + 1.0, ps[1])
+            ps[2], ps[3] = np.where(upd, s1, ps[2]), np.where(upd, ps[3] * sd + 1.0, ps[3])
+            ps[4] = np.where(o, F[i], ps[4])
+            ok = o & self.ang & (self._ref > 0)
+            r = _median_rate(ps[0], ps[1], self._ref, ok)
+            miss = ~o
+            onset = miss & (K[i] == 1)
+            if onset.any():
+                r0 = _median_rate(ps[2], ps[3], self._ref, ok)
+                had = onset & (ps[5] > 0)
+                s.pr = np.where(had, r0, np.where(onset, -1.0, s.pr))
+                s.pz = np.where(had, ps[4], np.where(onset, out[i], s.pz))
+                s.py = np.where(had, ps[4], np.where(onset, out[i], s.py))
+            ps[5] = np.where(o, 1.0, 0.0)
+            ok0 = (r >= 0) & (s.pr > 0)
+            den = kf * np.where(ok0, s.pr, 1.0)
+            if pa > 0:
+                den = np.minimum(den, pa)
+            sc = np.where(ok0, np.clip(r / den, 0.0, 1.0), 1.0)
+            d = out[i] - s.py
+            d = np.where(self.ang, wrap(d), d)
+            z = s.pz + sc * d
+            s.pz = np.where(miss, z, s.pz)
+            s.py = np.where(miss, out[i], s.py)
+            out[i] = np.where(miss, z, out[i])
+        return out
 
     def _rate_factor(self, states, F, O) -> np.ndarray:
         """The numpy path's rate (module doc, "Rate"; mix_row's arithmetic): each missing channel's
@@ -735,7 +812,9 @@ class WithHLMState(FillerState):
         self.wb = np.zeros(C)        # the band's low-passed share w ("Smooth", band_tau)
         self.rst = np.zeros((4, C))  # each channel's decayed sum of |dx|, of 1, last value, last observed ("Rate")
         self.mb = np.ones(C)         # band_q's low-passed multiplier ("Band q")
-        self.buf = np.zeros(C)       # scratch for the stream's rate ("Band q")
+        self.buf = np.zeros(C)       # scratch for the stream's rate ("Band q", "Pace")
+        self.ps = np.zeros((6, C))   # the pace's fast and slow decayed sums of |dx| and of 1, last value, observed ("Pace")
+        self.pz, self.py, self.pr = np.zeros(C), np.zeros(C), np.zeros(C)   # the paced fill, the fill, the onset rate ("Pace")
         self.lr_sum = self.lr_ss = self.lr_n = 0.0   # decayed sums of the windows' log r, log r^2, count
         self._lq = LOGQ_UNSCORED     # the pessimistic bound on log q (module doc), updated as windows close
         self.sh = -1                 # index into SHADOW_GROUPS of the hidden group, -1: none
@@ -796,6 +875,12 @@ class WithHLMState(FillerState):
     def step(self, frame, observed=None) -> Fill:
         f, obs = check_frame(frame, observed, self.m.n_channels)
         return self.m._step([self], f[None], obs[None])[0]
+
+
+def _median_rate(num: np.ndarray, den: np.ndarray, ref: np.ndarray, ok: np.ndarray) -> float:
+    """withhlm_fast._obs_median's: the median of num / den / ref where ``ok`` and den >= 1; -1 where none."""
+    sel = ok & (den >= 1.0)
+    return float(np.median(num[sel] / den[sel] / ref[sel])) if sel.any() else -1.0
 
 
 def _ready(a: Any, dtype: Any, shape: tuple[int, ...]) -> bool:

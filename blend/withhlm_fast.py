@@ -233,3 +233,79 @@ def q_band(F, O, ang, std, k, M, qb, bdecay, mb, gpar, ref, rst, rdecay, upd, bu
             else:
                 mb[j] = mb[j] + (m - mb[j]) * (1.0 - bdecay)
             std[j] = std[j] * mb[j]
+
+
+@jit
+def _obs_median(O, ang, ref, num, den, buf):
+    """The median over observed angle channels with ref > 0 and at least one value's weight of
+    history (den >= 1) of num / den / ref; -1 where none (blend/withhlm.py's module doc, "Pace")."""
+    n = 0
+    for j in range(ang.shape[0]):
+        if O[j] and ang[j] and ref[j] > 0.0 and den[j] >= 1.0:
+            buf[n] = num[j] / den[j] / ref[j]
+            n += 1
+    if n == 0:
+        return -1.0
+    return np.median(buf[:n])
+
+
+@jit
+def pace_row(F, O, ang, out, k, ref, ps, pz, py, pr, ppar, buf):
+    """The pace (blend/withhlm.py's module doc, "Pace") after ``mix_row`` (and the band's kernels) on
+    one stream's frame, called only where it is on: ``ppar`` = (fast decay, slow decay, kfac, a).  First
+    each observed channel's decayed sums of |dx| over consecutive observed frames and of 1, fast
+    (``ps`` rows 0, 1) and slow (rows 2, 3), its last value (row 4) and whether it was observed the
+    frame before (row 5) are updated; then R = the observed body's fast rate now (_obs_median of rows
+    0, 1).  A missing channel j on its gap's first frame (k[j] == 1) keeps pr[j] = the observed body's
+    slow rate (rows 2, 3) now, and its fill starts from its last value; on every frame of the gap the
+    fill y (``out[j]``) moves its own step times s = clip(R / min(kfac pr[j], a), 0, 1) (a = 0: no
+    such level, kfac pr[j] alone; s = 1 where either
+    rate is undefined, or the channel has no last value): z = z_prev + s wrap(y - y_prev), z written to
+    ``out[j]``; pz, py hold z and y."""
+    fd = ppar[0]
+    sd = ppar[1]
+    kf = ppar[2]
+    pa = ppar[3]
+    for j in range(F.shape[0]):
+        if O[j]:
+            if ps[5, j] > 0.0:
+                dx = F[j] - ps[4, j]
+                if ang[j]:
+                    dx = _wrap(dx)
+                dx = abs(dx)
+                ps[0, j] = _ftz(ps[0, j] * fd + dx)
+                ps[1, j] = ps[1, j] * fd + 1.0
+                ps[2, j] = _ftz(ps[2, j] * sd + dx)
+                ps[3, j] = ps[3, j] * sd + 1.0
+            ps[4, j] = F[j]
+    r = _obs_median(O, ang, ref, ps[0], ps[1], buf)
+    r0 = -2.0
+    for j in range(F.shape[0]):
+        if O[j]:
+            ps[5, j] = 1.0
+            continue
+        y = out[j]
+        if k[j] == 1:
+            if r0 == -2.0:
+                r0 = _obs_median(O, ang, ref, ps[2], ps[3], buf)
+            pr[j] = r0
+            if ps[5, j] > 0.0:   # observed the frame before: its last value is where the gap starts
+                pz[j] = ps[4, j]
+                py[j] = ps[4, j]
+            else:   # never observed: nothing to start from; the fill as it is
+                pr[j] = -1.0
+                pz[j] = y
+                py[j] = y
+        ps[5, j] = 0.0
+        s = 1.0
+        if r >= 0.0 and pr[j] > 0.0:
+            den = kf * pr[j]
+            if pa > 0.0 and pa < den:
+                den = pa
+            s = min(max(r / den, 0.0), 1.0)
+        d = y - py[j]
+        if ang[j]:
+            d = _wrap(d)
+        pz[j] = pz[j] + s * d
+        py[j] = y
+        out[j] = pz[j]

@@ -165,7 +165,8 @@ def test_the_smoothing_is_saved_and_files_without_it_load_as_off(model, cases, t
     from lacuna import modelfile
 
     assert model.smooth == {"knots": False, "std_knots": True, "pop": withhlm.POP, "pop_tau": withhlm.POP_TAU,
-                            "pop_rel": withhlm.POP_REL, "band_tau": withhlm.BAND_TAU, "rate_a": withhlm.RATE_A}
+                            "pop_rel": withhlm.POP_REL, "band_tau": withhlm.BAND_TAU, "rate_a": withhlm.RATE_A,
+                            "pace_tau": withhlm.PACE_TAU, "pace_k": withhlm.PACE_K, "pace_a": withhlm.PACE_A}
     assert {**withhlm.SMOOTH_SINCE, **withhlm.shipped()[2]["smooth"]} == model.smooth and model.pop > 0
     truth, obs = cases[0]
     path = tmp_path / "d.npz"
