@@ -278,3 +278,69 @@ def test_the_shipped_weights_were_fitted_under_the_check_the_code_runs():
             pol["Q_PRIOR_N"], pol["SHADOW_REVOKE"]) == \
         (withhlm.Q_Z, withhlm.SHADOW_SKIP, withhlm.SHADOW_MAX_MISS, withhlm.SHADOW_WARM, withhlm.SHADOW_EAGER,
          withhlm.Q_PRIOR_N, withhlm.SHADOW_REVOKE)
+
+
+def _long_erasure(model, trust, q, legs_out=False, compiled=True, take="35_30"):
+    """pan2009's pattern on TEST take ``take`` (every channel but the legs erased from half way), the
+    HLM's slot scripted to the truth, the stream's bound on q held at ``q`` from the erasure on (the
+    check cannot run then: > SHADOW_MAX_MISS missing); with ``legs_out`` one leg channel is missing too.
+    Returns the fills, the erasure's first frame and the erased upper-body angles' mask."""
+    import math
+
+    truth = splits.load_take(take).frames
+    obs = _pan2009(truth, model.channels)
+    t0 = truth.shape[0] // 2
+    legs = np.isin(model.group, (5, 6))
+    if legs_out:
+        obs[t0:, np.flatnonzero(legs)[0]] = False
+    W, S, chosen = shipped()
+    meta = {"long_trust": list(trust)} if trust else {}
+    m = WithHLMModel(model.default, _Scripted(truth, model.channels, lambda t: 0.0), W, S, meta,
+                     tau=float(chosen.get("tau", 15.0)))
+    m.compiled = compiled and jit.enabled()
+    st = m.stream()
+    out = np.empty_like(truth)
+    for t in range(len(truth)):
+        if t >= t0:
+            st._lq = math.log(q)
+        out[t] = st.step(truth[t], obs[t]).frame
+    ang = np.array([is_angle(c) for c in model.channels])
+    body = ~legs & ang & (model.group != ROOT_POS)
+    return out, truth, t0, body
+
+
+def test_long_erasure_trust_takes_the_hlms_share_only_after_k_frames_with_the_legs_seen(model):
+    """q+ 1.3 (the last bin: the HLM yields without the trust): with the trust (120, 1.5) the fill is
+    main's for the erasure's first 120 frames, then leans on the (here perfect) HLM: the upper body's
+    error from frame 120 on falls below half of main's.  With q+ above QMAX, or a leg channel missing,
+    it is main's throughout; compiled and numpy mixing agree."""
+    off, truth, t0, body = _long_erasure(model, None, 1.3)
+    on, _, _, _ = _long_erasure(model, (120, 1.5), 1.3)
+    np.testing.assert_allclose(on[: t0 + 119], off[: t0 + 119], rtol=0, atol=1e-12)
+    e_on = np.mean(wrap(on[t0 + 119:, body] - truth[t0 + 119:, body]) ** 2)
+    e_off = np.mean(wrap(off[t0 + 119:, body] - truth[t0 + 119:, body]) ** 2)
+    assert e_on < 0.5 * e_off
+    high, _, _, _ = _long_erasure(model, (120, 1.5), 2.0)
+    np.testing.assert_allclose(high, off, rtol=0, atol=1e-12)
+    leg_off, _, _, _ = _long_erasure(model, None, 1.3, legs_out=True)
+    leg_on, _, _, _ = _long_erasure(model, (120, 1.5), 1.3, legs_out=True)
+    np.testing.assert_allclose(leg_on, leg_off, rtol=0, atol=1e-12)
+    numpy_on, _, _, _ = _long_erasure(model, (120, 1.5), 1.3, compiled=False)
+    np.testing.assert_allclose(numpy_on, on, rtol=0, atol=1e-9)
+
+
+def test_long_erasure_trust_is_off_by_default_and_kept_by_the_model_file(model, tmp_path):
+    """A trained model has the trust off (bench/notebook/pan-11.md: it opens on non-locomotion); one
+    set on keeps it through its file, and a file without the key loads with it off."""
+    from blend import withhlm
+
+    assert model.long_trust == withhlm.LONG_TRUST_OFF == (0, 0.0)
+    p = tmp_path / "m.npz"
+    model.set_long_trust(120, 1.5)
+    try:
+        model.save(str(p))
+        assert modelfile.load_model(str(p)).long_trust == (120, 1.5)
+    finally:
+        model.set_long_trust(*withhlm.LONG_TRUST_OFF)
+    model.save(str(p))
+    assert modelfile.load_model(str(p)).long_trust == (0, 0.0)
