@@ -221,6 +221,9 @@ def _replay(args: argparse.Namespace) -> int:
         from mocap.fkerror import joint_position_error
 
         summ["joint_positions"] = joint_position_error(kin, motion.frames, res.filled, known & ~observed)
+    from mocap.metrics import cm_per_unit
+
+    summ["figures"] = rp.figures(res, known, args.drop, cm_per_unit(motion.skeleton))
     summ["drop"] = args.drop
     summ["output"] = out
     acc, lat = summ["accuracy"], summ["latency"]
@@ -233,6 +236,9 @@ def _replay(args: argparse.Namespace) -> int:
     if jp and jp["n"]:
         print(f"joint positions of filled joints (forward kinematics): mean {jp['mean_cm']:.2f} cm, "
               f"p95 {jp['p95_cm']:.2f} cm, max {jp['max_cm']:.2f} cm over {jp['n']} joint-frames")
+    fig = summ["figures"]
+    if fig:
+        print(_replay_figures(fig))
     if lat["p50_ms"] is not None:
         print(f"round trip ms: p50 {lat['p50_ms']:.3f}  p90 {lat['p90_ms']:.3f}  p99 {lat['p99_ms']:.3f}  "
               f"p99.9 {lat['p999_ms']:.3f}  max {lat['max_ms']:.3f}")
@@ -240,11 +246,25 @@ def _replay(args: argparse.Namespace) -> int:
         rp.write_json(args.json_out, summ)
         print(f"json: {args.json_out}")
     if args.plot:
-        erased = known & ~observed
-        rp.plot_fills(args.plot, motion.frames, {summ["model"] or "fill": res.filled}, erased, motion.channels,
-                      motion.fps, f"{p.name}: drop {args.drop}")
+        rp.plot_replay(args.plot, res, known, f"{p.name}: drop {args.drop}, {summ['model'] or 'fill'} with its 2-std band")
         print(f"plot: {args.plot}")
     return 0
+
+
+def _replay_figures(f: dict[str, Any]) -> str:
+    """Two lines of ``clients.replay.figures``: what a technician weighs before trusting the fills."""
+    def num(v: Any, spec: str = ".2f") -> str:
+        return "n/a" if v is None else format(v, spec)
+
+    lines = [f"first dropped frame: median error {num(f['onset_err_median_deg'])} deg (the performer's own step "
+             f"{num(f['onset_truth_step_median_deg'])}); first 100 ms: {num(f['rms_first_100ms_deg'])} deg "
+             f"(holding: {num(f['hold_rms_first_100ms_deg'])}); gaps 0.1-0.25 s {num(f['rms_short_deg'])}, "
+             f"0.5-2 s {num(f['rms_long_deg'])} deg"]
+    pops = "n/a" if f["pop_over_2deg"] is None else f"{100 * f['pop_over_2deg']:.2f}%"
+    lines.append(f"confidence: {num(f['within_2std'], '.3f')} of dropped values within 2 reported std (0.95 is "
+                 f"calibrated; n/a: no std reported), NLL {num(f['nll_per_value'])} per value; steps over 2 deg "
+                 f"beyond the performer's own: {pops} (largest {num(f['pop_max_deg'], '.1f')} deg)")
+    return "\n".join(lines)
 
 
 def _bench(args: argparse.Namespace) -> int:

@@ -184,6 +184,47 @@ def summary(res: ReplayResult, truth_known: np.ndarray | None = None) -> dict[st
     }
 
 
+def figures(res: ReplayResult, known: np.ndarray, pattern: str = "", cm_per_unit: float | None = None) -> dict[str, Any] | None:
+    """The figures ``lacuna demo`` and ``lacuna eval`` give (``clients.demo_score.score``: RMS by gap
+    length and time since onset, the first dropped frame beside the performer's own step, the first
+    100 ms beside holding, the share within 1 and 2 reported std, the Gaussian NLL, the pops inside
+    gaps), over the values the replay dropped whose truth the take has; None when it dropped none."""
+    from clients import demo_score
+
+    m = res.motion
+    ang = np.array([is_angle(c) for c in m.channels])
+    known = np.asarray(known, bool) & np.isfinite(m.frames)
+    if not (known & ~res.sent_observed & ang[None, :]).any():
+        return None
+    truth = np.where(known, m.frames, np.nan)
+    case = demo_score.make_case(str(m.source or "replay"), truth, res.sent_observed, list(m.channels), m.fps,
+                                cm_per_unit, pattern)
+    with np.errstate(invalid="ignore"):
+        return demo_score.score(case, res.filled, res.std, known)
+
+
+def held_fill(res: ReplayResult) -> np.ndarray:
+    """Holding the last value sent: the fill a studio has without Lacuna, for the plot beside the daemon's."""
+    return _hold_forward(np.where(res.sent_observed, res.motion.frames, np.nan))
+
+
+def plot_replay(path: str, res: ReplayResult, known: np.ndarray, title: str = "", n_channels: int = 4) -> str:
+    """Truth, the daemon's fill with its 2-std band and holding the last value, on up to
+    ``n_channels`` dropped angle channels (one per joint group where the skeleton's groups are
+    CMU's, else the most-dropped)."""
+    from mocap.protocols import GAP_GROUPS
+
+    m = res.motion
+    erased = np.asarray(known, bool) & ~res.sent_observed
+    cols = band_channels(m.frames, erased, list(m.channels), GAP_GROUPS, n_channels)
+    if not cols:
+        ang = np.array([is_angle(c) for c in m.channels])
+        score = np.where(ang, erased.sum(0) * (np.nan_to_num(m.frames).std(0) + 1e-9), 0)
+        cols = [int(j) for j in np.argsort(-score)[:n_channels] if score[j] > 0] or [int(np.argmax(ang))]
+    return plot_fill_band(path, m.frames, res.filled, res.std, erased, list(m.channels), m.fps, cols,
+                          others={"hold": held_fill(res)}, name=res.model or "fill", title=title)
+
+
 def plot_fills(path: str, truth: np.ndarray, fills: dict[str, np.ndarray], erased: np.ndarray, channels: list[str],
                fps: float, title: str = "", n_channels: int = 4) -> str:
     """Truth and each method's fill on the channels erased most often; erased spans shaded."""

@@ -206,3 +206,61 @@ def test_replay_serve_starts_and_stops_its_own_daemon(tmp_path, data):
     assert rep["model"] == "model" and sum(rep["status"].values()) == 60 and set(rep["status"]) <= {"ok", "degraded"}
     assert rep["accuracy"]["erased_angle_values"] == 30 * 7
     assert mio.read_motion(str(out)).frames.shape == (60, 62)
+
+
+def test_replay_reports_the_fill_figures_and_plots_the_band(daemon, tmp_path, capsys):
+    """`lacuna replay --json` carries the figures `lacuna eval` and the demo give (mocap.metrics), over
+    the dropped values; the hold model's std is its training std, so its band is reported too."""
+    import json
+
+    from clients.demo_score import make_case, score
+    from mocap.metrics import cm_per_unit
+
+    src = str(trial_path("07_01"))
+    out = tmp_path / "f.amc"
+    assert main(["replay", src, "--connect", daemon.endpoint, "--speed", "0", "--drop", "gaps:left-arm,right-leg",
+                 "--out", str(out), "--json", str(tmp_path / "f.json"), "--plot", str(tmp_path / "f.png"), "-q"]) == 0
+    text = capsys.readouterr().out
+    assert "within 2 reported std" in text and "first dropped frame: median error" in text
+    rep = json.loads((tmp_path / "f.json").read_text())
+    fig = rep["figures"]
+    truth = read_amc(src)
+    keep, _ = drop_mask("gaps:left-arm,right-leg", truth, 0)
+    got = read_amc(str(out), find_asf(src))
+    # the same figures computed here from the written take: the daemon's hold model repeats the last value
+    # sent, so the written take is the fill (its std is not written: the calibration is checked apart)
+    case = make_case("07_01", truth.frames, keep, truth.channels, truth.fps, cm_per_unit(truth.skeleton), "gaps")
+    mine = score(case, got.frames, None)
+    assert fig["n_rms_deg"] == mine["n_rms_deg"] > 0
+    assert fig["rms_deg"] == pytest.approx(mine["rms_deg"], rel=1e-4)
+    assert fig["onset_err_median_deg"] == pytest.approx(mine["onset_err_median_deg"], rel=1e-4, abs=1e-4)
+    assert fig["rms_deg"] == pytest.approx(rep["accuracy"]["rms_deg"], rel=1e-6)
+    # holding the last value: the first 100 ms is hold's own figure, and a std was reported
+    assert fig["rms_first_100ms_deg"] == pytest.approx(fig["hold_rms_first_100ms_deg"], rel=1e-3)
+    assert 0.0 < fig["within_1std"] <= fig["within_2std"] <= 1.0 and np.isfinite(fig["nll_per_value"])
+    assert (tmp_path / "f.png").stat().st_size > 10_000
+
+
+def test_replay_figures_skip_values_the_take_never_had(daemon, tmp_path):
+    """A take with dropouts of its own (a live recording's): the drop pattern's values whose truth the
+    recording has are scored; its own gaps are filled but never scored (nothing knows their truth)."""
+    import json
+
+    from clients.recording import write_motion_recording
+    from mocap.representation import is_angle
+
+    m = load_trial("07_01").slice(0, 240)
+    captured = np.ones(m.frames.shape, bool)
+    j = m.channels.index("lhumerus.rx")
+    captured[100:130, j] = False           # the recording's own dropout: before and inside pan2009's erased half
+    src = tmp_path / "holey.lrec"
+    write_motion_recording(str(src), m, captured, None)
+    assert main(["replay", str(src), "--connect", daemon.endpoint, "--speed", "0", "--drop", "pan2009",
+                 "--out", str(tmp_path / "holey.filled.lrec"), "--json", str(tmp_path / "h.json"), "-q"]) == 0
+    rep = json.loads((tmp_path / "h.json").read_text())
+    keep, _ = drop_mask("pan2009", m)
+    ang = np.array([is_angle(c) for c in m.channels])
+    n = int((~keep & captured & ang[None, :]).sum())
+    assert n == int((~keep & ang[None, :]).sum()) - 10   # lhumerus.rx frames 120-129: erased, never known
+    assert rep["figures"]["n_rms_deg"] == rep["accuracy"]["erased_angle_values"] == n
+    assert all(np.isfinite(v) for k, v in rep["figures"].items() if k.endswith("_deg") and v is not None)
