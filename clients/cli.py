@@ -248,6 +248,11 @@ def _replay(args: argparse.Namespace) -> int:
     if args.plot:
         rp.plot_replay(args.plot, res, known, f"{p.name}: drop {args.drop}, {summ['model'] or 'fill'} with its 2-std band")
         print(f"plot: {args.plot}")
+        if res.rtt_ms.size:
+            lat_png = str(Path(args.plot).with_suffix("")) + ".latency.png"
+            rp.plot_latency(lat_png, {summ["model"] or "fill": res.rtt_ms},
+                            f"{p.name} at {args.speed:g}x: round trip, client send to answer read")
+            print(f"latency histogram: {lat_png}")
     return 0
 
 

@@ -239,6 +239,7 @@ def test_replay_reports_the_fill_figures_and_plots_the_band(daemon, tmp_path, ca
     assert fig["rms_first_100ms_deg"] == pytest.approx(fig["hold_rms_first_100ms_deg"], rel=1e-3)
     assert 0.0 < fig["within_1std"] <= fig["within_2std"] <= 1.0 and np.isfinite(fig["nll_per_value"])
     assert (tmp_path / "f.png").stat().st_size > 10_000
+    assert (tmp_path / "f.latency.png").stat().st_size > 5_000 and "latency histogram:" in text
 
 
 def test_replay_figures_skip_values_the_take_never_had(daemon, tmp_path):
