@@ -35,35 +35,36 @@ def trace(m: withhlm.WithHLMModel, take: str) -> None:
     obs = np.ones(x.shape, bool)
     obs[len(x) // 2:, ~legs] = False
     s = m.stream()
-    qs, open_, lq = [], 0, []
+    qs, open_, lq, rev = [], 0, [], 0
     for t in range(len(x)):
         s.step(x[t], obs[t])
         if t >= len(x) // 2:
             qb = m._qb(s, obs[t])
             open_ += qb == len(withhlm.Q_EDGES) + 1
+            rev += s.lbusy and m._lr_min < s.lg_lq < withhlm.LOGQ_UNSCORED
             lq.append(s.lg_lq)
             qs.append(s.logq)
     lq = np.array(lq)
     sc = lq[lq < withhlm.LOGQ_UNSCORED]
     print(f"{take}: erased {len(lq)} frames, q+ {math.exp(qs[-1]):.2f}, long windows scored {s.n_lwin}, "
           f"q_long+ end {math.exp(lq[-1]):.2f} (min {math.exp(sc.min()) if len(sc) else float('nan'):.2f}), "
-          f"long bin on {open_} frames", flush=True)
+          f"long bin on {open_} frames, revoked {rev}", flush=True)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("base")
-    ap.add_argument("--gate", action="append", default=[], help="K,QL (frames, q_long+ bound)")
+    ap.add_argument("--gate", action="append", default=[], help="K,QL[,QR] (frames, q_long+ bounds: open, revoke)")
     ap.add_argument("--trace", help="takes (comma-separated) to trace under pan2009's pattern")
     a = ap.parse_args(argv)
     import blend.methods  # noqa: F401  (loaders)
 
     for g in a.gate:
-        k, q = g.split(",")
+        k, q, *r = g.split(",")
         m = load_model(a.base)
         m.set_long_trust(*withhlm.LONG_TRUST_OFF)
-        m.set_long_gate(int(k), float(q))
-        out = a.base[:-4] + f"_g{k}_{q}.npz"
+        m.set_long_gate(int(k), float(q), float(r[0]) if r else 0.0)
+        out = a.base[:-4] + f"_g{k}_{q}" + (f"_{r[0]}" if r else "") + ".npz"
         m.save(out)
         print("wrote", out, flush=True)
     if a.trace:

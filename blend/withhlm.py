@@ -216,7 +216,7 @@ LONG_TRUST_OFF = (0, 0.0)   # the long-erasure trust off (module doc, "Long eras
 LONG_TRUST = LONG_TRUST_OFF   # what models trained now carry; (120, 1.5) passed pan-11's rule but opens on non-locomotion
 LEG_GROUPS = (5, 6)     # left-leg, right-leg: observed legs are what lock the HLM's gait phase
 LEG_SHADOW = tuple(SHADOW_GROUPS.index(g) for g in LEG_GROUPS)   # their indices into SHADOW_GROUPS
-LONG_GATE_OFF = (0, 0.0)   # the leg gate off (module doc, "Long erasures"): files without ``long_gate``
+LONG_GATE_OFF = (0, 0.0, 0.0)   # the leg gate off (module doc, "Long erasures"): files without ``long_gate``
 LONG_GATE = LONG_GATE_OFF   # what models trained now carry (bench/notebook/loco-12.md)
 RATE_TAU = 120.0   # frames: the decay of a channel's observed rate (1 s, about one walking cycle; fixed, not tuned)
 RATE_LO, RATE_HI = 0.5, 2.0   # the rate's factor on the band is clipped to these (fixed, not tuned)
@@ -303,9 +303,10 @@ class WithHLMModel(Model):
         self._lhid = [self._cols[j][self.ang[self._cols[j]]] for j in range(len(SHADOW_GROUPS))]   # a group's angles
         self.long_trust, self.long_gate = LONG_TRUST_OFF, LONG_GATE_OFF
         self._lq_max = self._lg_max = -math.inf
+        self._lr_min = math.inf
         self._lg_on = False
         self.set_long_trust(*_pair("long_trust", self.meta.get("long_trust", LONG_TRUST_OFF)))
-        self.set_long_gate(*_pair("long_gate", self.meta.get("long_gate", LONG_GATE_OFF)))
+        self.set_long_gate(*_pair("long_gate", self.meta.get("long_gate", LONG_GATE_OFF), 3))
         self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
         self.rate_ref: np.ndarray | None = None   # the training data's mean |dx| a frame per channel ("Rate")
         self._ref = np.zeros(C)
@@ -329,20 +330,26 @@ class WithHLMModel(Model):
             self.meta.pop("long_trust", None)
         self._long_column(k)
 
-    def set_long_gate(self, k: int, qlong: float) -> None:
+    def set_long_gate(self, k: int, qlong: float, qrev: float = 0.0) -> None:
         """The leg gate (module doc, "Long erasures"): while more than SHADOW_MAX_MISS channels are
         missing and every leg channel is observed, long windows on the legs score the HLM into the
         stream's q_long+; a channel outside the legs and the root position missing for >= ``k`` frames,
         where the stream's q+ is in the last bin, takes the share W of q bin 0.7-1.1 while q_long+ <=
-        ``qlong``.  k = 0: off (the fills of main)."""
-        k, qlong = _check_long("long_gate", k, qlong)
+        ``qlong`` (0: never); and once a long window of this erasure is scored, q_long+ > ``qrev`` sends
+        the stream to the last q bin (W = 0) whatever its q+ (0: never).  k = 0: off (the fills of main)."""
+        bad = any(isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x) or x < 0 for x in (qlong, qrev))
+        if bad or (k and not (qlong > 0 or qrev > 0)):
+            raise FillerError(f"{METHOD}: long_gate must be (k >= 0 whole frames, qlong >= 0, qrev >= 0, one of them > 0) "
+                              f"(got {(k, qlong, qrev)!r})")
+        k, _ = _check_long("long_gate", k, 1.0)
         if k > 0 and self.long_trust[0] > 0:
             raise FillerError(f"{METHOD}: long_trust and long_gate are alternatives; set one (long_trust is {self.long_trust!r})")
-        self.long_gate = (k, qlong)
-        self._lg_max = math.log(qlong) if k > 0 else -math.inf
+        self.long_gate = (k, float(qlong), float(qrev)) if k > 0 else LONG_GATE_OFF
+        self._lg_max = math.log(qlong) if k > 0 and qlong > 0 else -math.inf
+        self._lr_min = math.log(qrev) if k > 0 and qrev > 0 else math.inf
         self._lg_on = k > 0
         if k > 0:
-            self.meta["long_gate"] = list(self.long_gate)
+            self.meta["long_gate"] = [k, float(qlong)] + ([float(qrev)] if qrev > 0 else [])
         else:
             self.meta.pop("long_gate", None)
         self._long_column(k if k > 0 else self.long_trust[0])
@@ -362,6 +369,8 @@ class WithHLMModel(Model):
         where the long-erasure trust holds (q+ <= qmax) or the leg gate does (in a long erasure, q_long+ <=
         qlong), every leg channel observed."""
         logq = s._lq
+        if s.lbusy and self._lr_min < s.lg_lq < LOGQ_UNSCORED:   # the leg gate's revoke
+            return len(self._qe)
         qb = bisect_right(self._qe, logq)
         if qb == len(self._qe) and (logq <= self._lq_max or (s.lbusy and s.lg_lq <= self._lg_max)) \
                 and bool(o[self._legs].all()):
@@ -991,11 +1000,11 @@ def _bound(lr_sum: float, lr_ss: float, lr_n: float, eh: float, e0: float) -> tu
     return lr_sum, lr_ss, lr_n, lq
 
 
-def _pair(name: str, v: Any) -> tuple[Any, Any]:
-    """A model file's (k, q) setting as two values (a clear error for anything else)."""
-    if not isinstance(v, list | tuple) or len(v) != 2:
-        raise FillerError(f"{METHOD}: {name} must be (k frames, q bound) (got {v!r})")
-    return v[0], v[1]
+def _pair(name: str, v: Any, most: int = 2) -> tuple[Any, ...]:
+    """A model file's (k, q[, q]) setting as its values (a clear error for anything else)."""
+    if not isinstance(v, list | tuple) or not 2 <= len(v) <= most:
+        raise FillerError(f"{METHOD}: {name} must be (k frames, q bound{', q bound' if most > 2 else ''}) (got {v!r})")
+    return tuple(v)
 
 
 def _check_long(name: str, k: Any, q: Any) -> tuple[int, float]:
