@@ -161,6 +161,25 @@ and passed the gaps protocol's VALIDATION seeds 0-2 (pan2009 VALIDATION mean rat
 35_28 11.69 -> 7.25 deg^2), but the VALIDATION stress of the check (bench/default_stress.py) shows the
 gate opening on non-locomotion (49_19@110: 1.36x the blend alone) and TEST's non-locomotion agrees
 (+1.2%): it is OFF by default (bench/notebook/pan-11.md); a model file with ``long_trust`` turns it on.
+The *leg gate* (``long_gate`` (K, QL[, QR]) in the model file's metadata; files without it: off; an
+alternative to ``long_trust``, not both) gathers its evidence in that regime: while more than
+SHADOW_MAX_MISS channels are missing and every leg channel is observed, *long windows* hide one leg
+(legs in turn, SHADOW_LEN frames, back to back) from a twin of the HLM (its state pool row copied at
+the window's opening; the HLM the mixing uses keeps both legs) and from a twin of the blend, scored as
+the check's windows into a per-stream q_long+ (the same bound; unscored again at each such erasure's
+onset).  A channel outside the legs and the root position missing >= K frames, in a stream whose q+
+is in the last bin, mixes with bin 0.7-1.1's W (the long column) while q_long+ <= QL (0: never); with
+QR > 0, a scored q_long+ > QR sends the stream to the last bin (W = 0) whatever its q+ (the *revoke*).
+Same fills on the numpy, compiled and block paths (the windows' planning, twins and scoring are one
+Python routine, ``_long``, before the experts step; the mixing only reads the q bin it picks;
+tests/test_default_long_gate.py).  Judged by bench/notebook/loco-12.md's rules (written before the runs)
+and OFF by default (LONG_GATE): on pan2009 VALIDATION (60, 0.8) lifts 35_28 11.69 -> 4.91 deg^2 (mean
+ratio to nn 0.464 -> 0.343), but under the same erasure on VALIDATION's basketball_4 it opens as well
+(1.14x the fill without it; the gaps protocol and the stress bench never reach the regime); the revoke
+(60, -, 1.1) brings the walk -> non-locomotion splices under such an erasure from up to 3.6x the blend
+alone (10 of 12 above 1.1x) to within 0-20% of it, but revokes pan2009's walking_21 (3.49 -> 8.48).  A long window steps a
+second HLM and blend: the stream's step costs ~2x in that regime (bench/loco12_stepcost.py), ~1.02x
+elsewhere.
 """
 from __future__ import annotations
 
