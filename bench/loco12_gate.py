@@ -54,7 +54,7 @@ def trace(m: withhlm.WithHLMModel, take: str) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("base")
-    ap.add_argument("--gate", action="append", default=[], help="K,QL[,QR] (frames, q_long+ bounds: open, revoke)")
+    ap.add_argument("--gate", action="append", default=[], help="K,QL[,QR[,REST]] (frames, q_long+ bounds: open, revoke; frames of rest between long windows)")
     ap.add_argument("--trace", help="takes (comma-separated) to trace under pan2009's pattern")
     a = ap.parse_args(argv)
     import blend.methods  # noqa: F401  (loaders)
@@ -63,8 +63,8 @@ def main(argv=None) -> int:
         k, q, *r = g.split(",")
         m = load_model(a.base)
         m.set_long_trust(*withhlm.LONG_TRUST_OFF)
-        m.set_long_gate(int(k), float(q), float(r[0]) if r else 0.0)
-        out = a.base[:-4] + f"_g{k}_{q}" + (f"_{r[0]}" if r else "") + ".npz"
+        m.set_long_gate(int(k), float(q), float(r[0]) if r else 0.0, int(r[1]) if len(r) > 1 else 0)
+        out = a.base[:-4] + f"_g{k}_{q}" + "".join(f"_{v}" for v in r) + ".npz"
         m.save(out)
         print("wrote", out, flush=True)
     if a.trace:

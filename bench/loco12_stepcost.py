@@ -46,7 +46,7 @@ def step3(A, B, F: np.ndarray, obs: np.ndarray, start: int, reps: int) -> dict[s
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("model")
-    ap.add_argument("--gate", type=float, nargs="+", default=[60, 0.8], help="K QL [QR]")
+    ap.add_argument("--gate", type=float, nargs="+", default=[60, 0.8], help="K QL [QR [REST]]")
     ap.add_argument("--take", default="walking_20")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--json")
@@ -59,7 +59,7 @@ def main() -> int:
     A.set_long_trust(*withhlm.LONG_TRUST_OFF)
     A.set_long_gate(*withhlm.LONG_GATE_OFF)
     B.set_long_trust(*withhlm.LONG_TRUST_OFF)
-    B.set_long_gate(int(a.gate[0]), *a.gate[1:])
+    B.set_long_gate(int(a.gate[0]), *a.gate[1:3], *[int(v) for v in a.gate[3:]])
     gobs, _ = protocols.Gaps(seed=0, split="validation").occlusion(a.take, m.n_frames, m.channels, m.fps)
     legs = np.isin(withhlm.group_index(list(m.channels)), withhlm.LEG_GROUPS)
     pobs = np.ones(m.frames.shape, bool)

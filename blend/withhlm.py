@@ -235,7 +235,7 @@ LONG_TRUST_OFF = (0, 0.0)   # the long-erasure trust off (module doc, "Long eras
 LONG_TRUST = LONG_TRUST_OFF   # what models trained now carry; (120, 1.5) passed pan-11's rule but opens on non-locomotion
 LEG_GROUPS = (5, 6)     # left-leg, right-leg: observed legs are what lock the HLM's gait phase
 LEG_SHADOW = tuple(SHADOW_GROUPS.index(g) for g in LEG_GROUPS)   # their indices into SHADOW_GROUPS
-LONG_GATE_OFF = (0, 0.0, 0.0)   # the leg gate off (module doc, "Long erasures"): files without ``long_gate``
+LONG_GATE_OFF = (0, 0.0, 0.0, 0)   # the leg gate off (module doc, "Long erasures"): files without ``long_gate``
 LONG_GATE = LONG_GATE_OFF   # what models trained now carry (bench/notebook/loco-12.md)
 RATE_TAU = 120.0   # frames: the decay of a channel's observed rate (1 s, about one walking cycle; fixed, not tuned)
 RATE_LO, RATE_HI = 0.5, 2.0   # the rate's factor on the band is clipped to these (fixed, not tuned)
@@ -323,9 +323,10 @@ class WithHLMModel(Model):
         self.long_trust, self.long_gate = LONG_TRUST_OFF, LONG_GATE_OFF
         self._lq_max = self._lg_max = -math.inf
         self._lr_min = math.inf
+        self._lg_rest = 0
         self._lg_on = False
         self.set_long_trust(*_pair("long_trust", self.meta.get("long_trust", LONG_TRUST_OFF)))
-        self.set_long_gate(*_pair("long_gate", self.meta.get("long_gate", LONG_GATE_OFF), 3))
+        self.set_long_gate(*_pair("long_gate", self.meta.get("long_gate", LONG_GATE_OFF), 4))
         self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
         self.rate_ref: np.ndarray | None = None   # the training data's mean |dx| a frame per channel ("Rate")
         self._ref = np.zeros(C)
@@ -349,26 +350,28 @@ class WithHLMModel(Model):
             self.meta.pop("long_trust", None)
         self._long_column(k)
 
-    def set_long_gate(self, k: int, qlong: float, qrev: float = 0.0) -> None:
+    def set_long_gate(self, k: int, qlong: float, qrev: float = 0.0, rest: int = 0) -> None:
         """The leg gate (module doc, "Long erasures"): while more than SHADOW_MAX_MISS channels are
         missing and every leg channel is observed, long windows on the legs score the HLM into the
         stream's q_long+; a channel outside the legs and the root position missing for >= ``k`` frames,
         where the stream's q+ is in the last bin, takes the share W of q bin 0.7-1.1 while q_long+ <=
         ``qlong`` (0: never); and once a long window of this erasure is scored, q_long+ > ``qrev`` sends
-        the stream to the last q bin (W = 0) whatever its q+ (0: never).  k = 0: off (the fills of main)."""
-        bad = any(isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x) or x < 0 for x in (qlong, qrev))
-        if bad or (k and not (qlong > 0 or qrev > 0)):
-            raise FillerError(f"{METHOD}: long_gate must be (k >= 0 whole frames, qlong >= 0, qrev >= 0, one of them > 0) "
-                              f"(got {(k, qlong, qrev)!r})")
+        the stream to the last q bin (W = 0) whatever its q+ (0: never); ``rest`` frames between long
+        windows (0: back to back).  k = 0: off (the fills of main)."""
+        bad = any(isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x) or x < 0 for x in (qlong, qrev, rest))
+        if bad or (k and not (qlong > 0 or qrev > 0)) or rest != int(rest):
+            raise FillerError(f"{METHOD}: long_gate must be (k >= 0 whole frames, qlong >= 0, qrev >= 0, one of them > 0"
+                              f"[, rest >= 0 whole frames]) (got {(k, qlong, qrev, rest)!r})")
         k, _ = _check_long("long_gate", k, 1.0)
         if k > 0 and self.long_trust[0] > 0:
             raise FillerError(f"{METHOD}: long_trust and long_gate are alternatives; set one (long_trust is {self.long_trust!r})")
-        self.long_gate = (k, float(qlong), float(qrev)) if k > 0 else LONG_GATE_OFF
+        self.long_gate = (k, float(qlong), float(qrev), int(rest)) if k > 0 else LONG_GATE_OFF
+        self._lg_rest = int(rest) if k > 0 else 0
         self._lg_max = math.log(qlong) if k > 0 and qlong > 0 else -math.inf
         self._lr_min = math.log(qrev) if k > 0 and qrev > 0 else math.inf
         self._lg_on = k > 0
         if k > 0:
-            self.meta["long_gate"] = [k, float(qlong)] + ([float(qrev)] if qrev > 0 else [])
+            self.meta["long_gate"] = _gate_meta(self.long_gate)
         else:
             self.meta.pop("long_gate", None)
         self._long_column(k if k > 0 else self.long_trust[0])
@@ -975,12 +978,13 @@ class WithHLMState(FillerState):
         if self.lsh_n - SHADOW_SKIP >= SHADOW_MIN and self.le0 > 0:
             self.llr_sum, self.llr_ss, self.llr_n, self.lg_lq = _bound(self.llr_sum, self.llr_ss, self.llr_n, self.leh, self.le0)
             self.n_lwin += 1
-        self.lsh, self.lsh_n, self.leh, self.le0, self.ltwin = -1, 0, 0.0, 0.0, None
+        self.lsh, self.lsh_n, self.leh, self.le0, self.ltwin = -1, self.m._lg_rest, 0.0, 0.0, None
 
     def _plan_long(self, busy: bool, gmiss: np.ndarray) -> int:
         """This frame's long window (index into SHADOW_GROUPS of the hidden leg) or -1: only in a long
         erasure (``busy``) with every leg channel observed; legs in turn, back to back; the bound starts
-        unscored at each long erasure's onset."""
+        unscored at each long erasure's onset; ``rest`` frames (long_gate's fourth value) between windows,
+        counted in long-erasure frames, the first window at the onset."""
         if not busy:
             if self.lsh >= 0:
                 self._lclose()
@@ -991,10 +995,14 @@ class WithHLMState(FillerState):
             self.llr_sum = self.llr_ss = self.llr_n = 0.0
             self.lg_lq = LOGQ_UNSCORED
             self.lsh_next = 0
+            if self.lsh < 0:
+                self.lsh_n = 0
         legs = all(gmiss[j] == 0 for j in LEG_SHADOW)
         if self.lsh >= 0 and (not legs or self.lsh_n >= SHADOW_LEN):
             self._lclose()
-        if self.lsh < 0 and legs:
+        if self.lsh < 0 and self.lsh_n > 0:
+            self.lsh_n -= 1
+        elif self.lsh < 0 and legs:
             self.lsh, self.lsh_n = LEG_SHADOW[self.lsh_next], 0
             self.lsh_next = 1 - self.lsh_next
         return self.lsh
@@ -1024,6 +1032,13 @@ def _pair(name: str, v: Any, most: int = 2) -> tuple[Any, ...]:
     if not isinstance(v, list | tuple) or not 2 <= len(v) <= most:
         raise FillerError(f"{METHOD}: {name} must be (k frames, q bound{', q bound' if most > 2 else ''}) (got {v!r})")
     return tuple(v)
+
+
+def _gate_meta(g: tuple[Any, ...]) -> list[Any]:
+    """long_gate as a model file writes it: (k, qlong), + qrev where it or rest is set, + rest where set
+    (files of rounds 1-2 keep their two or three values)."""
+    k, ql, qr, rest = (tuple(g) + (0.0, 0))[:4]
+    return [int(k), float(ql)] + ([float(qr)] if qr > 0 or rest > 0 else []) + ([int(rest)] if rest > 0 else [])
 
 
 def _check_long(name: str, k: Any, q: Any) -> tuple[int, float]:
@@ -1101,7 +1116,7 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
     if LONG_TRUST[0] > 0:
         meta["long_trust"] = list(LONG_TRUST)
     if LONG_GATE[0] > 0:
-        meta["long_gate"] = list(LONG_GATE)
+        meta["long_gate"] = _gate_meta(LONG_GATE)
     cal = calib.from_json(json.loads(SHIPPED.read_text()).get("calib") if SHIPPED.exists() else None, list(ch),
                           group_index(list(ch)), GROUP_NAMES, len(T_EDGES) + 1)
     return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal,

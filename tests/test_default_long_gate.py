@@ -24,7 +24,7 @@ pytestmark = pytest.mark.realdata
 TRAIN_TAKES = ["07_02", "07_09", "35_01", "35_06", "35_07", "35_08", "walking_13", "walking_14",
                "basketball_1", "soccer_1", "basketball_signal_1"]
 SMALL_HLM = {"restarts": 1, "n_iter": 6, "screen_iters": None, "cycle_frames": 140}
-GATE = (120, 1.1, 0.0)
+GATE = (120, 1.1, 0.0, 0)
 
 
 @pytest.fixture(scope="module")
@@ -158,25 +158,30 @@ def test_gate_setting_and_file_round_trip(model, tmp_path):
     a malformed one is a ModelFileError, bad values and the gate with long_trust a FillerError."""
     assert model.long_gate == withhlm.LONG_GATE
     m = _twin(model)
-    assert m.long_gate == withhlm.LONG_GATE_OFF == (0, 0.0, 0.0)
+    assert m.long_gate == withhlm.LONG_GATE_OFF == (0, 0.0, 0.0, 0)
     p = tmp_path / "m.npz"
     m.set_long_gate(*GATE)
     m.save(str(p))
     assert modelfile.load_model(str(p)).long_gate == GATE
     m.set_long_gate(*withhlm.LONG_GATE_OFF)
     m.save(str(p))
-    assert modelfile.load_model(str(p)).long_gate == (0, 0.0, 0.0)
+    assert modelfile.load_model(str(p)).long_gate == (0, 0.0, 0.0, 0)
     assert "long_gate" not in modelfile.load_arrays(str(p))[0]
     m.set_long_gate(120, 1.1)   # a round-1 file (two values) reads as no revoke, and is written as two values
     m.save(str(p))
     assert modelfile.load_arrays(str(p))[0]["long_gate"] == [120, 1.1]
     m.set_long_gate(60, 0.0, 1.1)
     m.save(str(p))
-    assert modelfile.load_model(str(p)).long_gate == (60, 0.0, 1.1)
+    assert modelfile.load_model(str(p)).long_gate == (60, 0.0, 1.1, 0)
+    assert modelfile.load_arrays(str(p))[0]["long_gate"] == [60, 0.0, 1.1]   # a round-2 file: three values
+    m.set_long_gate(60, 0.0, 1.5, 120)   # rest between long windows: a fourth value
+    m.save(str(p))
+    assert modelfile.load_arrays(str(p))[0]["long_gate"] == [60, 0.0, 1.5, 120]
+    assert modelfile.load_model(str(p)).long_gate == (60, 0.0, 1.5, 120)
     m.set_long_gate(*withhlm.LONG_GATE_OFF)
     meta, arrays = modelfile.load_arrays(str(p))
     for bad in ("x", [120], [120, "1"], [-1, 1.0], [120, 0.0], [120, 0.0, 0.0], [120.5, 1.0], [True, 1.0],
-                [120, 1.0, -1.0], [120, 1.0, 1.0, 1.0]):
+                [120, 1.0, -1.0], [120, 1.0, 1.0, 1.5], [120, 1.0, 1.0, -1], [120, 1.0, 1.0, 1, 1]):
         modelfile.save_arrays(str(p), {**meta, "long_gate": bad}, arrays)
         with pytest.raises(modelfile.ModelFileError, match="long_gate"):
             modelfile.load_model(str(p))
