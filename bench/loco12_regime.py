@@ -3,8 +3,11 @@
 erased from half way) on each VALIDATION take, and the stress bench's splices (bench/default_stress.py:
 a walk's first 5 s, then a non-locomotion take) erased but the legs from 30 frames after the seam.
 MSE (deg^2) over the erased angles of ``default`` per model file given, its blend alone and hold.
+``--split test`` (only after a choice, reported, never used to choose): the same on TEST's takes, the
+splices' walks TEST's walking_27, walking_28 and 35_30 (fixed before the run, as VALIDATION's two
+walking_ takes and one of subject 35).
 
-    OPENBLAS_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/loco12_regime.py OFF.npz ON.npz [--json OUT]
+    OPENBLAS_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/loco12_regime.py OFF.npz ON.npz [--split test] [--json OUT]
 """
 from __future__ import annotations
 
@@ -25,19 +28,21 @@ from mocap.representation import is_angle  # noqa: E402
 from mocap.rootrot import wrap180 as wrap  # noqa: E402
 
 SPLICE_WALKS = ("walking_20", "walking_21", "35_28")
+SPLICE_WALKS_TEST = ("walking_27", "walking_28", "35_30")
 WALK_FRAMES = 600
 
 
-def cases(channels):
+def cases(channels, split="validation"):
     legs = np.isin(withhlm.group_index(list(channels)), withhlm.LEG_GROUPS)
-    for t in splits.VALIDATION:
+    takes = splits.TEST if split == "test" else splits.VALIDATION
+    for t in takes:
         x = np.array(protocols.load_take(t).frames)
         obs = np.ones(x.shape, bool)
         obs[len(x) // 2:, ~legs] = False
         yield t, splits.ACTIVITY[t], x, obs
-    for w in SPLICE_WALKS:
+    for w in SPLICE_WALKS_TEST if split == "test" else SPLICE_WALKS:
         mw = protocols.load_take(w)
-        for t in [t for t in splits.VALIDATION if splits.ACTIVITY[t] == "nonloco"]:
+        for t in [t for t in takes if splits.ACTIVITY[t] == "nonloco"]:
             mn = protocols.load_take(t)
             x1, x2 = np.array(mw.frames[:WALK_FRAMES]), np.array(mn.frames[:1500])
             pos = [j for j, c in enumerate(mw.channels) if not is_angle(c)]
@@ -59,6 +64,7 @@ def run(m, x, obs, blend=False):
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("models", nargs="+")
+    ap.add_argument("--split", choices=("validation", "test"), default="validation")
     ap.add_argument("--json")
     a = ap.parse_args()
     import blend.methods  # noqa: F401  (loaders)
@@ -67,7 +73,7 @@ def main() -> int:
     ang = np.array([is_angle(c) for c in models[0].channels])
     rows = []
     t0 = time.time()
-    for label, act, x, obs in cases(models[0].channels):
+    for label, act, x, obs in cases(models[0].channels, a.split):
         msk = ~obs & ang[None]
         e = {}
         for p, m in zip(a.models, models, strict=True):
