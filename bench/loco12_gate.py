@@ -47,7 +47,8 @@ def trace(m: withhlm.WithHLMModel, take: str) -> None:
     lq = np.array(lq)
     sc = lq[lq < withhlm.LOGQ_UNSCORED]
     print(f"{take}: erased {len(lq)} frames, q+ {math.exp(qs[-1]):.2f}, long windows scored {s.n_lwin}, "
-          f"q_long+ end {math.exp(lq[-1]):.2f} (min {math.exp(sc.min()) if len(sc) else float('nan'):.2f}), "
+          f"q_long+ end {math.exp(lq[-1]):.2f} (min {math.exp(sc.min()) if len(sc) else float('nan'):.2f}, "
+          f"max {math.exp(sc.max()) if len(sc) else float('nan'):.2f}), "
           f"long bin on {open_} frames, revoked {rev}", flush=True)
 
 
