@@ -177,9 +177,14 @@ and OFF by default (LONG_GATE): on pan2009 VALIDATION (60, 0.8) lifts 35_28 11.6
 ratio to nn 0.464 -> 0.343), but under the same erasure on VALIDATION's basketball_4 it opens as well
 (1.14x the fill without it; the gaps protocol and the stress bench never reach the regime); the revoke
 (60, -, 1.1) brings the walk -> non-locomotion splices under such an erasure from up to 3.6x the blend
-alone (10 of 12 above 1.1x) to within 0-20% of it, but revokes pan2009's walking_21 (3.49 -> 8.48).  A long window steps a
-second HLM and blend: the stream's step costs ~2x in that regime (bench/loco12_stepcost.py), ~1.02x
-elsewhere.
+alone (10 of 12 above 1.1x) to within 0-20% of it, but revokes pan2009's walking_21 (3.49 -> 8.48).  Round 3
+(the revoke alone at QR = SHADOW_REVOKE, the ordinary check's own bound, not a new fit) cut the pooled
+non-walk regime MSE 27% with nothing else moving on VALIDATION, and failed on the same take (3.49 -> 6.50):
+walking_21's first long window reads r = 2.5 on the hidden leg (a seated take reads 4.8-8.5), so no revoke
+bound spares it without being fitted to those two takes.  A long window steps a second HLM and blend: the
+stream's step costs ~2x in that regime (bench/loco12_stepcost.py), ~1.02x elsewhere; long_gate's fourth
+value, ``rest`` (frames of rest after each long window, the first at the erasure's onset; 0: back to back;
+SHADOW_PAUSE as the ordinary check's schedule), runs the twins on a third of that regime's frames.
 """
 from __future__ import annotations
 
