@@ -161,9 +161,34 @@ and passed the gaps protocol's VALIDATION seeds 0-2 (pan2009 VALIDATION mean rat
 35_28 11.69 -> 7.25 deg^2), but the VALIDATION stress of the check (bench/default_stress.py) shows the
 gate opening on non-locomotion (49_19@110: 1.36x the blend alone) and TEST's non-locomotion agrees
 (+1.2%): it is OFF by default (bench/notebook/pan-11.md); a model file with ``long_trust`` turns it on.
+The *leg gate* (``long_gate`` (K, QL[, QR]) in the model file's metadata; files without it: off; an
+alternative to ``long_trust``, not both) gathers its evidence in that regime: while more than
+SHADOW_MAX_MISS channels are missing and every leg channel is observed, *long windows* hide one leg
+(legs in turn, SHADOW_LEN frames, back to back) from a twin of the HLM (its state pool row copied at
+the window's opening; the HLM the mixing uses keeps both legs) and from a twin of the blend, scored as
+the check's windows into a per-stream q_long+ (the same bound; unscored again at each such erasure's
+onset).  A channel outside the legs and the root position missing >= K frames, in a stream whose q+
+is in the last bin, mixes with bin 0.7-1.1's W (the long column) while q_long+ <= QL (0: never); with
+QR > 0, a scored q_long+ > QR sends the stream to the last bin (W = 0) whatever its q+ (the *revoke*).
+Same fills on the numpy, compiled and block paths (the windows' planning, twins and scoring are one
+Python routine, ``_long``, before the experts step; the mixing only reads the q bin it picks;
+tests/test_default_long_gate.py).  Judged by bench/notebook/loco-12.md's rules (written before the runs)
+and OFF by default (LONG_GATE): on pan2009 VALIDATION (60, 0.8) lifts 35_28 11.69 -> 4.91 deg^2 (mean
+ratio to nn 0.464 -> 0.343), but under the same erasure on VALIDATION's basketball_4 it opens as well
+(1.14x the fill without it; the gaps protocol and the stress bench never reach the regime); the revoke
+(60, -, 1.1) brings the walk -> non-locomotion splices under such an erasure from up to 3.6x the blend
+alone (10 of 12 above 1.1x) to within 0-20% of it, but revokes pan2009's walking_21 (3.49 -> 8.48).  Round 3
+(the revoke alone at QR = SHADOW_REVOKE, the ordinary check's own bound, not a new fit) cut the pooled
+non-walk regime MSE 27% with nothing else moving on VALIDATION, and failed on the same take (3.49 -> 6.50):
+walking_21's first long window reads r = 2.5 on the hidden leg (a seated take reads 4.8-8.5), so no revoke
+bound spares it without being fitted to those two takes.  A long window steps a second HLM and blend: the
+stream's step costs ~2x in that regime (bench/loco12_stepcost.py), ~1.02x elsewhere; long_gate's fourth
+value, ``rest`` (frames of rest after each long window, the first at the erasure's onset; 0: back to back;
+SHADOW_PAUSE as the ordinary check's schedule), runs the twins on a third of that regime's frames.
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 import tempfile
@@ -214,6 +239,9 @@ RATE_A = 0.0     # the band's rate exponent (module doc, "Rate"; 0: off)
 LONG_TRUST_OFF = (0, 0.0)   # the long-erasure trust off (module doc, "Long erasures"): every model by default
 LONG_TRUST = LONG_TRUST_OFF   # what models trained now carry; (120, 1.5) passed pan-11's rule but opens on non-locomotion
 LEG_GROUPS = (5, 6)     # left-leg, right-leg: observed legs are what lock the HLM's gait phase
+LEG_SHADOW = tuple(SHADOW_GROUPS.index(g) for g in LEG_GROUPS)   # their indices into SHADOW_GROUPS
+LONG_GATE_OFF = (0, 0.0, 0.0, 0)   # the leg gate off (module doc, "Long erasures"): files without ``long_gate``
+LONG_GATE = LONG_GATE_OFF   # what models trained now carry (bench/notebook/loco-12.md)
 RATE_TAU = 120.0   # frames: the decay of a channel's observed rate (1 s, about one walking cycle; fixed, not tuned)
 RATE_LO, RATE_HI = 0.5, 2.0   # the rate's factor on the band is clipped to these (fixed, not tuned)
 PACE_TAU = 0.0   # frames: the decay of the observed body's fast rate for the pace (module doc, "Pace"; 0: off)
@@ -296,7 +324,14 @@ class WithHLMModel(Model):
         # the compiled mixing reads per-channel tables (channel j its own "group"): W of its group,
         # S of its group times its calibration, so the calibration costs nothing there (same fills)
         self._legs = np.flatnonzero(np.isin(self.group, LEG_GROUPS))
-        self.set_long_trust(*self.meta.get("long_trust", LONG_TRUST_OFF))
+        self._lhid = [self._cols[j][self.ang[self._cols[j]]] for j in range(len(SHADOW_GROUPS))]   # a group's angles
+        self.long_trust, self.long_gate = LONG_TRUST_OFF, LONG_GATE_OFF
+        self._lq_max = self._lg_max = -math.inf
+        self._lr_min = math.inf
+        self._lg_rest = 0
+        self._lg_on = False
+        self.set_long_trust(*_pair("long_trust", self.meta.get("long_trust", LONG_TRUST_OFF)))
+        self.set_long_gate(*_pair("long_gate", self.meta.get("long_gate", LONG_GATE_OFF), 4))
         self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
         self.rate_ref: np.ndarray | None = None   # the training data's mean |dx| a frame per channel ("Rate")
         self._ref = np.zeros(C)
@@ -309,28 +344,86 @@ class WithHLMModel(Model):
         """The long-erasure trust (module doc, "Long erasures"): a channel outside the legs missing for
         >= ``k`` frames while every leg channel is observed and the stream's q+ <= ``qmax`` takes the
         share W of q bin 0.7-1.1 instead of the last bin's 0.  k = 0: off (the fills of main)."""
-        if isinstance(k, bool) or not isinstance(k, int | float) or k < 0 or not math.isfinite(qmax) or (k > 0 and qmax <= 0):
-            raise FillerError(f"{METHOD}: long_trust must be (k >= 0 frames, qmax > 0) (got {(k, qmax)!r})")
-        self.long_trust = (int(k), float(qmax))
+        k, qmax = _check_long("long_trust", k, qmax)
+        if k > 0 and self.long_gate[0] > 0:
+            raise FillerError(f"{METHOD}: long_trust and long_gate are alternatives; set one (long_gate is {self.long_gate!r})")
+        self.long_trust = (k, qmax)
         self._lq_max = math.log(qmax) if k > 0 else -math.inf
+        if k > 0:
+            self.meta["long_trust"] = list(self.long_trust)
+        else:
+            self.meta.pop("long_trust", None)
+        self._long_column(k)
+
+    def set_long_gate(self, k: int, qlong: float, qrev: float = 0.0, rest: int = 0) -> None:
+        """The leg gate (module doc, "Long erasures"): while more than SHADOW_MAX_MISS channels are
+        missing and every leg channel is observed, long windows on the legs score the HLM into the
+        stream's q_long+; a channel outside the legs and the root position missing for >= ``k`` frames,
+        where the stream's q+ is in the last bin, takes the share W of q bin 0.7-1.1 while q_long+ <=
+        ``qlong`` (0: never); and once a long window of this erasure is scored, q_long+ > ``qrev`` sends
+        the stream to the last q bin (W = 0) whatever its q+ (0: never); ``rest`` frames between long
+        windows (0: back to back).  k = 0: off (the fills of main)."""
+        bad = any(isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x) or x < 0 for x in (qlong, qrev, rest))
+        if bad or (k and not (qlong > 0 or qrev > 0)) or rest != int(rest):
+            raise FillerError(f"{METHOD}: long_gate must be (k >= 0 whole frames, qlong >= 0, qrev >= 0, one of them > 0"
+                              f"[, rest >= 0 whole frames]) (got {(k, qlong, qrev, rest)!r})")
+        k, _ = _check_long("long_gate", k, 1.0)
+        if k > 0 and self.long_trust[0] > 0:
+            raise FillerError(f"{METHOD}: long_trust and long_gate are alternatives; set one (long_trust is {self.long_trust!r})")
+        self.long_gate = (k, float(qlong), float(qrev), int(rest)) if k > 0 else LONG_GATE_OFF
+        self._lg_rest = int(rest) if k > 0 else 0
+        self._lg_max = math.log(qlong) if k > 0 and qlong > 0 else -math.inf
+        self._lr_min = math.log(qrev) if k > 0 and qrev > 0 else math.inf
+        self._lg_on = k > 0
+        if k > 0:
+            self.meta["long_gate"] = _gate_meta(self.long_gate)
+        else:
+            self.meta.pop("long_gate", None)
+        self._long_column(k if k > 0 else self.long_trust[0])
+
+    def _long_column(self, k: int) -> None:
+        """The compiled tables' extra q column (index len(Q_EDGES) + 1), the long bin."""
         Wl = self.W[:, :, -1].copy()   # the extra q bin: the last bin's shares (0) ...
         if k > 0:   # ... except a long gap outside the legs and root position: bin 0.7-1.1's
             tb0 = int(t_bin(np.array([k]))[0])
             body = [g for g in range(len(GROUP_NAMES)) if g not in LEG_GROUPS and g != ROOT_POS]
             Wl[body, tb0:] = self.W[body, tb0:, -2]
-            self.meta["long_trust"] = list(self.long_trust)
-        else:
-            self.meta.pop("long_trust", None)
         self._W5 = np.ascontiguousarray(np.concatenate([self.W, Wl[:, :, None]], 2))
         self._kW = np.ascontiguousarray(self._W5[self.group])
 
-    def _qb(self, logq: float, o: np.ndarray) -> int:
+    def _qb(self, s: WithHLMState, o: np.ndarray) -> int:
         """The q bin a stream's frame mixes with: the last bin becomes the long bin (index len(Q_EDGES) + 1)
-        where the long-erasure trust holds (q+ <= qmax, every leg channel observed)."""
+        where the long-erasure trust holds (q+ <= qmax) or the leg gate does (in a long erasure, q_long+ <=
+        qlong), every leg channel observed."""
+        logq = s._lq
+        if s.lbusy and self._lr_min < s.lg_lq < LOGQ_UNSCORED:   # the leg gate's revoke
+            return len(self._qe)
         qb = bisect_right(self._qe, logq)
-        if qb == len(self._qe) and logq <= self._lq_max and bool(o[self._legs].all()):
+        if qb == len(self._qe) and (logq <= self._lq_max or (s.lbusy and s.lg_lq <= self._lg_max)) \
+                and bool(o[self._legs].all()):
             return qb + 1
         return qb
+
+    def _long(self, s: WithHLMState, f: np.ndarray, o: np.ndarray, busy: bool, gm: np.ndarray, compiled: bool) -> None:
+        """The leg gate's long window for one stream's frame (module doc, "Long erasures"): plan it; where
+        one is open, step the blend's and the HLM's twins (copies of the stream's states at the window's
+        opening) with the leg hidden and score them on its angles.  Before the stream's own experts step."""
+        g = s._plan_long(busy, gm)
+        if g < 0:
+            return
+        lo = o.copy()
+        lo[self._cols[g]] = False
+        if s.ltwin is None:
+            s.ltwin = _copy_state(s.ds)
+            s.lhs = _fork_stream(self.hlm, s.hs, s.lhs)
+        if compiled:
+            T = self._blend_step(s.ltwin, f, lo).frame
+        else:
+            T = self.default.step_batch([s.ltwin], f[None], lo[None])[0].frame
+        H = self.hlm.step_batch([s.lhs], np.ascontiguousarray(f[None]), lo[None])[0].frame
+        hid = self._lhid[g]
+        eh, e0 = wrap(H[hid] - f[hid]), wrap(T[hid] - f[hid])
+        s._lscore(float((eh * eh).sum()), float((e0 * e0).sum()))
 
     def set_band_q(self, M: np.ndarray, gate: Any = None) -> None:
         """The band's multiplier per (group, q bin) (module doc, "Band q"; ones: off) and its rate gate
@@ -451,6 +544,8 @@ class WithHLMModel(Model):
         for i, s in enumerate(states):
             nm = shadow_counts(O[i], self._nonpos, self._sgroup, s.gm)
             g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
+            if self._lg_on:   # the leg gate's long window ("Long erasures")
+                self._long(s, F[i], O[i], nm > SHADOW_MAX_MISS, s.gm, True)
             if g >= 0:
                 HO = O.copy() if HO is O else HO
                 HO[i, self._cols[g]] = False
@@ -469,7 +564,7 @@ class WithHLMModel(Model):
         for i, s in enumerate(states):
             has = j < len(tw) and tw[j] == i
             j += has
-            qb = self._qb(s.logq, O[i])
+            qb = self._qb(s, O[i])
             eh, e0, nh = mix_row(F[i], O[i], HO[i], D[i], Dsd[i], H[i], Hsd[i], T[i] if has else D[i],   # type: ignore[index]
                                  has, self.ang, self._rows, self._kW, self._kS, T_EDGES, qb,
                                  self._anc, s.k, s.o, out[i], std[i], self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
@@ -497,7 +592,10 @@ class WithHLMModel(Model):
         gmiss = (~O).astype(np.float64) @ self._member            # (n, shadow groups) channels missing
         HO = O.copy()
         for i, s in enumerate(states):
-            self._open(s, s._plan(bool(busy[i]), gmiss[i]), i, HO, win)
+            g = s._plan(bool(busy[i]), gmiss[i])
+            if self._lg_on:   # the leg gate's long window ("Long erasures")
+                self._long(s, F[i], O[i], bool(busy[i]), gmiss[i], False)
+            self._open(s, g, i, HO, win)
         if win:
             dst = [s.ds for s in states] + [t for t in (states[i].twin for i in win) if t is not None]   # (_open set them)
             dfills = self.default.step_batch(dst, np.concatenate([F, F[win]]), np.concatenate([O, HO[win]]))
@@ -519,6 +617,8 @@ class WithHLMModel(Model):
         for i, s in enumerate(states):
             nm = shadow_counts(O[i], self._nonpos, self._sgroup, s.gm)
             g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
+            if self._lg_on:   # the leg gate's long window ("Long erasures")
+                self._long(s, F[i], O[i], nm > SHADOW_MAX_MISS, s.gm, True)
             if g >= 0:
                 HO = O.copy() if HO is O else HO
                 HO[i, self._cols[g]] = False
@@ -554,7 +654,7 @@ class WithHLMModel(Model):
             logq = s.logq
             T = twin.get(i)
             out, std = np.empty(C), np.empty(C)
-            qb = self._qb(logq, O[i])
+            qb = self._qb(s, O[i])
             eh, e0, nh = mix_row(F[i], O[i], HO[i], d.frame, d.std, h.frame, h.std, d.frame if T is None else T,
                                  T is not None, self.ang, self._rows, self._kW, self._kS, T_EDGES, qb,
                                  self._anc, s.k, s.o, out, std, self.knots, self._wk, self.pop, self.prel, self.pdecay, s.rp, s.vp, s.e,
@@ -588,7 +688,7 @@ class WithHLMModel(Model):
         raw = np.where(self.ang, wrap(Hf - Df), Hf - Df)
         off = np.where(K == 1, -raw, np.stack([s.o for s in states]))
         diff = raw + (off * self.anchor ** np.maximum(K - 1, 0) if self.tau > 0 else 0.0)
-        qb = np.array([self._qb(float(lq), O[i]) for i, lq in enumerate(logq)])[:, None]
+        qb = np.array([self._qb(s, O[i]) for i, s in enumerate(states)])[:, None]
         tb = t_bin(K)
         w = np.where(O, 0.0, self._W5[self.group[None, :], tb, qb])
         sc = self.S[self.group[None, :], tb]
@@ -822,6 +922,15 @@ class WithHLMState(FillerState):
         self.n_win = 0               # windows scored
         self.sh_next = 0             # the next group to hide
         self.eh = self.e0 = 0.0
+        # the leg gate's long windows (module doc, "Long erasures"): as the check's, on the legs, in long erasures
+        self.lbusy = False           # this frame is in a long erasure (more than SHADOW_MAX_MISS missing)
+        self.lsh, self.lsh_n, self.lsh_next = -1, 0, 0   # the hidden leg (index into SHADOW_GROUPS), frames, next
+        self.leh = self.le0 = 0.0
+        self.llr_sum = self.llr_ss = self.llr_n = 0.0
+        self.lg_lq = LOGQ_UNSCORED   # q_long+'s log: this erasure's evidence only
+        self.n_lwin = 0
+        self.ltwin: FillerState | None = None   # the blend under the long window's mask
+        self.lhs: FillerState | None = None     # the HLM under it (its slot kept between windows)
         self.collect = False         # bench/default_hlm_tune.py reads ``comp`` after each step
         self.comp: dict[str, np.ndarray] | None = None
 
@@ -841,16 +950,7 @@ class WithHLMState(FillerState):
 
     def _close(self) -> None:
         if self.sh_n - SHADOW_SKIP >= SHADOW_MIN and self.e0 > 0:
-            r = min(max(math.log(max(self.eh, 1e-9) / max(self.e0, 1e-9)), -4.0), 4.0)
-            self.lr_sum = Q_DECAY * self.lr_sum + r
-            self.lr_ss = Q_DECAY * self.lr_ss + r * r
-            self.lr_n = Q_DECAY * self.lr_n + 1.0
-            n = self.lr_n + Q_PRIOR_N       # Q_PRIOR_N pseudo-windows at log r = 0: "the HLM is not better"
-            mean = self.lr_sum / n
-            var = (Q_V0 + max(self.lr_ss - n * mean * mean, 0.0)) / (1.0 + n)
-            self._lq = mean + Q_Z * math.sqrt(var / n)
-            if SHADOW_REVOKE > 0 and r > max(math.log(SHADOW_REVOKE), Q_EDGES[-1]):
-                self._lq = max(self._lq, r)   # a window that finds the HLM worse revokes its share at once
+            self.lr_sum, self.lr_ss, self.lr_n, self._lq = _bound(self.lr_sum, self.lr_ss, self.lr_n, self.eh, self.e0)
             self.n_win += 1
         rest = SHADOW_PAUSE if self.n_win >= SHADOW_EAGER else 0
         self.sh, self.sh_n, self.eh, self.e0, self.twin = -1, rest, 0.0, 0.0, None
@@ -872,9 +972,99 @@ class WithHLMState(FillerState):
                     break
         return self.sh
 
+    def _lscore(self, eh: float, e0: float) -> None:
+        """One frame of an open long window (as ``_score``)."""
+        self.lsh_n += 1
+        if self.lsh_n > SHADOW_SKIP:
+            self.leh += eh
+            self.le0 += e0
+
+    def _lclose(self) -> None:
+        if self.lsh_n - SHADOW_SKIP >= SHADOW_MIN and self.le0 > 0:
+            self.llr_sum, self.llr_ss, self.llr_n, self.lg_lq = _bound(self.llr_sum, self.llr_ss, self.llr_n, self.leh, self.le0)
+            self.n_lwin += 1
+        self.lsh, self.lsh_n, self.leh, self.le0, self.ltwin = -1, self.m._lg_rest, 0.0, 0.0, None
+
+    def _plan_long(self, busy: bool, gmiss: np.ndarray) -> int:
+        """This frame's long window (index into SHADOW_GROUPS of the hidden leg) or -1: only in a long
+        erasure (``busy``) with every leg channel observed; legs in turn, back to back; the bound starts
+        unscored at each long erasure's onset; ``rest`` frames (long_gate's fourth value) between windows,
+        counted in long-erasure frames, the first window at the onset."""
+        if not busy:
+            if self.lsh >= 0:
+                self._lclose()
+            self.lbusy = False
+            return -1
+        if not self.lbusy:   # a long erasure's onset: its own evidence only
+            self.lbusy = True
+            self.llr_sum = self.llr_ss = self.llr_n = 0.0
+            self.lg_lq = LOGQ_UNSCORED
+            self.lsh_next = 0
+            if self.lsh < 0:
+                self.lsh_n = 0
+        legs = all(gmiss[j] == 0 for j in LEG_SHADOW)
+        if self.lsh >= 0 and (not legs or self.lsh_n >= SHADOW_LEN):
+            self._lclose()
+        if self.lsh < 0 and self.lsh_n > 0:
+            self.lsh_n -= 1
+        elif self.lsh < 0 and legs:
+            self.lsh, self.lsh_n = LEG_SHADOW[self.lsh_next], 0
+            self.lsh_next = 1 - self.lsh_next
+        return self.lsh
+
     def step(self, frame, observed=None) -> Fill:
         f, obs = check_frame(frame, observed, self.m.n_channels)
         return self.m._step([self], f[None], obs[None])[0]
+
+
+def _bound(lr_sum: float, lr_ss: float, lr_n: float, eh: float, e0: float) -> tuple[float, float, float, float]:
+    """A window's r = eh / e0 into the decayed sums; (sums, the bound on log q) (module doc)."""
+    r = min(max(math.log(max(eh, 1e-9) / max(e0, 1e-9)), -4.0), 4.0)
+    lr_sum = Q_DECAY * lr_sum + r
+    lr_ss = Q_DECAY * lr_ss + r * r
+    lr_n = Q_DECAY * lr_n + 1.0
+    n = lr_n + Q_PRIOR_N       # Q_PRIOR_N pseudo-windows at log r = 0: "the HLM is not better"
+    mean = lr_sum / n
+    var = (Q_V0 + max(lr_ss - n * mean * mean, 0.0)) / (1.0 + n)
+    lq = mean + Q_Z * math.sqrt(var / n)
+    if SHADOW_REVOKE > 0 and r > max(math.log(SHADOW_REVOKE), Q_EDGES[-1]):
+        lq = max(lq, r)   # a window that finds the HLM worse revokes its share at once
+    return lr_sum, lr_ss, lr_n, lq
+
+
+def _pair(name: str, v: Any, most: int = 2) -> tuple[Any, ...]:
+    """A model file's (k, q[, q]) setting as its values (a clear error for anything else)."""
+    if not isinstance(v, list | tuple) or not 2 <= len(v) <= most:
+        raise FillerError(f"{METHOD}: {name} must be (k frames, q bound{', q bound' if most > 2 else ''}) (got {v!r})")
+    return tuple(v)
+
+
+def _gate_meta(g: tuple[Any, ...]) -> list[Any]:
+    """long_gate as a model file writes it: (k, qlong), + qrev where it or rest is set, + rest where set
+    (files of rounds 1-2 keep their two or three values)."""
+    k, ql, qr, rest = (tuple(g) + (0.0, 0))[:4]
+    return [int(k), float(ql)] + ([float(qr)] if qr > 0 or rest > 0 else []) + ([int(rest)] if rest > 0 else [])
+
+
+def _check_long(name: str, k: Any, q: Any) -> tuple[int, float]:
+    bad = any(isinstance(x, bool) or not isinstance(x, int | float) for x in (k, q))
+    if bad or not math.isfinite(k) or not math.isfinite(q) or k < 0 or k != int(k) or (k > 0 and q <= 0):
+        raise FillerError(f"{METHOD}: {name} must be (k >= 0 whole frames, q > 0) (got {(k, q)!r})")
+    return int(k), float(q)
+
+
+def _fork_stream(model: Model, hs: FillerState, into: FillerState | None) -> FillerState:
+    """A copy of the HLM stream ``hs`` (its state pool's row copied into ``into``'s, or a new stream's)."""
+    from mocap.feature_model import FeatureStream
+
+    if type(hs) is FeatureStream and hs.model is model:
+        c = into if type(into) is FeatureStream and into.model is model else model.stream()
+        pool = model.pool   # type: ignore[attr-defined]
+        for store in (pool.core, pool.repr):
+            for v in store.values():
+                v[c.slot] = v[hs.slot]   # type: ignore[attr-defined]
+        return c
+    return copy.deepcopy(hs, {id(model): model})
 
 
 def _median_rate(num: np.ndarray, den: np.ndarray, ref: np.ndarray, ok: np.ndarray) -> float:
@@ -930,6 +1120,8 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
             "weights": {"shipped": SHIPPED.name, **chosen} if W is None else {"given": True}}
     if LONG_TRUST[0] > 0:
         meta["long_trust"] = list(LONG_TRUST)
+    if LONG_GATE[0] > 0:
+        meta["long_gate"] = _gate_meta(LONG_GATE)
     cal = calib.from_json(json.loads(SHIPPED.read_text()).get("calib") if SHIPPED.exists() else None, list(ch),
                           group_index(list(ch)), GROUP_NAMES, len(T_EDGES) + 1)
     return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal,
