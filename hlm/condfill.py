@@ -421,6 +421,6 @@ def correct_many(tab, ct: CondTables, state: dict[str, np.ndarray], z: np.ndarra
         D = W = G = GW = np.zeros((1, 1, F))
         prow = np.zeros(n, dtype=np.int64)
     _correct_many(post, np.ascontiguousarray(z, dtype=np.float64), np.ascontiguousarray(zobs, dtype=np.bool_), zf,
-                  prow, int(tab.shape[1]), tab.f32["mu"], tab.bin0, tab.bin1, tab.bin_a, float(tab.kappa),
-                  float(tab.kappa_global), D, W, G, GW, tab.f32["lam_rows"], tab.f32["pack"], ct.cov, ct.prec,
-                  ct.shrink, LIVE, STYLE_LIVE)
+                  prow, int(tab.shape[1]), tab.mu, tab.bin0, tab.bin1, tab.bin_a, float(tab.kappa),
+                  float(tab.kappa_global), D, W, G, GW, tab.lam_rows, tab.pack, ct.cov, ct.prec, ct.shrink, LIVE,
+                  STYLE_LIVE)

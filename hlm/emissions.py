@@ -23,14 +23,6 @@ import numpy as np
 LOG2PI = float(np.log(2.0 * np.pi))
 
 
-def single(a: np.ndarray) -> np.ndarray:
-    """a rounded to float32 and back (C-contiguous float64): a per-state table the online filter
-    reads.  The compiled step (``hlm.fast``) reads these tables as float32, half the memory a
-    live tick of many streams at different phases pulls in (bench/notebook/hlm64-12.md); the
-    numpy paths read the same values in float64, so the two stay equal to rounding of the sums."""
-    return np.ascontiguousarray(np.asarray(a, dtype=np.float64).astype(np.float32).astype(np.float64))
-
-
 @dataclass
 class EmissionTables:
     """Precomputed per-(style, phase) tables.  C styles, M phases, F features.
@@ -45,7 +37,7 @@ class EmissionTables:
     lam_mu: np.ndarray
     lam_q: np.ndarray
     log_norm: np.ndarray
-    fused: np.ndarray | None = None   # (3F, C*M): rows for [x, o, x^2]: one GEMM for every term (float32 values)
+    fused: np.ndarray | None = None   # (3F, C*M): rows for [x, o, x^2]: one GEMM for every term
     fused_t: np.ndarray | None = None  # (C*M, 3F): the same, a row per state, for a few states at a time
 
     @classmethod
@@ -58,9 +50,9 @@ class EmissionTables:
         log_norm = 0.5 * (np.log(lam) - LOG2PI)
         per_o = -0.5 * lam_q + np.repeat(log_norm, M, axis=0)        # (C*M, F) weight of o_f
         per_x2 = -0.5 * np.repeat(lam, M, axis=0)                      # (C*M, F) weight of x_f^2
-        # the fused rows rounded to float32 once (``single``): what every filter path reads
-        ft = single(np.hstack([lam_mu, per_o, per_x2]))
-        return cls(C, M, np.ascontiguousarray(lam), lam_mu, lam_q, log_norm, np.ascontiguousarray(ft.T), ft)
+        return cls(C, M, np.ascontiguousarray(lam), lam_mu, lam_q, log_norm,
+                   np.ascontiguousarray(np.hstack([lam_mu, per_o, per_x2]).T),
+                   np.ascontiguousarray(np.hstack([lam_mu, per_o, per_x2])))
 
     @staticmethod
     def terms(x: np.ndarray, obs: np.ndarray | None = None) -> np.ndarray:

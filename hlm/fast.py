@@ -12,11 +12,6 @@ frame on real motion, one stream and batches (contiguous and scattered pool slot
 batch in one call gives each stream the bits it gets alone.  ``LACUNA_NO_JIT=1`` turns the
 compiled path off.
 
-The per-state tables (the emission rows ``fused_t``, ``mu``, ``lam_rows``, ``var_q``; not the
-kappa = 0 fill's ``pack``, whose products of them are float64) are read as float32 (``FilterTables.f32``) and upcast: the values the numpy reference reads in
-float64 (``hlm.emissions.single``), in half the memory (a tick of 64 streams at different phases
-reads rows all over them).
-
 The step visits only the support of the posterior and of the prediction (~20 of C*M = 560
 states on a walk), in working arrays made once per batch, with the emission dot products summed
 in SIMD lanes (``lacuna.jit.jit_sums``; everything else in the sequential order of the numpy
@@ -334,9 +329,9 @@ def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, row
     style = np.empty((n, C))
     phase = np.empty(n)
     _step_many(post1, first, tab.prior_flat, tab.d_pop, M, np.ascontiguousarray(z, dtype=np.float64),
-               np.ascontiguousarray(zobs, dtype=np.bool_), tab.f32["fused_t"], tab.f32["mu"], tab.bin0, tab.bin1,
-               tab.bin_a, tab.kappa, tab.kappa_global, tab.n_bins, D, W, G, GW, prow, tab.f32["lam_rows"],
-               tab.f32["var_q"], tab.f32["pack"], tab.cos, tab.sin, live, live_stats, out, sd, style, phase)
+               np.ascontiguousarray(zobs, dtype=np.bool_), tab.em.fused_t, tab.mu, tab.bin0, tab.bin1, tab.bin_a,
+               tab.kappa, tab.kappa_global, tab.n_bins, D, W, G, GW, prow, tab.lam_rows, tab.var_q, tab.pack,
+               tab.cos, tab.sin, live, live_stats, out, sd, style, phase)
     if post1 is not post:
         post[...] = post1
     state["t"] += 1
@@ -407,9 +402,8 @@ def slot_tables(tab, rep) -> tuple:
     rt = (t["center"], t["const"], t["dr"], t["df"], t["dang"], t["any_angle"], t["relative"], t["rot"], t["pos"],
           t["rootf"], t["fsrc"], t["rsrc"], t["normalize"], t["mean"], t["std"], int(rep.n_features), t["root_tau"],
           t["root_power"])
-    q = tab.f32  # (the per-state tables as float32: the values the numpy reference reads, half the bytes)
-    ht = (tab.prior_flat, tab.d_pop, int(tab.shape[1]), q["fused_t"], q["mu"], tab.bin0, tab.bin1, tab.bin_a,
-          float(tab.kappa), float(tab.kappa_global), int(tab.n_bins), q["lam_rows"], q["var_q"], q["pack"], tab.cos,
+    ht = (tab.prior_flat, tab.d_pop, int(tab.shape[1]), tab.em.fused_t, tab.mu, tab.bin0, tab.bin1, tab.bin_a,
+          float(tab.kappa), float(tab.kappa_global), int(tab.n_bins), tab.lam_rows, tab.var_q, tab.pack, tab.cos,
           tab.sin)
     z = np.zeros((1, 1, int(rep.n_features)))
     return rt, ht, z

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hlm.emissions import LOG2PI, EmissionTables, single
+from hlm.emissions import EmissionTables
 
 
 @dataclass
@@ -14,7 +14,7 @@ class FilterTables:
     M phases, F features, J jumps."""
 
     em: EmissionTables
-    mu: np.ndarray        # (C*M, F) (float32 values: ``emissions.single``, in __post_init__)
+    mu: np.ndarray        # (C*M, F)
     q2: np.ndarray        # (C*M, F) mu^2 + var + 1/lam: second moment of x given (c, m)
     log_prior: np.ndarray  # (C, M) log tau_c - log M
     d_pop: np.ndarray     # (J,)
@@ -29,7 +29,7 @@ class FilterTables:
     var: np.ndarray | None = None   # (C*M, F) Q(Z) variances, for the adapted second moment
     inv_lam: np.ndarray | None = None  # (C, F)
     style_of: np.ndarray | None = None  # (C*M,) style index of each flat state
-    pack: np.ndarray | None = None      # (C*M, 4F) [lam mu | lam | mu | mu^2 + var_q] per state, for fill
+    pack: np.ndarray | None = None      # (C*M, 4F) [lam mu | lam | mu | q2] per state, for fill
     lam_rows: np.ndarray | None = None  # (C*M, F) lam of each state's style
     var_q: np.ndarray | None = None     # (C*M, F) var + 1/lam
 
@@ -63,24 +63,13 @@ class FilterTables:
         np.add.at(kw, (np.arange(C * M), self.bin0), 1.0 - self.bin_a)
         np.add.at(kw, (np.arange(C * M), self.bin1), self.bin_a)
         self.knot_weights = kw
-        # the per-state tables the online fill and the stream-cycle statistics read, float32 values
-        # (``emissions.single``; the model's parameters stay float64)
-        self.mu = single(self.mu)
-        self.lam_rows = single(np.repeat(self.em.lam, M, axis=0))
-        self.var_q = single(self.var + np.repeat(self.inv_lam, M, axis=0))
-        # (pack: from those values, in float64: its products and sums are the ones the unpacked
-        # tables give, so both fills agree; read only by the kappa = 0 fill)
-        self.pack = np.ascontiguousarray(np.hstack([self.lam_rows * self.mu, self.lam_rows, self.mu,
-                                                    self.mu * self.mu + self.var_q]))
+        self.lam_rows = np.ascontiguousarray(np.repeat(self.em.lam, M, axis=0))
+        self.var_q = np.ascontiguousarray(self.var + np.repeat(self.inv_lam, M, axis=0))
+        self.pack = np.ascontiguousarray(np.hstack([self.em.lam_mu, self.lam_rows, self.mu, self.q2]))
         # the emission's terms that do not involve x or the mean: 1/2 log(lam / 2 pi) - lam var / 2
-        # (of the lam above: the emission on the stream's own cycle is then the one those tables give)
-        self.emit_a = np.ascontiguousarray(0.5 * (np.log(self.lam_rows) - LOG2PI) - 0.5 * self.lam_rows * self.var)
+        self.emit_a = np.ascontiguousarray(np.repeat(self.em.log_norm, M, axis=0) - 0.5 * self.lam_rows * self.var)
         self.emit_pack = np.ascontiguousarray(np.hstack([self.mu, 0.5 * self.lam_rows, self.emit_a]))
         self.prior_flat = np.exp(self.log_prior).reshape(-1)   # (C M,) the first frame's prediction
-        # the compiled step's copies of those tables, stored as float32 (the same values)
-        f4 = np.float32
-        self.f32 = {"fused_t": self.em.fused_t.astype(f4), "mu": self.mu.astype(f4),
-                    "lam_rows": self.lam_rows.astype(f4), "var_q": self.var_q.astype(f4), "pack": self.pack}
 
     @property
     def shape(self) -> tuple[int, int]:
