@@ -4,7 +4,8 @@ hlm_cold_tick gives every stream the same frame (one posterior support shared by
 the filter's tables a tick reads are one stream's).  Same driver (the daemon object's bundled
 tick, messages built beforehand, collector frozen), same parts, A/B across trees in one run,
 rounds alternating; also the support size k of the posterior per frame (``--support``: one tree,
-in process, from the compiled step's own k), bench/notebook/hlm64-12.md.
+in process, from the compiled step's own k), bench/notebook/hlm64-12.md.  ``HLM_COLD_BUSY=1`` in a
+tree's environment (``--env NAME:HLM_COLD_BUSY=1``) spends the gap spinning instead of sleeping.
 
     OPENBLAS_NUM_THREADS=1 nice -n 5 .venv/bin/python bench/hlm_cold_spread.py --root new=. \\
         --root main=/work/wt-hlm12-main --model /tmp/lacuna-echo-vs-daemon/hlm-e9b3d79.npz --gap-ms 8 --rounds 4
@@ -101,7 +102,11 @@ def child(model: str, gap_s: float, ticks: int) -> dict[str, float]:
         tick(k)
         acc["tick"] = pc() - t0
         per.append(dict(acc))
-        if gap_s:
+        if gap_s and os.environ.get("HLM_COLD_BUSY") == "1":  # (the gap spent spinning: the core stays this process's)
+            t1 = pc() + gap_s
+            while pc() < t1:
+                pass
+        elif gap_s:
             time.sleep(gap_s)
     return {p: float(np.median([q.get(p, 0.0) for q in per])) / N * 1e6 for p in PARTS}
 
