@@ -126,7 +126,7 @@ def support(model: str, frames_n: int) -> dict:
     obs = np.isfinite(frames)
     streams = [m.stream() for _ in range(N)]
     rows = np.array([s.slot for s in streams])
-    eps = (0.0, 1e-16, 1e-12, 1e-10, 1e-8, 1e-6, 1e-4)
+    eps = (0.0, 1e-200, 1e-100, 1e-60, 1e-30, 1e-16, 1e-12, 1e-10, 1e-8, 1e-6, 1e-4)
     got: dict[float, list[int]] = {e: [] for e in eps}
     for k in range(frames_n):
         idx = (offsets + k) % T
