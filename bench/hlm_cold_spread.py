@@ -5,7 +5,8 @@ the filter's tables a tick reads are one stream's).  Same driver (the daemon obj
 tick, messages built beforehand, collector frozen), same parts, A/B across trees in one run,
 rounds alternating; also the support size k of the posterior per frame (``--support``: one tree,
 in process, from the compiled step's own k), bench/notebook/hlm64-12.md.  ``HLM_COLD_BUSY=1`` in a
-tree's environment (``--env NAME:HLM_COLD_BUSY=1``) spends the gap spinning instead of sleeping.
+tree's environment (``--env NAME:HLM_COLD_BUSY=1``) spends the gap spinning instead of sleeping;
+``HLM_COLD_GAP_MS`` gives a tree its own gap (a gap sweep in one run, names sharing a tree).
 
     OPENBLAS_NUM_THREADS=1 nice -n 5 .venv/bin/python bench/hlm_cold_spread.py --root new=. \\
         --root main=/work/wt-hlm12-main --model /tmp/lacuna-echo-vs-daemon/hlm-e9b3d79.npz --gap-ms 8 --rounds 4
@@ -161,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(support(args.model, args.support), indent=1))
         return 0
     if args.child:
-        print(json.dumps(child(args.model, args.gap_ms / 1000, args.ticks)))
+        gap = float(os.environ.get("HLM_COLD_GAP_MS", args.gap_ms))  # (a tree's own gap: --env NAME:HLM_COLD_GAP_MS=2)
+        print(json.dumps(child(args.model, gap / 1000, args.ticks)))
         return 0
     sys.path.insert(0, str(ROOT))   # (a child runs in another tree and imports nothing of this one's)
     from bench.echo_vs_daemon import rotated, tree_env, tree_roots
