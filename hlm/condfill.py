@@ -224,9 +224,10 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
     ns = sup.shape[0]
     C = CM // M
     CB = D.shape[0] if kappa > 0.0 else 1
-    n2 = max(nm, no)
-    # the working arrays in two blocks (an allocation costs more than the arithmetic on them)
-    ws = np.empty(3 * F + C + nm + CB * F + 2 * n2 * n2 + 3 * n2)
+    n2 = min(nm, no)  # (the smaller system is solved: its matrix, factor and vectors are n2 long)
+    # the working arrays in two blocks (an allocation costs more than the arithmetic on them), the
+    # knots' offsets E last: a cold tick pays for every line it touches, and few of E's rows are
+    ws = np.empty(3 * F + C + nm + 2 * n2 * n2 + 2 * n2 + nm + CB * F)
     iw = np.empty(F + CB, np.int64)
     oi = iw[:no]
     mi = iw[no:F]
@@ -256,15 +257,16 @@ def correct1(post, sup, z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D
     o = 3 * F + C
     corr = ws[o : o + nm]
     o += nm
-    E = ws[o : o + CB * F].reshape((CB, F))
-    o += CB * F
     Aw = ws[o : o + n2 * n2]
     o += n2 * n2
     Lw = ws[o : o + n2 * n2]
     o += n2 * n2
-    bw = ws[o : o + n2]
-    yw = ws[o + n2 : o + 2 * n2]
-    xw = ws[o + 2 * n2 : o + 3 * n2]
+    yw = ws[o : o + n2]
+    xw = ws[o + n2 : o + 2 * n2]
+    o += 2 * n2
+    bw = ws[o : o + nm]
+    o += nm
+    E = ws[o : o + CB * F].reshape((CB, F))
     for f in range(F):
         num[f] = 0.0
         den[f] = 0.0
