@@ -141,7 +141,7 @@ class Echo:
 
 
 def run(endpoint: str, pid: int, case: str, model: str | None, prefix: str, channels: list[str], frames: np.ndarray,
-        observed: np.ndarray, seconds: float, rate: float) -> tuple[dict[str, Any], np.ndarray]:
+        observed: np.ndarray, seconds: float, rate: float, budget_ms: float = 4.0) -> tuple[dict[str, Any], np.ndarray]:
     bundled = case == "bundled"
     n = 64 if bundled else 1
     c0 = cpu_seconds(pid)
@@ -151,6 +151,9 @@ def run(endpoint: str, pid: int, case: str, model: str | None, prefix: str, chan
     row = {**loadgen.percentiles(res.rtt_ms), "sent": res.sent, "served": res.served, "dropped": res.dropped,
            "overdue": int(res.drop_reasons.get("overdue", 0)), "drop_reasons": res.drop_reasons,
            "errors": res.errors, "lost": res.lost, "unsent": res.unsent,
+           # answers that came back later than the daemon's budget, seen from the client: for the echo, the
+           # frames the machine itself would have made late (its stalls), beside the daemon's overdue drops
+           "rtt_over_budget": int((np.asarray(res.rtt_ms) > budget_ms).sum()),
            # per frame the process received (served or dropped: a dropped frame costs its decode too)
            "cpu_us_per_frame": (1e6 * (c1 - c0) / max(1, res.sent)) if c0 is not None and c1 is not None else None,
            "cpu_us_per_frame_served": (1e6 * (c1 - c0) / max(1, res.served)) if c0 is not None and c1 is not None
@@ -194,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
                     e = Echo()
                     try:
                         row, rt = run(e.endpoint, e.proc.pid, case, None, f"echo{rep}{name}{case}", channels, frames,
-                                      observed, args.seconds, args.rate)
+                                      observed, args.seconds, args.rate, args.budget_ms)
                     finally:
                         e.stop()
                     rows.append({"repeat": rep, "target": "echo", "before": name, "case": case, **row})
@@ -202,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
                     _say(rows[-1])
                     for model in models:
                         row, rt = run(d.endpoint, d.proc.pid, case, model, f"{name}{rep}{model}{case}", channels,
-                                      frames, observed, args.seconds, args.rate)
+                                      frames, observed, args.seconds, args.rate, args.budget_ms)
                         rows.append({"repeat": rep, "target": f"{name}:{model}", "case": case, **row})
                         rtts.setdefault(f"{case} {name}:{model}", []).append(rt)
                         _say(rows[-1])
@@ -233,7 +236,8 @@ def _say(r: dict[str, Any]) -> None:
     cpu = r["cpu_us_per_frame"]
     print(f"repeat {r['repeat']} {r['case']:>7} {r['target']:>12}: p50 {r['p50_ms'] or float('nan'):.3f} "
           f"p99 {r['p99_ms'] or float('nan'):.3f} ms, CPU {cpu if cpu is not None else float('nan'):.1f} us/frame, "
-          f"served {r['served']}/{r['sent']}, overdue {r['overdue']}, dropped {r['dropped']}",
+          f"served {r['served']}/{r['sent']}, overdue {r['overdue']}, dropped {r['dropped']}, "
+          f"{r.get('rtt_over_budget')} answered after the budget",
           file=sys.stderr, flush=True)
 
 
@@ -250,6 +254,7 @@ def summarise(rows: list[dict[str, Any]], roots: list[str], models: list[str], c
                 s: dict[str, Any] = {k: _med([r[k] for r in mine]) for k in ("p50_ms", "p99_ms", "cpu_us_per_frame")}
                 s["overdue"] = [r["overdue"] for r in mine]
                 s["dropped"] = [r["dropped"] for r in mine]
+                s["rtt_over_budget"] = [r.get("rtt_over_budget") for r in mine]
                 for q in ("p50_ms", "p99_ms"):
                     s[f"{q}_over_echo"] = _med([_div(r[q], echo[r["repeat"]][q]) for r in mine])
                     if model != "floor" and floor:  # (none: --models without floor)
@@ -258,6 +263,7 @@ def summarise(rows: list[dict[str, Any]], roots: list[str], models: list[str], c
         ech = [r for r in rows if r["case"] == case and r["target"] == "echo"]
         cs["echo"] = {k: _med([r[k] for r in ech]) for k in ("p50_ms", "p99_ms", "cpu_us_per_frame")}
         cs["echo"]["dropped"] = [r["dropped"] for r in ech]
+        cs["echo"]["rtt_over_budget"] = [r.get("rtt_over_budget") for r in ech]
         for name in roots[1:]:  # the first tree's CPU per frame over each other tree's, pairing repeats
             for model in models:
                 a = {r["repeat"]: r for r in rows if r["case"] == case and r["target"] == f"{roots[0]}:{model}"}
