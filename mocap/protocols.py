@@ -64,7 +64,8 @@ def _as_list(test_files: str | list[str] | None) -> list[str]:
     return [test_files] if isinstance(test_files, (str, Path)) else [str(f) for f in test_files]
 
 
-def _training_set(names: list[str]) -> TrainingSet:
+def named_training_set(names: list[str]) -> TrainingSet:
+    """The named takes (``splits.take_path``: CMU's layout or ``cmu_li``) as a TrainingSet labelled by activity."""
     ms = [load_take(t) for t in names]
     labels = [splits.ACTIVITY.get(t, "walk") for t in names]
     return TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, list(names), labels)
@@ -259,7 +260,7 @@ class Pan2009(Protocol):
         return [t for t in splits.SPLITS[self.split] if splits.ACTIVITY.get(t) == "walk"]
 
     def training_set(self) -> TrainingSet:
-        return _training_set(self.training_names())
+        return named_training_set(self.training_names())
 
     def cases(self, test_files: str | list[str] | None = None, asf: str | None = None) -> list[Case]:
         ch = load_take(self.TEST[0]).channels
@@ -409,7 +410,7 @@ class Gaps(Protocol):
         self.split = split
 
     def training_set(self) -> TrainingSet:
-        return _training_set(list(splits.TRAIN))
+        return named_training_set(list(splits.TRAIN))
 
     def test_names(self) -> list[str]:
         return list(splits.SPLITS[self.split])

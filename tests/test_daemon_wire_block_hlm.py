@@ -40,11 +40,9 @@ def _default():
     """blend's ``default`` (an HLM expert mixed with its blend), trained small on TRAIN takes: a
     model with no array step of its own, on ``Model.step_block``'s stacked Fills."""
     from blend.withhlm import train_model
-    from mocap import protocols, splits
+    from mocap import protocols
 
-    takes = ["35_01", "35_06"]
-    ms = [splits.load_take(t) for t in takes]
-    ts = protocols.TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, takes, [splits.ACTIVITY[t] for t in takes])
+    ts = protocols.named_training_set(["35_01", "35_06"])
     return train_model(ts, restarts=1, n_iter=3, screen_iters=None, cycle_frames=140)
 
 

@@ -97,11 +97,9 @@ M_TEST[3, 0] = 1.1
 
 @pytest.fixture(scope="module")
 def model(data):
-    from mocap import protocols, splits
+    from mocap import protocols
 
-    ms = [splits.load_take(t) for t in TRAIN_TAKES]
-    ts = protocols.TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, TRAIN_TAKES,
-                               [splits.ACTIVITY[t] for t in TRAIN_TAKES])
+    ts = protocols.named_training_set(TRAIN_TAKES)
     m = withhlm.train_model(ts, **SMALL_HLM)
     M, gate = withhlm.shipped_band_q()   # train_model applies blend/withhlm.json's band_q and gate
     if M is None:

@@ -92,13 +92,11 @@ FRAMES = 400
 
 @pytest.fixture(scope="module")
 def model(data):
-    from mocap import protocols, splits
+    from mocap import protocols
 
-    ms = [splits.load_take(t) for t in TRAIN_TAKES]
-    ts = protocols.TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, TRAIN_TAKES,
-                               [splits.ACTIVITY[t] for t in TRAIN_TAKES])
+    ts = protocols.named_training_set(TRAIN_TAKES)
     m = withhlm.train_model(ts, **SMALL_HLM)
-    np.testing.assert_allclose(m.rate_ref, withhlm.rate_ref([x.frames for x in ms], list(m.channels)))
+    np.testing.assert_allclose(m.rate_ref, withhlm.rate_ref(ts.sequences, list(m.channels)))
     return m
 
 

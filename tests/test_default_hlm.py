@@ -27,9 +27,7 @@ SMALL_HLM = {"restarts": 1, "n_iter": 6, "screen_iters": None, "cycle_frames": 1
 @pytest.fixture(scope="module")
 def model(data):
     names = TRAIN_TAKES
-    ms = [splits.load_take(t) for t in names]
-    ts = protocols.TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, names,
-                               [splits.ACTIVITY[t] for t in names])
+    ts = protocols.named_training_set(names)
     return train_model(ts, **SMALL_HLM)
 
 

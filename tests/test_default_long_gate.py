@@ -29,9 +29,7 @@ GATE = (120, 1.1, 0.0, 0)
 
 @pytest.fixture(scope="module")
 def model(data):
-    ms = [splits.load_take(t) for t in TRAIN_TAKES]
-    ts = protocols.TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, TRAIN_TAKES,
-                               [splits.ACTIVITY[t] for t in TRAIN_TAKES])
+    ts = protocols.named_training_set(TRAIN_TAKES)
     return train_model(ts, **SMALL_HLM)
 
 

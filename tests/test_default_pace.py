@@ -84,11 +84,9 @@ FRAMES = 500
 
 @pytest.fixture(scope="module")
 def model(data):
-    from mocap import protocols, splits
+    from mocap import protocols
 
-    ms = [splits.load_take(t) for t in TRAIN_TAKES]
-    ts = protocols.TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, TRAIN_TAKES,
-                               [splits.ACTIVITY[t] for t in TRAIN_TAKES])
+    ts = protocols.named_training_set(TRAIN_TAKES)
     m = withhlm.train_model(ts, **SMALL_HLM)
     assert m.smooth["pace_tau"] == 0.0 and not m._pace_on   # shipped: off
     return m

@@ -16,7 +16,7 @@ import pytest
 from blend import withhlm
 from blend.withhlm import train_model
 from lacuna import jit
-from mocap import protocols, splits
+from mocap import protocols
 
 pytestmark = [pytest.mark.realdata,
               pytest.mark.skipif(not jit.enabled(), reason="numba does not run here: only the numpy step exists")]
@@ -28,9 +28,7 @@ FRAMES = 400
 
 @pytest.fixture(scope="module")
 def model(data):
-    ms = [splits.load_take(t) for t in TRAIN_TAKES]
-    ts = protocols.TrainingSet([m.frames for m in ms], ms[0].channels, 120.0, TRAIN_TAKES,
-                               [splits.ACTIVITY[t] for t in TRAIN_TAKES])
+    ts = protocols.named_training_set(TRAIN_TAKES)
     return train_model(ts, **SMALL_HLM)
 
 
