@@ -49,29 +49,9 @@ def _pooled(v: metrics.Values, keep: np.ndarray) -> tuple[float | None, int]:
     return rows["rms_deg"]
 
 
-def known_only(v: metrics.Values, case: Case, known: np.ndarray) -> metrics.Values:
-    """``v`` (``metrics.values`` of ``case``) without the erased values whose truth is unknown
-    (``known`` (T, C) False: a recording's own gaps, which nothing can score), and without the onsets
-    and root frames whose truth needs such a value (their truth-only figures, the performer's step and
-    hold's error, are NaN there).  A fill's own NaN is kept: it must show in the figures."""
-    ang = np.array([is_angle(c) for c in case.channels])
-    sel = ~np.asarray(case.observed, bool) & (np.asarray(case.scored, bool) & ang)[None, :]
-    keep = np.asarray(known, bool)[sel]
-    per = ["err", "std", "since", "first", "length", "group", "hold_err"]
-    if v.pop.size == keep.size:
-        per += ["step_err", "truth_step", "pop"]
-    on = np.isfinite(v.onset_step)
-    rt = np.isfinite(v.root_hold_err)
-    return dataclasses.replace(v, **{f: getattr(v, f)[keep] for f in per}, onset_err=v.onset_err[on],
-                               onset_step=v.onset_step[on], root_err=v.root_err[rt], root_hold_err=v.root_hold_err[rt])
-
-
-def score(case: Case, filled: np.ndarray, std: np.ndarray | None, known: np.ndarray | None = None) -> dict[str, Any]:
-    """The demo's figures for one fill (see the module docstring); ``n_*`` count the values pooled.
-    With ``known`` (T, C), values whose truth the take does not have are not scored (``known_only``)."""
+def score(case: Case, filled: np.ndarray, std: np.ndarray | None) -> dict[str, Any]:
+    """The demo's figures for one fill (see the module docstring); ``n_*`` count the values pooled."""
     v = metrics.values(case, filled, std, GAP_GROUPS)
-    if known is not None:
-        v = known_only(v, case, known)
     rows = {k: (x, n) for k, x, n in metrics.summarise(v, by_group_bins=False)}
     out: dict[str, Any] = {}
     short, n_short = _pooled(v, (v.length >= SHORT[0]) & (v.length < SHORT[1]))

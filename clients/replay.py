@@ -199,13 +199,8 @@ def figures(res: ReplayResult, known: np.ndarray, pattern: str = "", cm_per_unit
     truth = np.where(known, m.frames, np.nan)
     case = demo_score.make_case(str(m.source or "replay"), truth, res.sent_observed, list(m.channels), m.fps,
                                 cm_per_unit, pattern)
-    with np.errstate(invalid="ignore"):
-        return demo_score.score(case, res.filled, res.std, known)
-
-
-def held_fill(res: ReplayResult) -> np.ndarray:
-    """Holding the last value sent: the fill a studio has without Lacuna, for the plot beside the daemon's."""
-    return _hold_forward(np.where(res.sent_observed, res.motion.frames, np.nan))
+    with np.errstate(invalid="ignore"):   # (the unknown truths are NaN: mocap.metrics leaves them unscored)
+        return demo_score.score(case, res.filled, res.std)
 
 
 def plot_replay(path: str, res: ReplayResult, known: np.ndarray, title: str = "", n_channels: int = 4) -> str:
@@ -217,47 +212,13 @@ def plot_replay(path: str, res: ReplayResult, known: np.ndarray, title: str = ""
     m = res.motion
     erased = np.asarray(known, bool) & ~res.sent_observed
     cols = band_channels(m.frames, erased, list(m.channels), GAP_GROUPS, n_channels)
-    if not cols:
+    if not cols:   # (a skeleton whose bones are not CMU's: the channels dropped most, weighed by how they move)
         ang = np.array([is_angle(c) for c in m.channels])
         score = np.where(ang, erased.sum(0) * (np.nan_to_num(m.frames).std(0) + 1e-9), 0)
         cols = [int(j) for j in np.argsort(-score)[:n_channels] if score[j] > 0] or [int(np.argmax(ang))]
+    hold = _hold_forward(np.where(res.sent_observed, m.frames, np.nan))   # the fill a studio has without Lacuna
     return plot_fill_band(path, m.frames, res.filled, res.std, erased, list(m.channels), m.fps, cols,
-                          others={"hold": held_fill(res)}, name=res.model or "fill", title=title)
-
-
-def plot_fills(path: str, truth: np.ndarray, fills: dict[str, np.ndarray], erased: np.ndarray, channels: list[str],
-               fps: float, title: str = "", n_channels: int = 4) -> str:
-    """Truth and each method's fill on the channels erased most often; erased spans shaded."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ang = np.array([is_angle(c) for c in channels])
-    score = np.where(ang, erased.sum(0) * (truth.std(0) + 1e-9), 0)
-    cols = [j for j in np.argsort(-score)[:n_channels] if score[j] > 0]
-    if not cols:
-        cols = [int(np.argmax(ang))]
-    t = np.arange(truth.shape[0]) / fps
-    fig, axes = plt.subplots(len(cols), 1, figsize=(10, 2.3 * len(cols)), sharex=True, squeeze=False)
-    for ax, j in zip(axes[:, 0], cols):
-        e = erased[:, j]
-        edges = np.flatnonzero(np.diff(np.r_[0, e.astype(int), 0]))
-        for a, b in zip(edges[::2], edges[1::2]):
-            ax.axvspan(t[a], t[min(b, len(t) - 1)], color="0.9", lw=0)
-        ax.plot(t, truth[:, j], color="k", lw=1.6, label="truth")
-        for name, f in fills.items():
-            v = np.where(e, f[:, j], np.nan)
-            ax.plot(t, v, lw=1.1, label=name)
-        ax.set_ylabel(f"{channels[j]} (deg)", fontsize=8)
-    axes[0, 0].legend(loc="upper right", fontsize=7, ncol=len(fills) + 1)
-    axes[-1, 0].set_xlabel("time (s); grey = markers dropped out")
-    if title:
-        axes[0, 0].set_title(title, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+                          others={"hold": hold}, name=res.model or "fill", title=title)
 
 
 LINE_COLOURS = {"hold": "tab:blue", "interp": "tab:green", "hlm": "tab:purple", "crbm": "tab:brown", "nn": "tab:olive"}

@@ -38,6 +38,9 @@ root_pos_rms_cm / root_pos_max_cm / hold_root_pos_rms_cm  over frames where any 
                (1 unit = 1/0.45 inch = 5.644 cm for L = 0.45; CMU's FAQ: multiply by
                (1/0.45) * 2.54 / 100 for metres).  Without an ASF (BVH, CSV) the figures are in the
                file's own units and named ``root_pos_rms_units`` etc.
+unknown truth  an erased value whose truth is NaN (a recording's own dropout, replayed with more
+               values dropped) is in its gap's structure but scored nowhere: not in any figure, nor
+               as a gap's onset or a root frame.
 step_err_rms_deg / pop_p99_deg / pop_max_deg / pop_over_2deg  steps inside gaps: over erased
                values after a gap's first frame (k >= 1), the fill's own step d_f = wrap(fill[t] -
                fill[t-1]) against the truth's d_t = wrap(truth[t] - truth[t-1]); step_err is RMS of
@@ -173,7 +176,7 @@ def values(case: Any, filled: np.ndarray, std: np.ndarray | None, groups: dict[s
     with np.errstate(invalid="ignore"):  # nan where a gap starts at frame 0: no last value to hold
         hold_err = wrap180(held - truth)
 
-    sel = missing & scored[None, :]
+    sel = missing & scored[None, :] & np.isfinite(truth)   # (a truth the take never had: not scored)
     fprev = np.vstack([filled[:1], filled[:-1]])
     df, dt = wrap180(filled - fprev), wrap180(truth - prev)
     inner = since >= 1   # after the gap's first frame: fill[t-1] is a fill too
@@ -196,7 +199,7 @@ def values(case: Any, filled: np.ndarray, std: np.ndarray | None, groups: dict[s
         rmiss = missing[:, rt].any(1)
         seen_before = np.cumsum(~missing[:, rt].any(1)) > 0
         seen_before = np.concatenate([[False], seen_before[:-1]])
-        rows = rmiss & seen_before
+        rows = rmiss & seen_before & np.isfinite(truth[:, rt]).all(1)
         d = (filled[:, rt] - truth[:, rt])[rows]
         # hold keeps each erased component at its value on the frame before its gap
         hstart = np.where(missing[:, rt], start[:, rt], -1)[rows]
