@@ -67,17 +67,20 @@ def cases(a: argparse.Namespace):
                 yield "crop", f"{t}[{off}:]", "nonloco", x, _mask(f"{t}-{off}", CROP, m.channels, 100 + off)
     if "splice" in kinds:
         for w in SPLICE_WALKS:
-            mw = protocols.load_take(w)
             for t in [t for t in splits.VALIDATION if splits.ACTIVITY[t] == "nonloco"]:
-                mn = protocols.load_take(t)
-                x1 = np.array(mw.frames[:WALK_FRAMES])
-                x2 = np.array(mn.frames[:1500])
-                pos = [j for j, c in enumerate(mw.channels) if not is_angle(c)]
-                x2[:, pos] += x1[-1, pos] - x2[0, pos]
-                x = np.concatenate([x1, x2])
-                n1 = len(x1)
-                obs = _mask(f"{w}+{t}", len(x), mw.channels, 100, [(n1, n1 + 30)])
+                x, n1 = splice(w, t)
+                obs = _mask(f"{w}+{t}", len(x), protocols.load_take(w).channels, 100, [(n1, n1 + 30)])
                 yield "splice", f"{w}+{t}", "nonloco", x, obs
+
+
+def splice(walk: str, other: str) -> tuple[np.ndarray, int]:
+    """The walk's first WALK_FRAMES frames, then ``other``'s first 1500 with its root translation moved
+    to go on from where the walk stopped: (frames, the seam's frame)."""
+    mw, mn = protocols.load_take(walk), protocols.load_take(other)
+    x1, x2 = np.array(mw.frames[:WALK_FRAMES]), np.array(mn.frames[:1500])
+    pos = [j for j, c in enumerate(mw.channels) if not is_angle(c)]
+    x2[:, pos] += x1[-1, pos] - x2[0, pos]
+    return np.concatenate([x1, x2]), len(x1)
 
 
 def run(model: withhlm.WithHLMModel, x: np.ndarray, obs: np.ndarray, splice_at: int | None = None):

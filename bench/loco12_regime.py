@@ -21,6 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.default_stress import splice  # noqa: E402
 from blend import withhlm  # noqa: E402
 from lacuna import modelfile  # noqa: E402
 from mocap import protocols, splits  # noqa: E402
@@ -29,7 +30,6 @@ from mocap.rootrot import wrap180 as wrap  # noqa: E402
 
 SPLICE_WALKS = ("walking_20", "walking_21", "35_28")
 SPLICE_WALKS_TEST = ("walking_27", "walking_28", "35_30")
-WALK_FRAMES = 600
 
 
 def cases(channels, split="validation"):
@@ -41,15 +41,10 @@ def cases(channels, split="validation"):
         obs[len(x) // 2:, ~legs] = False
         yield t, splits.ACTIVITY[t], x, obs
     for w in SPLICE_WALKS_TEST if split == "test" else SPLICE_WALKS:
-        mw = protocols.load_take(w)
         for t in [t for t in takes if splits.ACTIVITY[t] == "nonloco"]:
-            mn = protocols.load_take(t)
-            x1, x2 = np.array(mw.frames[:WALK_FRAMES]), np.array(mn.frames[:1500])
-            pos = [j for j, c in enumerate(mw.channels) if not is_angle(c)]
-            x2[:, pos] += x1[-1, pos] - x2[0, pos]
-            x = np.concatenate([x1, x2])
+            x, n1 = splice(w, t)   # (the stress bench's splice)
             obs = np.ones(x.shape, bool)
-            obs[len(x1) + 30:, ~legs] = False
+            obs[n1 + 30:, ~legs] = False
             yield f"{w}+{t}", "splice", x, obs
 
 
