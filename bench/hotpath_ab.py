@@ -36,6 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=3000)
     ap.add_argument("--behind", type=int, default=1, metavar="K",
                     help="also 64 bundled with K bundles read each turn (daemon_hotpath.py --behind)")
+    ap.add_argument("--gap-ms", type=float, default=0.0,
+                    help="sleep between ticks, as the live daemon waits for the next capture frame "
+                         "(daemon_hotpath.py --gap-ms; then each tree's wall time of a tick's own work is the "
+                         "figure to read, CPU time being charged by the scheduler tick)")
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "lacuna-echo-vs-daemon"))
     ap.add_argument("--json", dest="json_out", default=str(ROOT / "bench/results/hotpath_ab.json"))
     args = ap.parse_args(argv)
@@ -49,27 +53,34 @@ def main(argv: list[str] | None = None) -> int:
             env = dict(os.environ, PYTHONPATH=str(roots[name]), OPENBLAS_NUM_THREADS="1")
             subprocess.run([sys.executable, str(ROOT / "bench/daemon_hotpath.py"), "--repeats", "1", "--frames",
                             str(args.frames), "--models", "floor", "--bundle", "--model", f"hlm={hlms[name]}",
-                            "--behind", str(args.behind), "--json", str(out)], env=env, check=True, cwd=roots[name], stderr=subprocess.DEVNULL)
+                            "--behind", str(args.behind), "--gap-ms", str(args.gap_ms), "--json", str(out)], env=env, check=True, cwd=roots[name], stderr=subprocess.DEVNULL)
             for r in json.loads(out.read_text())["rows"]:
                 rows.append({"repeat": rep, "tree": name, **r})
                 r.setdefault("behind", 1)
                 print(f"repeat {rep} {name:>5} {r['model']:>5} {r['streams']:>3}{' bundled' if r['bundle'] else '':8}"
                       f"{' x' + str(r['behind']) if r['behind'] > 1 else ''}: "
-                      f"{r['cpu_us_per_frame_median']:.1f} us CPU/frame", file=sys.stderr, flush=True)
+                      f"{r['cpu_us_per_frame_median']:.1f} us CPU/frame, wall {r.get('wall_us_per_frame_median', float('nan')):.1f}",
+                      file=sys.stderr, flush=True)
     summary: dict[str, dict[str, float]] = {}
     for key in sorted({(r["model"], r["streams"], r["bundle"], r["behind"]) for r in rows}):
         case = f"{key[0]} {key[1]}{' bundled' if key[2] else ''}{f' {key[3]} a turn' if key[3] > 1 else ''}"
         s: dict[str, float] = {}
         for name in names:
-            v = [r["cpu_us_per_frame_median"] for r in rows if r["tree"] == name and (r["model"], r["streams"], r["bundle"], r["behind"]) == key]
+            sel = [r for r in rows if r["tree"] == name and (r["model"], r["streams"], r["bundle"], r["behind"]) == key]
+            v = [r["cpu_us_per_frame_median"] for r in sel]
             s[f"{name}_min"], s[f"{name}_median"] = float(np.min(v)), float(np.median(v))
+            w = [r["wall_us_per_frame_median"] for r in sel if "wall_us_per_frame_median" in r]
+            if w:
+                s[f"{name}_wall_median"] = float(np.median(w))
         for name in names[1:]:
             s[f"{names[0]}_over_{name}_min"] = s[f"{names[0]}_min"] / s[f"{name}_min"]
             s[f"{names[0]}_over_{name}_median"] = s[f"{names[0]}_median"] / s[f"{name}_median"]
+            if f"{name}_wall_median" in s and f"{names[0]}_wall_median" in s:
+                s[f"{names[0]}_over_{name}_wall_median"] = s[f"{names[0]}_wall_median"] / s[f"{name}_wall_median"]
         summary[case] = s
     out = {"command": "python bench/hotpath_ab.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "roots": {k: str(v) for k, v in roots.items()}, "at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-           "loadavg": os.getloadavg(), "frames": "pan2009 test case 0 (bench/daemon_hotpath.py), left arm and head NaN",
+           "loadavg": os.getloadavg(), "gap_ms": args.gap_ms, "frames": "pan2009 test case 0 (bench/daemon_hotpath.py), left arm and head NaN",
            "summary": summary, "runs": rows}
     print(json.dumps(summary, indent=1))
     Path(args.json_out).write_text(json.dumps(out, indent=1))
