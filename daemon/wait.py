@@ -64,7 +64,11 @@ class Waiting(Parts):
             # (prewarm_spin_ms) the frame the rehearsal warmed for is due within ~1 ms: wait for it
             # spinning, so it lands on a core that did not halt and is read at once, instead of
             # after the kernel wakes this thread; then sleep in poll as usual
-            ready = self._spin_until(time.perf_counter() + spin)
+            t = time.perf_counter()
+            ready = self._spin_until(t + spin)
+            pw.spins += 1
+            pw.spin_caught += bool(ready)
+            pw.spin_s += time.perf_counter() - t
             if ready or self.flag_stop or self.flag_reload:
                 self.stalls.woke(due)
                 if ready:
