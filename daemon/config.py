@@ -32,6 +32,7 @@ from daemon.errors import ConfigError as ConfigError  # (re-exported: callers sa
 BUILTINS = ("passthrough",)
 LOG_LEVELS = ("debug", "info", "warning", "error")
 OVERDUE = ("drop", "serve")
+PREWARM_SPIN_MS = 2.0  # after a rehearsal, poll without sleeping this long for the frame it warmed for (bench/notebook/spin-38.md)
 PREWARM_MS = 0.5  # default lead of the rehearsal before a frame is due (docs/BENCHMARKS.md, "Prewarm")
 
 
@@ -58,6 +59,7 @@ class Config:
     realtime_priority: int | None = None  # SCHED_RR priority for the serving threads (daemon/realtime.py); None: ordinary
     overdue: str = "drop"  # a frame that cannot be answered within budget_ms of receipt: "drop" it or "serve" it late
     prewarm_ms: float = PREWARM_MS  # rehearse the last frame this long before the next is due (daemon/prewarm.py); 0: off
+    prewarm_spin_ms: float = PREWARM_SPIN_MS  # then spin up to this long for that frame instead of sleeping (daemon/wait.py); 0: sleep
     default_model: str = ""
     models: dict[str, ModelSpec] = field(default_factory=dict)
     stream_models: dict[str, str] = field(default_factory=dict)
@@ -76,7 +78,7 @@ class Config:
 
     def summary(self) -> dict[str, Any]:
         return {"path": self.path, "budget_ms": self.budget_ms, "overdue": self.overdue, "busy_poll_ms": self.busy_poll_ms,
-                "prewarm_ms": self.prewarm_ms, "cpu_latency_us": self.cpu_latency_us, "realtime_priority": self.realtime_priority,
+                "prewarm_ms": self.prewarm_ms, "prewarm_spin_ms": self.prewarm_spin_ms, "cpu_latency_us": self.cpu_latency_us, "realtime_priority": self.realtime_priority,
                 "default_model": self.default_model,
                 "router": self.zmq_router, "pull": self.zmq_pull, "sub": self.zmq_sub, "pub": self.zmq_pub,
                 "osc_listen": _hp(self.osc_listen), "osc_send": _hp(self.osc_send),
@@ -99,6 +101,7 @@ _SCHEMA: dict[str, dict[str, tuple[type | tuple[type, ...], Any]]] = {
         "log_level": (str, LOG_LEVELS),
         "busy_poll_ms": ((int, float), (0.0, 1000.0)),
         "prewarm_ms": ((int, float), (0.0, 100.0)),
+        "prewarm_spin_ms": ((int, float), (0.0, 100.0)),
         "cpu_latency_us": (int, (0, 1_000_000)),
         "overdue": (str, OVERDUE),
         "realtime_priority": (int, (1, 99)),
@@ -165,6 +168,7 @@ def from_dict(raw: dict[str, Any], path: str | None = None) -> Config:
     cfg.idle_timeout_s = float(d.get("idle_timeout_s", cfg.idle_timeout_s))
     cfg.busy_poll_ms = float(d.get("busy_poll_ms", cfg.busy_poll_ms))
     cfg.prewarm_ms = float(d.get("prewarm_ms", cfg.prewarm_ms))
+    cfg.prewarm_spin_ms = float(d.get("prewarm_spin_ms", cfg.prewarm_spin_ms))
     for k in ("max_streams", "max_message_bytes", "max_gap_frames", "max_batch", "log_level", "cpu_latency_us", "overdue",
               "realtime_priority"):
         if k in d:

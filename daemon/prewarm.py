@@ -52,6 +52,9 @@ class Prewarm:
         self.errors = 0
         self.last_error = ""
         self.spent_s = 0.0
+        self.spins = 0          # waits spun after a rehearsal (daemon/wait.py, prewarm_spin_ms)
+        self.spin_caught = 0    # of them, those a message ended (the rest ran out and slept in poll)
+        self.spin_s = 0.0       # time spent spinning
 
     @property
     def on(self) -> bool:
@@ -122,4 +125,5 @@ class Prewarm:
         per = self.period()
         return {"lead_ms": round(self.lead_s * 1000, 3), "rehearsals": self.count, "errors": self.errors,
                 "last_error": self.last_error, "period_ms": None if per is None else round(per * 1000, 3),
-                "spent_ms": round(self.spent_s * 1000, 3)}
+                "spent_ms": round(self.spent_s * 1000, 3), "spins": self.spins, "spin_caught": self.spin_caught,
+                "spin_ms": round(self.spin_s * 1000, 3)}

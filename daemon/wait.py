@@ -5,7 +5,9 @@ polls at once when frames are waiting to be served, else up to IDLE_POLL_MS (soo
 systemd watchdog is due); shortly before a stream's next frame is due it rehearses that frame's
 path (daemon/prewarm.py), and what landed meanwhile is given the rehearsal's start as its
 receipt time; for ``busy_poll_ms`` after a message it polls without sleeping
-(:meth:`Waiting._spin`).  Each wait is timed for daemon/stalls.py.
+(:meth:`Waiting._spin`); after a rehearsal it spins up to ``prewarm_spin_ms`` for the frame it
+warmed for (:meth:`Waiting._spin_until`, bench/notebook/spin-38.md).  Each wait is timed for
+daemon/stalls.py.
 """
 from __future__ import annotations
 
@@ -58,6 +60,20 @@ class Waiting(Parts):
             self.stalls.woke(due)
             self._last_rx = time.perf_counter()
             return ready, rehearsed
+        if rehearsed is not None and timeout and (spin := self._pre_spin_s):
+            # (prewarm_spin_ms) the frame the rehearsal warmed for is due within ~1 ms: wait for it
+            # spinning, so it lands on a core that did not halt and is read at once, instead of
+            # after the kernel wakes this thread; then sleep in poll as usual
+            t = time.perf_counter()
+            ready = self._spin_until(t + spin)
+            pw.spins += 1
+            pw.spin_caught += bool(ready)
+            pw.spin_s += time.perf_counter() - t
+            if ready or self.flag_stop or self.flag_reload:
+                self.stalls.woke(due)
+                if ready:
+                    self._last_rx = time.perf_counter()
+                return ready, None
         if timeout and self._busy_s:
             due += max(0.0, self._last_rx + self._busy_s - time.perf_counter())
             ready = self._spin(timeout)
@@ -67,6 +83,24 @@ class Waiting(Parts):
         if ready:
             self._last_rx = time.perf_counter()
         return ready, None
+
+    @property
+    def _pre_spin_s(self) -> float:
+        # (not under SCHED_RR: a spinning real-time thread keeps the kernel's own network work off
+        # its core, which is why busy_poll_ms is refused with realtime_priority)
+        if self.cfg.realtime_priority is not None:
+            return 0.0
+        return self.cfg.prewarm_spin_ms / 1000.0   # read each time: a reload may change it
+
+    def _spin_until(self, end: float) -> dict[Any, Any]:
+        """Poll without sleeping until something is ready, a stop or reload is asked for, or
+        ``end`` (perf_counter); an empty answer once ``end`` passed with nothing ready."""
+        net = self.net
+        while True:
+            ready = net.poll(0)  # type: ignore[union-attr]
+            if ready or self.flag_stop or self.flag_reload or time.perf_counter() >= end:
+                return ready
+            os.sched_yield()  # let ZeroMQ's I/O thread, which moves the bytes, run on this core at once
 
     def _spin(self, timeout_ms: int) -> dict[Any, Any]:
         """Busy-poll (``busy_poll_ms``): for that long after the last message arrived, poll without

@@ -201,9 +201,12 @@ def test_a_reload_drops_the_shadows_and_takes_the_new_lead(hlm_walk):
 def test_a_daemon_paced_at_120_hz_rehearses_before_its_frames_and_fills_as_the_model_does(hlm_walk, tmp_path):
     """The daemon as a process, a DEALER sending the walk at 120 Hz on loopback: it rehearses
     between frames (status says how often, and the period it found), its fills are the model's
-    own causal stream's; with prewarm_ms = 0 it never rehearses.  What it checks: every frame is
-    answered, in order, with the model's fill; the default lead rehearses without error and
-    reports a period; lead 0 never rehearses."""
+    own causal stream's; with prewarm_ms = 0 it never rehearses.  After a rehearsal it spins for the
+    frame it warmed for (prewarm_spin_ms, bench/notebook/spin-38.md), and with a spin window longer
+    than the frame period a spin is ended by the frame it waited for.  What it checks: every frame
+    is answered, in order, with the model's fill; the default lead rehearses without error, reports
+    a period and spins after its rehearsals; a 20 ms window catches frames; spin 0 never spins; lead
+    0 never rehearses nor spins."""
     import zmq
 
     from clients.control import control
@@ -214,10 +217,11 @@ def test_a_daemon_paced_at_120_hz_rehearses_before_its_frames_and_fills_as_the_m
     ctx = zmq.Context()
     procs = []
     try:
-        for lead in (None, 0.0):
-            cfg = tmp_path / f"lacuna-{lead}.toml"
+        for lead, spin in ((None, None), (None, 20.0), (None, 0.0), (0.0, None)):
+            cfg = tmp_path / f"lacuna-{lead}-{spin}.toml"
             cfg.write_text("[daemon]\nbudget_ms = 250.0\nlog_level = \"warning\"\n"
                            + ("" if lead is None else f"prewarm_ms = {lead}\n")
+                           + ("" if spin is None else f"prewarm_spin_ms = {spin}\n")
                            + f"[models.hlm]\nfile = \"{path}\"\n[zmq]\nrouter = \"tcp://127.0.0.1:*\"\n")
             d = DaemonProcess(str(cfg))
             procs.append(d)
@@ -247,8 +251,14 @@ def test_a_daemon_paced_at_120_hz_rehearses_before_its_frames_and_fills_as_the_m
                 # the share, and the period found, are measured by bench/prewarm_ab.sh)
                 assert 1 <= info["rehearsals"] <= test.shape[0], info
                 assert info["period_ms"] is not None and info["period_ms"] > 0, info
+                # a spin follows a rehearsal unless the frame had already landed
+                assert info["spin_caught"] <= info["spins"] <= info["rehearsals"], info
+                if spin == 0.0:
+                    assert info["spins"] == 0 and info["spin_ms"] == 0.0, info
+                elif spin == 20.0:  # (longer than the 8.3 ms period: the next frame ends it)
+                    assert info["spin_caught"] >= 1 and info["spin_ms"] > 0.0, info
             else:
-                assert info["lead_ms"] == 0.0 and info["rehearsals"] == 0, info
+                assert info["lead_ms"] == 0.0 and info["rehearsals"] == 0 and info["spins"] == 0, info
     finally:
         for d in procs:
             if d.proc is not None and d.proc.poll() is None:
@@ -325,3 +335,22 @@ def test_a_frame_that_lands_during_a_rehearsal_counts_the_rehearsal_in_its_proc_
         loop.join(30)
         ctx.term()
     assert not loop.is_alive()
+
+
+def test_the_spin_after_a_rehearsal_follows_the_config_and_never_runs_real_time():
+    """prewarm_spin_ms is read at each wait (a reload changes it), and a daemon asked for SCHED_RR
+    never spins after a rehearsal: a spinning real-time thread keeps the kernel's own network work
+    off its core (why busy_poll_ms is refused with realtime_priority)."""
+    def waiting(**daemon):
+        cfg = config.from_dict({"daemon": {"log_level": "error", **daemon},
+                                "models": {"m": {"builtin": "passthrough"}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
+        return server.Daemon(cfg, server.Log("error"))
+
+    assert waiting()._pre_spin_s == config.PREWARM_SPIN_MS / 1000.0 > 0.0
+    d = waiting(prewarm_spin_ms=0.5)
+    assert d._pre_spin_s == 0.0005
+    d.cfg.prewarm_spin_ms = 3.0   # (read at every wait, so the cfg a reload installs counts at once)
+    assert d._pre_spin_s == 0.003
+    assert waiting(prewarm_spin_ms=0.0)._pre_spin_s == 0.0
+    assert waiting(realtime_priority=5)._pre_spin_s == 0.0
+    assert waiting(realtime_priority=5, prewarm_spin_ms=2.0)._pre_spin_s == 0.0

@@ -51,6 +51,9 @@ def test_example_config_validates():
     ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nrealtime_priority = 5\nbusy_poll_ms = 1\n", "cannot be used together"),
     ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nprewarm_ms = -1\n", "daemon.prewarm_ms must be between"),
     ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nprewarm_ms = \"soon\"\n", "daemon.prewarm_ms must be"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nprewarm_spin_ms = -1\n", "daemon.prewarm_spin_ms must be between"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nprewarm_spin_ms = 101\n", "daemon.prewarm_spin_ms must be between"),
+    ("[models.m]\nbuiltin = \"passthrough\"\n[daemon]\nprewarm_spin_ms = \"long\"\n", "daemon.prewarm_spin_ms must be"),
     ("models = [", "not valid TOML"),
 ])
 def test_raises_on_bad_config(tmp_path, text, needle):
