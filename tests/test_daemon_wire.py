@@ -199,6 +199,37 @@ def test_masked_frame_fast_path_equals_the_checked_path_and_rejects_the_same():
     assert odd.observed.tolist() == [True, False, True, False]
 
 
+def test_masked_fast_path_finiteness_agrees_with_the_checked_path_on_random_frames(rng):
+    """The fast path decides "every observed value is finite" by CPython's double sum of those
+    values (daemon/decode.py, bench/finite_cold.py); the checked path tests each value.  On frames
+    with NaN, +-inf and float32's extremes scattered at random under random masks, both must
+    accept and reject the same frames, and the fast path must hand back the same arrays."""
+    from daemon.decode import _decode_frame_checked, well_formed
+
+    specials = np.array([np.nan, np.inf, -np.inf, np.finfo(np.float32).max, -np.finfo(np.float32).max,
+                         np.finfo(np.float32).tiny, 0.0, -0.0], np.float32)
+    accepted = rejected = 0
+    for _ in range(400):
+        c = int(rng.integers(1, 80))
+        angles = rng.normal(0, 90, c).astype(np.float32)
+        k = int(rng.integers(0, min(c, 6) + 1))
+        angles[rng.choice(c, k, replace=False)] = rng.choice(specials, k)
+        observed = rng.random(c) < rng.random()
+        m = {"v": 1, "type": "frame", "stream": "s", "seq": 1, "t": 0.0, "angles": angles.tobytes(),
+             "observed": observed.astype(np.uint8).tobytes()}
+        fast = well_formed(m)
+        try:
+            slow = _decode_frame_checked(m)
+        except w.WireError as e:
+            assert e.reason == "non_finite" and fast is None, (angles, observed)
+            rejected += 1
+            continue
+        assert fast is not None and fast[4].tolist() == slow.observed.tolist() == observed.tolist()
+        assert np.array_equal(fast[3], slow.angles, equal_nan=True)
+        accepted += 1
+    assert accepted > 50 and rejected > 50  # (both branches were exercised)
+
+
 # ---- bundles ------------------------------------------------------------------------------------
 FRAMES_S1_S2_SEQ7 = bytes.fromhex(  # docs/PROTOCOL.md, `frames`
     "83a17601a474797065a66672616d6573a66672616d65739284a673747265616da27331a373657107a174cb3ff8000000"
