@@ -185,6 +185,19 @@ bound spares it without being fitted to those two takes.  A long window steps a 
 stream's step costs ~2x in that regime (bench/loco12_stepcost.py), ~1.02x elsewhere; long_gate's fourth
 value, ``rest`` (frames of rest after each long window, the first at the erasure's onset; 0: back to back;
 SHADOW_PAUSE as the ordinary check's schedule), runs the twins on a third of that regime's frames.
+
+long_ll (``long_ll`` (D, TAU) in the model file's metadata; files without it: off; bench/notebook/loco-13.md).
+The evidence is the HLM's own, no twin: its forward step's normaliser, log p(z_t,o | z_<t,o) = log sum_s
+pred(s) b_s(z_t,o) over the observed features (hlm.online.init_state's "ll", written by the numpy reference
+and the compiled step alike), per observed feature.  In the regime above (more than SHADOW_MAX_MISS channels
+missing, every leg channel observed) only the legs are observed, so it says how well the locomotion model
+predicts the legs the performer still shows; a walker who stops (basketball, signals, sitting) is predicted
+far worse than on the walk.  Per stream: a baseline (decayed mean over LL_BTAU frames of the level on frames
+with <= SHADOW_MAX_MISS missing and q+ < 1.1, each frame at most LL_BCLIP below it; LL_BMIN frames of weight
+needed), frozen at the erasure's onset; the erasure's level (decayed mean over TAU frames from its onset);
+from LL_N0 frames into the erasure, a level more than D below the baseline revokes the share: the bound
+to at least log SHADOW_REVOKE and the last q bin for the rest of the erasure (``_ll_track``, after the HLM's
+step, before the q bin is read; the same Python on the numpy, compiled and block paths).
 """
 from __future__ import annotations
 
