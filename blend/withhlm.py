@@ -256,13 +256,14 @@ LEG_SHADOW = tuple(SHADOW_GROUPS.index(g) for g in LEG_GROUPS)   # their indices
 LONG_GATE_OFF = (0, 0.0, 0.0, 0)   # the leg gate off (module doc, "Long erasures"): files without ``long_gate``
 LONG_GATE = LONG_GATE_OFF   # what models trained now carry (bench/notebook/loco-12.md)
 LONG_LL_OFF = (0.0, 0.0)    # the legs' predictive likelihood revoke off (module doc, "long_ll"): files without ``long_ll``
-LONG_LL = LONG_LL_OFF       # what models trained now carry (bench/notebook/loco-13.md)
+LONG_LL = (4.0, 60.0)       # what models trained now carry: chosen by bench/notebook/loco-13.md's second look
 LL_N0 = 30          # frames of a long erasure before its level may revoke (= SHADOW_SKIP; fixed, not tuned)
 LL_BTAU = 600.0     # frames: the decay of the baseline (5 s; fixed, not tuned)
 LL_BMIN = 60.0      # the baseline's weight (decayed frames) it needs to count (fixed, not tuned)
 LL_BCLIP = 1.0      # nats a feature: a frame enters the baseline at most this far below it (fixed, not tuned)
 LOG_REVOKE = math.log(SHADOW_REVOKE)
 LL_BDECAY = math.exp(-1.0 / LL_BTAU)
+LOGQ_YIELD = float(Q_EDGES[-1])   # log 1.1: at or above it the HLM has no share (the last q bin)
 RATE_TAU = 120.0   # frames: the decay of a channel's observed rate (1 s, about one walking cycle; fixed, not tuned)
 RATE_LO, RATE_HI = 0.5, 2.0   # the rate's factor on the band is clipped to these (fixed, not tuned)
 PACE_TAU = 0.0   # frames: the decay of the observed body's fast rate for the pace (module doc, "Pace"; 0: off)
@@ -414,8 +415,10 @@ class WithHLMModel(Model):
         bad = any(isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x) or x < 0 for x in (d, tau))
         if bad or (d > 0 and tau <= 0):
             raise FillerError(f"{METHOD}: long_ll must be (d >= 0 nats a feature, tau > 0 frames where d > 0) (got {(d, tau)!r})")
-        if d > 0 and "ll" not in getattr(getattr(self.hlm, "pool", None), "core", {}):
+        core = getattr(getattr(self.hlm, "pool", None), "core", {})
+        if d > 0 and "ll" not in core:
             raise FillerError(f"{METHOD}: long_ll needs the HLM's predictive likelihood (hlm.online's \"ll\"), which {self.hlm.method} has not")
+        self._hcore = core   # the HLM's state pool's arrays (the dict stays; its arrays are new when the pool grows)
         self.long_ll = (float(d), float(tau)) if d > 0 else LONG_LL_OFF
         self._ll_on = d > 0
         self._ll_a = math.exp(-1.0 / tau) if d > 0 else 0.0
@@ -429,28 +432,35 @@ class WithHLMModel(Model):
         """long_ll (module doc): the stream's level and baseline from this frame's HLM step (its normaliser,
         ``hlm.online.init_state``'s "ll"), and the revoke.  After the HLM's step, before the q bin is read."""
         if s.ll_busy and bool(o[self._legs].all()):   # the regime: no ordinary window runs
-            row = self.hlm.pool.core["ll"][s.hs.slot]   # type: ignore[attr-defined]
+            ll, r = self._hcore["ll"], s.hs.slot   # type: ignore[attr-defined]
+            lln, no = ll.item(r, 0), ll.item(r, 1)
             if not s.ll_in:   # the erasure's onset: its own level, the baseline frozen
                 s.ll_in, s.ll_age, s.ll_S, s.ll_N, s.ll_rev = True, 0, 0.0, 0.0, False
                 s.ll_B = s.ll_bS / s.ll_bN if s.ll_bN >= LL_BMIN else math.nan
             s.ll_age += 1
-            if row[1] > 0:
-                s.ll_S = self._ll_a * s.ll_S + float(row[0] / row[1])
+            if no > 0:
+                s.ll_S = self._ll_a * s.ll_S + lln / no
                 s.ll_N = self._ll_a * s.ll_N + 1.0
             if not s.ll_rev and s.ll_age >= LL_N0 and s.ll_N > 0 and s.ll_S / s.ll_N < s.ll_B - self._ll_d:
                 s.ll_rev = True   # (nan baseline: never)
                 s.n_llrev += 1
                 s._lq = max(s._lq, LOG_REVOKE)
             return
-        s.ll_in = s.ll_rev = False
-        if not s.ll_busy and s._lq < Q_EDGES[-1]:   # the baseline: the HLM's share earned, ordinary windows run
-            row = self.hlm.pool.core["ll"][s.hs.slot]   # type: ignore[attr-defined]
-            if row[1] > 0:
-                e = float(row[0] / row[1])
-                if s.ll_bN >= 1.0:
-                    e = max(e, s.ll_bS / s.ll_bN - LL_BCLIP)
-                s.ll_bS = LL_BDECAY * s.ll_bS + e
-                s.ll_bN = LL_BDECAY * s.ll_bN + 1.0
+        if s.ll_in:
+            s.ll_in = s.ll_rev = False
+        if s.ll_busy or s._lq >= LOGQ_YIELD:
+            return
+        ll, r = self._hcore["ll"], s.hs.slot   # the baseline: the HLM's share earned, ordinary windows run
+        no = ll.item(r, 1)
+        if no > 0:
+            e = ll.item(r, 0) / no
+            bS, bN = s.ll_bS, s.ll_bN
+            if bN >= 1.0:
+                lo = bS / bN - LL_BCLIP
+                if e < lo:
+                    e = lo
+            s.ll_bS = LL_BDECAY * bS + e
+            s.ll_bN = LL_BDECAY * bN + 1.0
 
     def _long_column(self, k: int) -> None:
         """The compiled tables' extra q column (index len(Q_EDGES) + 1), the long bin."""
