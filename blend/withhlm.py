@@ -197,7 +197,13 @@ with <= SHADOW_MAX_MISS missing and q+ < 1.1, each frame at most LL_BCLIP below 
 needed), frozen at the erasure's onset; the erasure's level (decayed mean over TAU frames from its onset);
 from LL_N0 frames into the erasure, a level more than D below the baseline revokes the share: the bound
 to at least log SHADOW_REVOKE and the last q bin for the rest of the erasure (``_ll_track``, after the HLM's
-step, before the q bin is read; the same Python on the numpy, compiled and block paths).
+step, before the q bin is read; the same Python on the numpy, compiled and block paths).  Chosen by
+bench/notebook/loco-13.md's second look on VALIDATION (D in {2, 4, 8} x TAU in {30, 60}; round 1's bar, a
+pooled drop of 25%, was above what the blend alone gives on its larger regime set): (4, 60) ships on
+(LONG_LL): the regime set's pooled non-walk MSE 265 -> 213 deg^2 (the blend alone 210), no case worse, no
+walk revoked, gaps / stress / pan2009 VALIDATION unchanged; ~1.02x the step outside the regime, ~1.08x in
+it.  TEST, after the choice: -2.8% only, two splices 1.2x worse (the HLM was the better there) and walking_28's
+splices untouched: its whole-body baseline (-28 nats a feature) is not comparable with the legs' level.
 """
 from __future__ import annotations
 
