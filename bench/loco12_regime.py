@@ -7,7 +7,13 @@ MSE (deg^2) over the erased angles of ``default`` per model file given, its blen
 splices' walks TEST's walking_27, walking_28 and 35_30 (fixed before the run, as VALIDATION's two
 walking_ takes and one of subject 35).
 
-    OPENBLAS_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/loco12_regime.py OFF.npz ON.npz [--split test] [--json OUT]
+``--set loco13`` (bench/notebook/loco-13.md, fixed before any of its bounds was chosen): the larger regime
+set: pan2009's pattern on each take of the split as above, and every walk -> non-locomotion splice whose
+first half is any of the split's locomotion takes (walk, turn, run) and second any of its non-locomotion
+takes, erased but the legs from 30, 90 and 240 frames after the seam (case ``W+T@N``).  ``--ll D,TAU`` (any
+number): each model file also with long_ll (D, TAU) set in-process (blend/withhlm.py), named ``STEM_llD_TAU``.
+
+    OPENBLAS_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/loco12_regime.py OFF.npz ON.npz [--split test] [--set loco13] [--ll 4,30] [--json OUT]
 """
 from __future__ import annotations
 
@@ -30,6 +36,23 @@ from mocap.rootrot import wrap180 as wrap  # noqa: E402
 
 SPLICE_WALKS = ("walking_20", "walking_21", "35_28")
 SPLICE_WALKS_TEST = ("walking_27", "walking_28", "35_30")
+ONSETS13 = (30, 90, 240)   # loco13's erasure onsets after the seam
+
+
+def cases13(channels, split="validation"):
+    """loco13's larger regime set (module doc, ``--set loco13``)."""
+    legs = np.isin(withhlm.group_index(list(channels)), withhlm.LEG_GROUPS)
+    takes = splits.TEST if split == "test" else splits.VALIDATION
+    for t, act, x, obs in cases(channels, split):
+        if act != "splice":
+            yield t, act, x, obs
+    for w in [t for t in takes if splits.ACTIVITY[t] in ("walk", "turn", "run")]:
+        for t in [t for t in takes if splits.ACTIVITY[t] == "nonloco"]:
+            x, n1 = splice(w, t)
+            for on in ONSETS13:
+                obs = np.ones(x.shape, bool)
+                obs[n1 + on:, ~legs] = False
+                yield f"{w}+{t}@{on}", "splice", x, obs
 
 
 def cases(channels, split="validation"):
@@ -60,21 +83,32 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("models", nargs="+")
     ap.add_argument("--split", choices=("validation", "test"), default="validation")
+    ap.add_argument("--set", choices=("loco12", "loco13"), default="loco12")
+    ap.add_argument("--ll", action="append", default=[], help="D,TAU: each model also with long_ll (D, TAU)")
     ap.add_argument("--json")
     a = ap.parse_args()
     import blend.methods  # noqa: F401  (loaders)
 
     models = [modelfile.load_model(p) for p in a.models]
+    names = [Path(p).stem for p in a.models]
+    for p in list(a.models):
+        for spec in a.ll:
+            d, tau = (float(v) for v in spec.split(","))
+            m = modelfile.load_model(p)
+            m.set_long_ll(d, tau)
+            models.append(m)
+            names.append(f"{Path(p).stem}_ll{spec.replace(',', '_')}")
     ang = np.array([is_angle(c) for c in models[0].channels])
     rows = []
     t0 = time.time()
-    for label, act, x, obs in cases(models[0].channels, a.split):
+    for label, act, x, obs in (cases13 if a.set == "loco13" else cases)(models[0].channels, a.split):
         msk = ~obs & ang[None]
         e = {}
-        for p, m in zip(a.models, models, strict=True):
+        for name, m in zip(names, models, strict=True):
             out, st = run(m, x, obs)
-            e[Path(p).stem] = float(np.mean(wrap(out - x)[msk] ** 2))
-            e[Path(p).stem + ":lwin"] = st.n_lwin
+            e[name] = float(np.mean(wrap(out - x)[msk] ** 2))
+            e[name + ":lwin"] = st.n_lwin
+            e[name + ":llrev"] = st.n_llrev
         out, _ = run(models[0], x, obs, blend=True)
         e["blend"] = float(np.mean(wrap(out - x)[msk] ** 2))
         hold = np.array(x)
@@ -85,7 +119,6 @@ def main() -> int:
         rows.append({"case": label, "act": act, **e})
         print(f"{label:34s} {act:8s} " + " ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in e.items()),
               flush=True)
-    names = [Path(p).stem for p in a.models]
     print(f"{len(rows)} cases, {time.time() - t0:.0f} s")
     sel = [r for r in rows if r["act"] != "walk"]
     pooled = {k: sum(r[k] * r["n"] for r in sel) / sum(r["n"] for r in sel) for k in names + ["blend", "hold"]}
@@ -94,6 +127,11 @@ def main() -> int:
         worst = max(sel, key=lambda r: r[k] / r[names[0]])
         print(f"{k} / {names[0]}: max {worst[k] / worst[names[0]]:.4f} ({worst['case']}), "
               f"cases > 1.01: {sum(r[k] > 1.01 * r[names[0]] for r in sel)}")
+        wk = [r for r in rows if r["act"] == "walk"]
+        if wk:
+            ww = max(wk, key=lambda r: r[k] / r[names[0]])
+            print(f"  walks: max {ww[k] / ww[names[0]]:.4f} ({ww['case']}); revokes on non-walk cases "
+                  f"{sum(r[k + ':llrev'] > 0 for r in sel)} of {len(sel)}, on walks {sum(r[k + ':llrev'] > 0 for r in wk)} of {len(wk)}")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=0))
     return 0

@@ -47,6 +47,7 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("model")
     ap.add_argument("--gate", type=float, nargs="+", default=[60, 0.8], help="K QL [QR [REST]]")
+    ap.add_argument("--ll", type=float, nargs=2, help="D TAU: B with long_ll (D, TAU) instead of the gate (loco-13)")
     ap.add_argument("--take", default="walking_20")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--json")
@@ -59,12 +60,15 @@ def main() -> int:
     A.set_long_trust(*withhlm.LONG_TRUST_OFF)
     A.set_long_gate(*withhlm.LONG_GATE_OFF)
     B.set_long_trust(*withhlm.LONG_TRUST_OFF)
-    B.set_long_gate(int(a.gate[0]), *a.gate[1:3], *[int(v) for v in a.gate[3:]])
+    if a.ll:
+        B.set_long_ll(*a.ll)
+    else:
+        B.set_long_gate(int(a.gate[0]), *a.gate[1:3], *[int(v) for v in a.gate[3:]])
     gobs, _ = protocols.Gaps(seed=0, split="validation").occlusion(a.take, m.n_frames, m.channels, m.fps)
     legs = np.isin(withhlm.group_index(list(m.channels)), withhlm.LEG_GROUPS)
     pobs = np.ones(m.frames.shape, bool)
     pobs[m.n_frames // 2:, ~legs] = False
-    out: dict = {"model": a.model, "take": a.take, "gate": a.gate, "load": list(os.getloadavg()), "cases": {}}
+    out: dict = {"model": a.model, "take": a.take, "gate": None if a.ll else a.gate, "ll": a.ll, "load": list(os.getloadavg()), "cases": {}}
     for name, obs, start in (("gaps", gobs, 50), ("pan2009", pobs, m.n_frames // 2)):
         F = np.where(obs, m.frames, np.nan)
         t = step3(A, B, F, obs, start, a.reps)

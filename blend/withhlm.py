@@ -185,6 +185,25 @@ bound spares it without being fitted to those two takes.  A long window steps a 
 stream's step costs ~2x in that regime (bench/loco12_stepcost.py), ~1.02x elsewhere; long_gate's fourth
 value, ``rest`` (frames of rest after each long window, the first at the erasure's onset; 0: back to back;
 SHADOW_PAUSE as the ordinary check's schedule), runs the twins on a third of that regime's frames.
+
+long_ll (``long_ll`` (D, TAU) in the model file's metadata; files without it: off; bench/notebook/loco-13.md).
+The evidence is the HLM's own, no twin: its forward step's normaliser, log p(z_t,o | z_<t,o) = log sum_s
+pred(s) b_s(z_t,o) over the observed features (hlm.online.init_state's "ll", written by the numpy reference
+and the compiled step alike), per observed feature.  In the regime above (more than SHADOW_MAX_MISS channels
+missing, every leg channel observed) only the legs are observed, so it says how well the locomotion model
+predicts the legs the performer still shows; a walker who stops (basketball, signals, sitting) is predicted
+far worse than on the walk.  Per stream: a baseline (decayed mean over LL_BTAU frames of the level on frames
+with <= SHADOW_MAX_MISS missing and q+ < 1.1, each frame at most LL_BCLIP below it; LL_BMIN frames of weight
+needed), frozen at the erasure's onset; the erasure's level (decayed mean over TAU frames from its onset);
+from LL_N0 frames into the erasure, a level more than D below the baseline revokes the share: the bound
+to at least log SHADOW_REVOKE and the last q bin for the rest of the erasure (``_ll_track``, after the HLM's
+step, before the q bin is read; the same Python on the numpy, compiled and block paths).  Chosen by
+bench/notebook/loco-13.md's second look on VALIDATION (D in {2, 4, 8} x TAU in {30, 60}; round 1's bar, a
+pooled drop of 25%, was above what the blend alone gives on its larger regime set): (4, 60) ships on
+(LONG_LL): the regime set's pooled non-walk MSE 265 -> 213 deg^2 (the blend alone 210), no case worse, no
+walk revoked, gaps / stress / pan2009 VALIDATION unchanged; ~1.02x the step outside the regime, ~1.08x in
+it.  TEST, after the choice: -2.8% only, two splices 1.2x worse (the HLM was the better there) and walking_28's
+splices untouched: its whole-body baseline (-28 nats a feature) is not comparable with the legs' level.
 """
 from __future__ import annotations
 
@@ -242,6 +261,15 @@ LEG_GROUPS = (5, 6)     # left-leg, right-leg: observed legs are what lock the H
 LEG_SHADOW = tuple(SHADOW_GROUPS.index(g) for g in LEG_GROUPS)   # their indices into SHADOW_GROUPS
 LONG_GATE_OFF = (0, 0.0, 0.0, 0)   # the leg gate off (module doc, "Long erasures"): files without ``long_gate``
 LONG_GATE = LONG_GATE_OFF   # what models trained now carry (bench/notebook/loco-12.md)
+LONG_LL_OFF = (0.0, 0.0)    # the legs' predictive likelihood revoke off (module doc, "long_ll"): files without ``long_ll``
+LONG_LL = (4.0, 60.0)       # what models trained now carry: chosen by bench/notebook/loco-13.md's second look
+LL_N0 = 30          # frames of a long erasure before its level may revoke (= SHADOW_SKIP; fixed, not tuned)
+LL_BTAU = 600.0     # frames: the decay of the baseline (5 s; fixed, not tuned)
+LL_BMIN = 60.0      # the baseline's weight (decayed frames) it needs to count (fixed, not tuned)
+LL_BCLIP = 1.0      # nats a feature: a frame enters the baseline at most this far below it (fixed, not tuned)
+LOG_REVOKE = math.log(SHADOW_REVOKE)
+LL_BDECAY = math.exp(-1.0 / LL_BTAU)
+LOGQ_YIELD = float(Q_EDGES[-1])   # log 1.1: at or above it the HLM has no share (the last q bin)
 RATE_TAU = 120.0   # frames: the decay of a channel's observed rate (1 s, about one walking cycle; fixed, not tuned)
 RATE_LO, RATE_HI = 0.5, 2.0   # the rate's factor on the band is clipped to these (fixed, not tuned)
 PACE_TAU = 0.0   # frames: the decay of the observed body's fast rate for the pace (module doc, "Pace"; 0: off)
@@ -330,8 +358,10 @@ class WithHLMModel(Model):
         self._lr_min = math.inf
         self._lg_rest = 0
         self._lg_on = False
+        self.long_ll, self._ll_on, self._ll_a, self._ll_d = LONG_LL_OFF, False, 0.0, 0.0
         self.set_long_trust(*_pair("long_trust", self.meta.get("long_trust", LONG_TRUST_OFF)))
         self.set_long_gate(*_pair("long_gate", self.meta.get("long_gate", LONG_GATE_OFF), 4))
+        self.set_long_ll(*_pair("long_ll", self.meta.get("long_ll", LONG_LL_OFF)))
         self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
         self.rate_ref: np.ndarray | None = None   # the training data's mean |dx| a frame per channel ("Rate")
         self._ref = np.zeros(C)
@@ -381,6 +411,63 @@ class WithHLMModel(Model):
             self.meta.pop("long_gate", None)
         self._long_column(k if k > 0 else self.long_trust[0])
 
+    def set_long_ll(self, d: float, tau: float) -> None:
+        """The legs' predictive likelihood revoke (module doc, "long_ll"): in a long erasure with every
+        leg channel observed, once it has lasted LL_N0 frames, the stream's HLM share is revoked (the bound
+        set to at least log SHADOW_REVOKE, the last q bin for the rest of the erasure) when the HLM's one-step
+        predictive log-likelihood per observed feature, a decayed mean over ``tau`` frames from the erasure's
+        onset, is more than ``d`` nats below the stream's baseline (its level on frames with <= SHADOW_MAX_MISS
+        missing and q+ < 1.1 before the erasure).  d = 0: off (the fills of main)."""
+        bad = any(isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x) or x < 0 for x in (d, tau))
+        if bad or (d > 0 and tau <= 0):
+            raise FillerError(f"{METHOD}: long_ll must be (d >= 0 nats a feature, tau > 0 frames where d > 0) (got {(d, tau)!r})")
+        core = getattr(getattr(self.hlm, "pool", None), "core", {})
+        if d > 0 and "ll" not in core:
+            raise FillerError(f"{METHOD}: long_ll needs the HLM's predictive likelihood (hlm.online's \"ll\"), which {self.hlm.method} has not")
+        self._hcore = core   # the HLM's state pool's arrays (the dict stays; its arrays are new when the pool grows)
+        self.long_ll = (float(d), float(tau)) if d > 0 else LONG_LL_OFF
+        self._ll_on = d > 0
+        self._ll_a = math.exp(-1.0 / tau) if d > 0 else 0.0
+        self._ll_d = float(d)
+        if d > 0:
+            self.meta["long_ll"] = list(self.long_ll)
+        else:
+            self.meta.pop("long_ll", None)
+
+    def _ll_track(self, s: WithHLMState, o: np.ndarray) -> None:
+        """long_ll (module doc): the stream's level and baseline from this frame's HLM step (its normaliser,
+        ``hlm.online.init_state``'s "ll"), and the revoke.  After the HLM's step, before the q bin is read."""
+        if s.ll_busy and bool(o[self._legs].all()):   # the regime: no ordinary window runs
+            ll, r = self._hcore["ll"], s.hs.slot   # type: ignore[attr-defined]
+            lln, no = ll.item(r, 0), ll.item(r, 1)
+            if not s.ll_in:   # the erasure's onset: its own level, the baseline frozen
+                s.ll_in, s.ll_age, s.ll_S, s.ll_N, s.ll_rev = True, 0, 0.0, 0.0, False
+                s.ll_B = s.ll_bS / s.ll_bN if s.ll_bN >= LL_BMIN else math.nan
+            s.ll_age += 1
+            if no > 0:
+                s.ll_S = self._ll_a * s.ll_S + lln / no
+                s.ll_N = self._ll_a * s.ll_N + 1.0
+            if not s.ll_rev and s.ll_age >= LL_N0 and s.ll_N > 0 and s.ll_S / s.ll_N < s.ll_B - self._ll_d:
+                s.ll_rev = True   # (nan baseline: never)
+                s.n_llrev += 1
+                s._lq = max(s._lq, LOG_REVOKE)
+            return
+        if s.ll_in:
+            s.ll_in = s.ll_rev = False
+        if s.ll_busy or s._lq >= LOGQ_YIELD:
+            return
+        ll, r = self._hcore["ll"], s.hs.slot   # the baseline: the HLM's share earned, ordinary windows run
+        no = ll.item(r, 1)
+        if no > 0:
+            e = ll.item(r, 0) / no
+            bS, bN = s.ll_bS, s.ll_bN
+            if bN >= 1.0:
+                lo = bS / bN - LL_BCLIP
+                if e < lo:
+                    e = lo
+            s.ll_bS = LL_BDECAY * bS + e
+            s.ll_bN = LL_BDECAY * bN + 1.0
+
     def _long_column(self, k: int) -> None:
         """The compiled tables' extra q column (index len(Q_EDGES) + 1), the long bin."""
         Wl = self.W[:, :, -1].copy()   # the extra q bin: the last bin's shares (0) ...
@@ -395,6 +482,8 @@ class WithHLMModel(Model):
         """The q bin a stream's frame mixes with: the last bin becomes the long bin (index len(Q_EDGES) + 1)
         where the long-erasure trust holds (q+ <= qmax) or the leg gate does (in a long erasure, q_long+ <=
         qlong), every leg channel observed."""
+        if s.ll_rev:   # long_ll's revoke: the blend alone, whatever else would open
+            return len(self._qe)
         logq = s._lq
         if s.lbusy and self._lr_min < s.lg_lq < LOGQ_UNSCORED:   # the leg gate's revoke
             return len(self._qe)
@@ -546,6 +635,8 @@ class WithHLMModel(Model):
             g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
             if self._lg_on:   # the leg gate's long window ("Long erasures")
                 self._long(s, F[i], O[i], nm > SHADOW_MAX_MISS, s.gm, True)
+            if self._ll_on:
+                s.ll_busy = nm > SHADOW_MAX_MISS
             if g >= 0:
                 HO = O.copy() if HO is O else HO
                 HO[i, self._cols[g]] = False
@@ -564,6 +655,8 @@ class WithHLMModel(Model):
         for i, s in enumerate(states):
             has = j < len(tw) and tw[j] == i
             j += has
+            if self._ll_on:   # long_ll, from this frame's HLM step
+                self._ll_track(s, O[i])
             qb = self._qb(s, O[i])
             eh, e0, nh = mix_row(F[i], O[i], HO[i], D[i], Dsd[i], H[i], Hsd[i], T[i] if has else D[i],   # type: ignore[index]
                                  has, self.ang, self._rows, self._kW, self._kS, T_EDGES, qb,
@@ -595,6 +688,8 @@ class WithHLMModel(Model):
             g = s._plan(bool(busy[i]), gmiss[i])
             if self._lg_on:   # the leg gate's long window ("Long erasures")
                 self._long(s, F[i], O[i], bool(busy[i]), gmiss[i], False)
+            if self._ll_on:
+                s.ll_busy = bool(busy[i])
             self._open(s, g, i, HO, win)
         if win:
             dst = [s.ds for s in states] + [t for t in (states[i].twin for i in win) if t is not None]   # (_open set them)
@@ -619,6 +714,8 @@ class WithHLMModel(Model):
             g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
             if self._lg_on:   # the leg gate's long window ("Long erasures")
                 self._long(s, F[i], O[i], nm > SHADOW_MAX_MISS, s.gm, True)
+            if self._ll_on:
+                s.ll_busy = nm > SHADOW_MAX_MISS
             if g >= 0:
                 HO = O.copy() if HO is O else HO
                 HO[i, self._cols[g]] = False
@@ -651,6 +748,8 @@ class WithHLMModel(Model):
         C = self.n_channels
         for i, s in enumerate(states):
             d, h = dfills[i], hfills[i]
+            if self._ll_on:   # long_ll, from this frame's HLM step
+                self._ll_track(s, O[i])
             logq = s.logq
             T = twin.get(i)
             out, std = np.empty(C), np.empty(C)
@@ -684,6 +783,9 @@ class WithHLMModel(Model):
                 eh, e0 = wrap(Hf[i, hid] - F[i, hid]), wrap(T[hid] - F[i, hid])
                 s._score(float((eh * eh).sum()), float((e0 * e0).sum()))
         K = np.where(O, 0, np.stack([s.k for s in states]) + 1)
+        if self._ll_on:   # long_ll, from this frame's HLM step
+            for i, s in enumerate(states):
+                self._ll_track(s, O[i])
         logq = np.array([s.logq for s in states])
         raw = np.where(self.ang, wrap(Hf - Df), Hf - Df)
         off = np.where(K == 1, -raw, np.stack([s.o for s in states]))
@@ -931,6 +1033,11 @@ class WithHLMState(FillerState):
         self.n_lwin = 0
         self.ltwin: FillerState | None = None   # the blend under the long window's mask
         self.lhs: FillerState | None = None     # the HLM under it (its slot kept between windows)
+        # long_ll (module doc): this frame's busy, the erasure's level, the baseline, the revoke
+        self.ll_busy = self.ll_in = self.ll_rev = False
+        self.ll_age, self.n_llrev = 0, 0
+        self.ll_S = self.ll_N = self.ll_bS = self.ll_bN = 0.0
+        self.ll_B = math.nan
         self.collect = False         # bench/default_hlm_tune.py reads ``comp`` after each step
         self.comp: dict[str, np.ndarray] | None = None
 
@@ -1122,6 +1229,8 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
         meta["long_trust"] = list(LONG_TRUST)
     if LONG_GATE[0] > 0:
         meta["long_gate"] = _gate_meta(LONG_GATE)
+    if LONG_LL[0] > 0:
+        meta["long_ll"] = list(LONG_LL)
     cal = calib.from_json(json.loads(SHIPPED.read_text()).get("calib") if SHIPPED.exists() else None, list(ch),
                           group_index(list(ch)), GROUP_NAMES, len(T_EDGES) + 1)
     return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal,

@@ -102,8 +102,9 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
     ix (``scratch``; fs[:CM] must be zero and is left zero).  The same operations in the same
     order as a pass over all C*M states: the states are visited ascending, and the terms it
     would skip (zero mass, a missing feature's zero emission term) add exactly nothing.
-    Returns (the phase, k): the new posterior is exactly 0 outside the k states ix[:k]
-    (ascending), the support ``condfill.correct1`` visits."""
+    Returns (the phase, k, ll): the new posterior is exactly 0 outside the k states ix[:k]
+    (ascending), the support ``condfill.correct1`` visits; ll the step's normaliser, log p(z_t,o | z_<t,o)
+    (0 with nothing observed; ``hlm.online.init_state``'s "ll")."""
     CM = post.shape[0]
     F = z.shape[0]
     C = CM // M
@@ -181,6 +182,7 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
     for i in range(k):
         llp[i] *= pr[rows[i]]
         tot += llp[i]
+    lln = top + math.log(tot) if no > 0 else 0.0
     for i in range(nt):
         pr[tch[i]] = 0.0
     pmax = 0.0
@@ -288,7 +290,7 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
             style[cof[s]] += p
             sc += p * cos[mof[s]]
             ss += p * sin[mof[s]]
-    return (math.atan2(ss, sc) / (2.0 * math.pi)) % 1.0, k
+    return (math.atan2(ss, sc) / (2.0 * math.pi)) % 1.0, k, lln
 
 
 def usable(tab) -> bool:
@@ -298,13 +300,25 @@ def usable(tab) -> bool:
 
 @_jit
 def _step_many(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
-               D, W, G, GW, prow, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, phase):  # pragma: no cover - compiled
+               D, W, G, GW, prow, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, phase, ll):  # pragma: no cover - compiled
     fs, ix = scratch(post.shape[1], z.shape[1], M)  # (once for the batch)
     for i in range(post.shape[0]):
         r = prow[i]
-        phase[i] = _step_in(post[i], first[i], prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
-                            kappa_g, nb, D[r], W[r], G[r], GW[r], lam_rows, var_q, pack, cos, sin, live, live_stats,
-                            out[i], sd[i], style[i], fs, ix)[0]
+        phase[i], k, lln = _step_in(post[i], first[i], prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
+                                    kappa_g, nb, D[r], W[r], G[r], GW[r], lam_rows, var_q, pack, cos, sin, live, live_stats,
+                                    out[i], sd[i], style[i], fs, ix)
+        _put_ll(ll, i, lln, zobs[i])
+
+
+@_jit
+def _put_ll(ll, r, lln, zobs):  # pragma: no cover - compiled
+    """Row r of ``hlm.online.init_state``'s "ll": the step's normaliser and how many features were observed."""
+    no = 0
+    for f in range(zobs.shape[0]):
+        if zobs[f]:
+            no += 1
+    ll[r, 0] = lln
+    ll[r, 1] = no
 
 
 def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, rows: np.ndarray | None = None,
@@ -328,10 +342,11 @@ def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, row
     sd = np.empty((n, F))
     style = np.empty((n, C))
     phase = np.empty(n)
+    ll = state["ll"] if "ll" in state else np.zeros((n, 2))
     _step_many(post1, first, tab.prior_flat, tab.d_pop, M, np.ascontiguousarray(z, dtype=np.float64),
                np.ascontiguousarray(zobs, dtype=np.bool_), tab.em.fused_t, tab.mu, tab.bin0, tab.bin1, tab.bin_a,
                tab.kappa, tab.kappa_global, tab.n_bins, D, W, G, GW, prow, tab.lam_rows, tab.var_q, tab.pack,
-               tab.cos, tab.sin, live, live_stats, out, sd, style, phase)
+               tab.cos, tab.sin, live, live_stats, out, sd, style, phase, ll)
     if post1 is not post:
         post[...] = post1
     state["t"] += 1
@@ -352,7 +367,7 @@ def _extras(style: np.ndarray, phase: np.ndarray) -> list[dict]:
 
 
 @_jit
-def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
+def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, ll, D, W, G, GW, cyc, ht,
                live, live_stats, cond, cov, prec, shrink):  # pragma: no cover - compiled
     """fastrepr.encode1 -> _step_in (-> condfill.correct1) -> fastrepr.finish1 for pool row r: the arithmetic of
     ``step`` (a batch of one) between ``fastrepr.encode`` and ``fastrepr.finish``.  Returns (completed frame,
@@ -382,8 +397,9 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
     zsd = np.empty(nF)
     p = post[r].reshape(post.shape[1] * post.shape[2])
     fs, ix = scratch(p.shape[0], nF, M)
-    phase, k = _step_in(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
-                        D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style, fs, ix)
+    phase, k, lln = _step_in(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
+                             D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style, fs, ix)
+    _put_ll(ll, r, lln, zobs)
     t[r] += 1
     if cond:  # (on the filter's support: ix[:k])
         correct1(p, ix[:k], z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows, pack,
@@ -414,7 +430,7 @@ def slot_tables(tab, rep) -> tuple:
 # ~1 us an argument it unboxes and ~5 us a tuple, so the 23-argument ``_step_slot`` call costs
 # ~45-50 us cold where a call with four arguments costs ~25-30 (bench/notebook/hlm9.md).  Without
 # numba's structref (an older numba) step_slot calls ``_step_slot`` with its arguments as before.
-SLOT_ARGS = ("prev_u", "prev_raw", "prev_yaw", "started", "root_st", "rt", "post", "t", "D", "W", "G", "GW", "cyc",
+SLOT_ARGS = ("prev_u", "prev_raw", "prev_yaw", "started", "root_st", "rt", "post", "t", "ll", "D", "W", "G", "GW", "cyc",
              "ht", "live", "live_stats", "cond", "cov", "prec", "shrink")
 try:
     if _numba is None:
@@ -433,16 +449,16 @@ try:
     _structref.define_proxy(SlotArgs, _SlotArgsType, list(SLOT_ARGS))
 
     @_jit
-    def _slot_args(prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht, live, live_stats,
+    def _slot_args(prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, ll, D, W, G, GW, cyc, ht, live, live_stats,
                    cond, cov, prec, shrink):  # pragma: no cover - compiled
-        return SlotArgs(prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht, live,
+        return SlotArgs(prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, ll, D, W, G, GW, cyc, ht, live,
                         live_stats, cond, cov, prec, shrink)
 
     @_jit
     def _step_packed(r, frame, observed, a):  # pragma: no cover - compiled
         """``_step_slot`` with its fixed arguments from ``a`` (a ``SlotArgs``)."""
         return _step_slot(r, frame, observed, a.prev_u, a.prev_raw, a.prev_yaw, a.started, a.root_st, a.rt, a.post,
-                          a.t, a.D, a.W, a.G, a.GW, a.cyc, a.ht, a.live, a.live_stats, a.cond, a.cov, a.prec, a.shrink)
+                          a.t, a.ll, a.D, a.W, a.G, a.GW, a.cyc, a.ht, a.live, a.live_stats, a.cond, a.cov, a.prec, a.shrink)
 except ImportError:
     _slot_args = _step_packed = None
 
@@ -458,7 +474,7 @@ def _slot_call(tables: tuple, pool, live: float, live_stats: float, cond) -> tup
     else:
         D, W, G, GW, cyc = zero, zero, zero, zero, False
     on, cov, prec, shrink = (False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)
-    return (rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt, cp["post"], cp["t"], D, W,
+    return (rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt, cp["post"], cp["t"], cp["ll"], D, W,
             G, GW, cyc, ht, live, live_stats, on, cov, prec, shrink)
 
 
@@ -490,7 +506,7 @@ def step_slot(tables: tuple, pool, r: int, frame: np.ndarray, observed: np.ndarr
 
 
 @_jit
-def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
+def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, ll, D, W, G, GW, cyc, ht,
                live, live_stats, out, sd, style, phase, cond, cov, prec, shrink):  # pragma: no cover - compiled
     """``_step_slot`` for pool rows prow[i] and frames[i], observed[i] (i < n), in one call:
     the same encode1 -> filter -> finish1 per stream (mirror any change to ``_step_slot``'s glue
@@ -520,9 +536,10 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
         r = prow[i]
         q = r if cyc else 0
         p = post[r].reshape(CM)
-        phase[i], k = _step_in(p, t[r] == 0, prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
-                               kappa_g, nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats,
-                               zf[i], zsd[i], style[i], fs, ix)
+        phase[i], k, lln = _step_in(p, t[r] == 0, prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
+                                    kappa_g, nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats,
+                                    zf[i], zsd[i], style[i], fs, ix)
+        _put_ll(ll, r, lln, zobs[i])
         t[r] += 1
         if cond:  # (on the filter's support: ix[:k], until the next stream's _step_in)
             correct1(p, ix[:k], z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows,
@@ -571,12 +588,12 @@ def step_rows_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, 
     if "D" in cp:
         code, out, sd, style, phase, filled = _block_rows(
             prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
-            cp["post"], cp["t"], cp["D"], cp["W"], cp["G"], cp["GW"], True, ht, live, live_stats,
+            cp["post"], cp["t"], cp["ll"], cp["D"], cp["W"], cp["G"], cp["GW"], True, ht, live, live_stats,
             *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), block)
     else:
         code, out, sd, style, phase, filled = _block_rows(
             prow, frames, observed, rp["prev_u"], rp["prev_raw"], rp["prev_yaw"], rp["started"], rp["root_st"], rt,
-            cp["post"], cp["t"], zero, zero, zero, zero, False, ht, live, live_stats,
+            cp["post"], cp["t"], cp["ll"], zero, zero, zero, zero, False, ht, live, live_stats,
             *((False, zero, zero, 0.0) if cond is None else (True, cond.cov, cond.prec, cond.shrink)), block)
     if code == 1:  # (compiled code has no bounds checks)
         raise IndexError(f"pool rows {prow.tolist()} for {n} frames in a pool of {pool.capacity}")
@@ -586,7 +603,7 @@ def step_rows_arrays(tables: tuple, pool, prow: np.ndarray, frames: np.ndarray, 
 
 
 @_jit
-def _block_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
+def _block_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, ll, D, W, G, GW, cyc, ht,
                 live, live_stats, cond, cov, prec, shrink, block):  # pragma: no cover - compiled
     """``_step_rows`` on pool rows prow after checking them, with its output arrays made here:
     returns (code, completed, std, style posteriors, phases, filled); code 0: stepped; 1: a row
@@ -613,6 +630,6 @@ def _block_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, roo
         for i in range(n):
             for c in range(C):
                 filled[i, c] = not observed[i, c]
-    _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, D, W, G, GW, cyc, ht,
+    _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root_st, rt, post, t, ll, D, W, G, GW, cyc, ht,
                live, live_stats, out, sd, style, phase, cond, cov, prec, shrink)
     return 0, out, sd, style, phase, filled

@@ -65,6 +65,10 @@ def init_state(tab: FilterTables, n: int) -> dict[str, np.ndarray]:
         "t": np.zeros(n, dtype=np.int64),     # frames consumed
         "d": np.tile(tab.d_pop, (n, 1)),      # current transition probabilities
         "counts": np.zeros((n, J)),           # forgotten expected jump counts (adaptation)
+        # the last frame's one-step predictive log-likelihood of the observed features, log p(z_t,o | z_<t,o)
+        # (the forward step's normaliser, the emission's constants kept), and how many features were observed
+        # (0: a pure prediction step); read by default's long-erasure evidence (blend/withhlm.py, "long_ll")
+        "ll": np.zeros((n, 2)),
     }
     if tab.kappa > 0.0:
         F = tab.mu.shape[1]
@@ -156,6 +160,9 @@ def _update_one(tab: FilterTables, state: dict[str, np.ndarray], pr: np.ndarray,
     else:
         llp, wp = np.zeros(rows.size), np.ones(rows.size)
     newp = pr[rows] * wp
+    if "ll" in state:   # the step's normaliser (init_state's "ll"), before any pruning
+        nz = float(zobs[0].sum())
+        state["ll"][0] = (float(llp.max() + np.log(newp.sum())) if nz > 0 else 0.0, nz)   # ("ll" is not sparse: row 0)
     if tab.style_switch > 0.0:
         newp[newp < PRUNE * newp.max()] = 0.0
     post = state["post"].reshape(-1)
@@ -238,6 +245,11 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
     which = np.repeat(np.arange(starts.size), np.diff(np.append(starts, si.size)))
     wp = np.exp(llp - np.maximum.reduceat(llp, starts)[which])
     newp = p * wp
+    if "ll" in state:   # each stream's normaliser (init_state's "ll"), before any pruning
+        nz = zobs.sum(1).astype(float)
+        lln = np.maximum.reduceat(llp, starts) + np.log(np.add.reduceat(newp, starts))
+        state["ll"][si[starts], 0] = np.where(nz[si[starts]] > 0, lln, 0.0)
+        state["ll"][:, 1] = nz
     if tab.style_switch > 0.0:
         newp[newp < PRUNE * np.maximum.reduceat(newp, starts)[which]] = 0.0
     tot = np.add.reduceat(newp, starts)
