@@ -25,9 +25,30 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 PARTS = ("tick", "serve", "run_block", "plan", "step_block", "step_rows_arrays", "compiled")
+N = 64
 
 
-def child(model: str, gap_s: float, ticks: int) -> dict[str, float]:
+def frames_of(model: str):
+    """(the model's channels, CMU 35_08 in their order with the left arm missing, float32)."""
+    import numpy as np
+
+    from lacuna.modelfile import load_model
+    from mocap.datasets import load_trial
+
+    ch = list(load_model(model).channels)
+    take = load_trial("35_08")
+    frames = take.frames[:, take.index(ch)].astype(np.float32)
+    frames[:, [c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand") for c in ch]] = np.nan
+    return ch, frames
+
+
+def child(model: str, gap_s: float, ticks: int, spread: bool = False, busy: bool = False,
+          parts: tuple[str, ...] = PARTS) -> dict[str, float]:
+    """us a frame of each of ``parts`` (those wrapped: the others of PARTS are not), median tick;
+    ``spread``: stream i plays from its own offset i T / N (bench/hlm_cold_spread.py), else every
+    stream the same frame; ``busy``: the gap spent spinning (the core stays this process's)."""
+    import gc
+
     import numpy as np
 
     import hlm.fast as fast
@@ -35,14 +56,11 @@ def child(model: str, gap_s: float, ticks: int) -> dict[str, float]:
     from daemon import config, scheduler, stepblock, wire
     from daemon.models import load_all
     from daemon.server import Daemon
-    from lacuna.modelfile import load_model
     from mocap import feature_model
-    from mocap.datasets import load_trial
 
-    ch = list(load_model(model).channels)
-    take = load_trial("35_08")
-    frames = take.frames[:, take.index(ch)].astype(np.float32)
-    frames[:, [c.split(".")[0] in ("lhumerus", "lradius", "lwrist", "lhand") for c in ch]] = np.nan
+    ch, frames = frames_of(model)
+    T = len(frames)
+    offsets = (np.arange(N) * (T // N)) % T if spread else np.zeros(N, int)
     cfg = config.from_dict({"daemon": {"budget_ms": 1000.0, "max_streams": 100000, "log_level": "warning"},
                             "models": {"hlm": {"file": model}}, "zmq": {"router": "tcp://127.0.0.1:*"}})
     d = Daemon(cfg)
@@ -51,16 +69,17 @@ def child(model: str, gap_s: float, ticks: int) -> dict[str, float]:
     held: list = []
     d._send = lambda o, m, publish=False: held.append(wire.to_map(m)) if len(o) == 3 else None
     d._send_fills = lambda o, maps: held.extend(maps)
-    n = 64
-    sids = [f"hlm-{i}" for i in range(n)]
+    sids = [f"hlm-{i}" for i in range(N)]
     for sid in sids:
         d._handle(wire.encode(wire.Hello(sid, ch, "hlm")), ("router", [b"x"]), time.perf_counter())
-    msgs = [wire.encode(wire.Bundle([wire.Frame(sid, k, k / 120, frames[k % len(frames)]) for sid in sids]))
-            for k in range(ticks + 50)]
+    msgs = [wire.encode(wire.Bundle([wire.Frame(sid, k, k / 120, frames[(offsets[i] + k) % T])
+                                     for i, sid in enumerate(sids)])) for k in range(ticks + 50)]
     acc: dict[str, float] = {}
     pc = time.perf_counter
 
     def wrap(obj, name: str, label: str) -> None:
+        if label not in parts:
+            return
         f = getattr(obj, name)
 
         def w(*a, **kw):
@@ -86,7 +105,6 @@ def child(model: str, gap_s: float, ticks: int) -> dict[str, float]:
 
     for k in range(50):
         tick(k)
-    import gc
     gc.collect()
     gc.freeze()
     per = []
@@ -96,23 +114,36 @@ def child(model: str, gap_s: float, ticks: int) -> dict[str, float]:
         tick(k)
         acc["tick"] = pc() - t0
         per.append(dict(acc))
-        if gap_s:
+        if gap_s and busy:
+            t1 = pc() + gap_s
+            while pc() < t1:
+                pass
+        elif gap_s:
             time.sleep(gap_s)
-    return {p: float(np.median([q.get(p, 0.0) for q in per])) / n * 1e6 for p in PARTS}
+    return {p: float(np.median([q.get(p, 0.0) for q in per])) / N * 1e6 for p in parts}
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv: list[str] | None = None, spread: bool = False, prog: str = "bench/hlm_cold_tick.py",
+         description: str = __doc__) -> int:
+    """The A/B driver; ``spread``: bench/hlm_cold_spread.py's runs (its streams at their own phases,
+    the parts without ``plan``, ``--env`` per tree, HLM_COLD_BUSY / HLM_COLD_GAP_MS in a child's)."""
+    ap = argparse.ArgumentParser(prog=prog, description=description.split("\n\n")[0])
     ap.add_argument("--root", action="append", default=[], metavar="NAME=DIR")
     ap.add_argument("--model", required=True, help="an HLM file (the same for every tree)")
     ap.add_argument("--gap-ms", type=float, default=8.0)
     ap.add_argument("--ticks", type=int, default=300)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--json", dest="json_out")
+    ap.add_argument("--env", action="append", default=[], metavar="NAME:KEY=VALUE",
+                    help="an environment variable for tree NAME's runs only (repeatable; two names may share a tree)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--spread", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    spread = spread or args.spread
+    parts = tuple(p for p in PARTS if p != "plan") if spread else PARTS
     if args.child:
-        print(json.dumps(child(args.model, args.gap_ms / 1000, args.ticks)))
+        gap = float(os.environ.get("HLM_COLD_GAP_MS", args.gap_ms))  # (a tree's own gap: --env NAME:HLM_COLD_GAP_MS=2)
+        print(json.dumps(child(args.model, gap / 1000, args.ticks, spread, os.environ.get("HLM_COLD_BUSY") == "1", parts)))
         return 0
     sys.path.insert(0, str(ROOT))   # (here, not at the top: a child runs in another tree and imports nothing of this one's)
     from bench.echo_vs_daemon import rotated, tree_env, tree_roots
@@ -123,22 +154,23 @@ def main(argv: list[str] | None = None) -> int:
     for rnd in range(args.rounds):
         for name in rotated(names, rnd):
             env = tree_env(roots[name])
+            env.update(kv.split(":", 1)[1].split("=", 1) for kv in args.env if kv.split(":", 1)[0] == name)
             out = subprocess.run([sys.executable, str(ROOT / "bench/hlm_cold_tick.py"), "--child", "--model", args.model,
-                                  "--gap-ms", str(args.gap_ms), "--ticks", str(args.ticks)], env=env, cwd=roots[name],
-                                 check=True, capture_output=True, text=True).stdout
+                                  "--gap-ms", str(args.gap_ms), "--ticks", str(args.ticks)] + (["--spread"] if spread else []),
+                                 env=env, cwd=roots[name], check=True, capture_output=True, text=True).stdout
             r = json.loads(out.strip().splitlines()[-1])
             rows.append({"round": rnd, "tree": name, "loadavg": os.getloadavg()[0], **r})
-            print(f"round {rnd} {name:>5} (load {os.getloadavg()[0]:.2f}): " + ", ".join(f"{p} {r[p]:.2f}" for p in PARTS),
+            print(f"round {rnd} {name:>5} (load {os.getloadavg()[0]:.2f}): " + ", ".join(f"{p} {r[p]:.2f}" for p in parts),
                   file=sys.stderr, flush=True)
     import numpy as np
-    summary = {name: {p: float(np.median([r[p] for r in rows if r["tree"] == name])) for p in PARTS} for name in names}
+    summary = {name: {p: float(np.median([r[p] for r in rows if r["tree"] == name])) for p in parts} for name in names}
     for name in names[1:]:
         summary[f"{names[0]}/{name}"] = {p: summary[names[0]][p] / summary[name][p] if summary[name][p] else float("nan")
-                                         for p in PARTS}
+                                         for p in parts}
     print(json.dumps(summary, indent=1))
     if args.json_out:
         Path(args.json_out).write_text(json.dumps({
-            "command": "python bench/hlm_cold_tick.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+            "command": f"python {prog} " + " ".join(argv if argv is not None else sys.argv[1:]),
             "at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "gap_ms": args.gap_ms,
             "roots": {k: str(v) for k, v in roots.items()}, "summary": summary, "runs": rows}, indent=1))
     return 0

@@ -164,9 +164,10 @@ def well_formed(m: Map) -> tuple[str, int, float, np.ndarray, np.ndarray | None]
             # values cannot overflow it; NaN and +-inf propagate), summed by CPython alone: after the
             # live wait between frames numpy's reduction with where= cost 62 us at p50, this 26
             # (bench/finite_cold.py); the wire's little-endian float32 is the native 'f' here
-            if (math.isfinite(sum(compress(memoryview(b).cast("f"), ob))) if _LITTLE
-                    else math.isfinite(_ADD(angles, where=np.frombuffer(ob, dtype=np.bool_), dtype=np.float64))):
-                return sid, seq, t, angles, np.frombuffer(ob, dtype=np.bool_)
+            observed = np.frombuffer(ob, dtype=np.bool_)
+            if math.isfinite(sum(compress(memoryview(b).cast("f"), ob)) if _LITTLE
+                             else _ADD(angles, where=observed, dtype=np.float64)):
+                return sid, seq, t, angles, observed
     return None
 
 

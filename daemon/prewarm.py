@@ -121,6 +121,13 @@ class Prewarm:
         finally:
             self.spent_s += time.perf_counter() - t0
 
+    def spun(self, caught: bool, seconds: float) -> None:
+        """A wait after a rehearsal spun ``seconds`` for its frame (daemon/wait.py, ``prewarm_spin_ms``);
+        ``caught``: a message ended it (else it ran out and the loop slept in poll)."""
+        self.spins += 1
+        self.spin_caught += caught
+        self.spin_s += seconds
+
     def info(self) -> dict[str, Any]:
         per = self.period()
         return {"lead_ms": round(self.lead_s * 1000, 3), "rehearsals": self.count, "errors": self.errors,

@@ -66,9 +66,7 @@ class Waiting(Parts):
             # after the kernel wakes this thread; then sleep in poll as usual
             t = time.perf_counter()
             ready = self._spin_until(t + spin)
-            pw.spins += 1
-            pw.spin_caught += bool(ready)
-            pw.spin_s += time.perf_counter() - t
+            pw.spun(bool(ready), time.perf_counter() - t)
             if ready or self.flag_stop or self.flag_reload:
                 self.stalls.woke(due)
                 if ready:
@@ -108,10 +106,8 @@ class Waiting(Parts):
         wakes the thread (0.3-1 ms on a virtual machine, most of a loopback round trip).  Costs a
         core while frames flow; once the stream pauses for longer, sleep in poll as usual."""
         end = self._last_rx + self._busy_s
-        net = self.net
-        while time.perf_counter() < end:
-            ready = net.poll(0)  # type: ignore[union-attr]
+        if time.perf_counter() < end:
+            ready = self._spin_until(end)
             if ready or self.flag_stop or self.flag_reload:
                 return ready
-            os.sched_yield()  # let ZeroMQ's I/O thread, which moves the bytes, run on this core at once
-        return net.poll(timeout_ms)  # type: ignore[union-attr]
+        return self.net.poll(timeout_ms)  # type: ignore[union-attr]

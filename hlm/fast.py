@@ -102,9 +102,9 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
     ix (``scratch``; fs[:CM] must be zero and is left zero).  The same operations in the same
     order as a pass over all C*M states: the states are visited ascending, and the terms it
     would skip (zero mass, a missing feature's zero emission term) add exactly nothing.
-    Returns (the phase, k, ll): the new posterior is exactly 0 outside the k states ix[:k]
+    Returns (the phase, k, ll, no): the new posterior is exactly 0 outside the k states ix[:k]
     (ascending), the support ``condfill.correct1`` visits; ll the step's normaliser, log p(z_t,o | z_<t,o)
-    (0 with nothing observed; ``hlm.online.init_state``'s "ll")."""
+    (0 with nothing observed), and no the features observed (``hlm.online.init_state``'s "ll" row)."""
     CM = post.shape[0]
     F = z.shape[0]
     C = CM // M
@@ -290,7 +290,7 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
             style[cof[s]] += p
             sc += p * cos[mof[s]]
             ss += p * sin[mof[s]]
-    return (math.atan2(ss, sc) / (2.0 * math.pi)) % 1.0, k, lln
+    return (math.atan2(ss, sc) / (2.0 * math.pi)) % 1.0, k, lln, no
 
 
 def usable(tab) -> bool:
@@ -304,21 +304,9 @@ def _step_many(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, b
     fs, ix = scratch(post.shape[1], z.shape[1], M)  # (once for the batch)
     for i in range(post.shape[0]):
         r = prow[i]
-        phase[i], k, lln = _step_in(post[i], first[i], prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
-                                    kappa_g, nb, D[r], W[r], G[r], GW[r], lam_rows, var_q, pack, cos, sin, live, live_stats,
-                                    out[i], sd[i], style[i], fs, ix)
-        _put_ll(ll, i, lln, zobs[i])
-
-
-@_jit
-def _put_ll(ll, r, lln, zobs):  # pragma: no cover - compiled
-    """Row r of ``hlm.online.init_state``'s "ll": the step's normaliser and how many features were observed."""
-    no = 0
-    for f in range(zobs.shape[0]):
-        if zobs[f]:
-            no += 1
-    ll[r, 0] = lln
-    ll[r, 1] = no
+        phase[i], k, ll[i, 0], ll[i, 1] = _step_in(post[i], first[i], prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1,
+                                                   bin_a, kappa, kappa_g, nb, D[r], W[r], G[r], GW[r], lam_rows, var_q, pack,
+                                                   cos, sin, live, live_stats, out[i], sd[i], style[i], fs, ix)
 
 
 def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, rows: np.ndarray | None = None,
@@ -397,9 +385,9 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
     zsd = np.empty(nF)
     p = post[r].reshape(post.shape[1] * post.shape[2])
     fs, ix = scratch(p.shape[0], nF, M)
-    phase, k, lln = _step_in(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
-                             D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style, fs, ix)
-    _put_ll(ll, r, lln, zobs)
+    phase, k, ll[r, 0], ll[r, 1] = _step_in(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa,
+                                            kappa_g, nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live,
+                                            live_stats, zf, zsd, style, fs, ix)
     t[r] += 1
     if cond:  # (on the filter's support: ix[:k])
         correct1(p, ix[:k], z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows, pack,
@@ -536,10 +524,9 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
         r = prow[i]
         q = r if cyc else 0
         p = post[r].reshape(CM)
-        phase[i], k, lln = _step_in(p, t[r] == 0, prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa,
-                                    kappa_g, nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats,
-                                    zf[i], zsd[i], style[i], fs, ix)
-        _put_ll(ll, r, lln, zobs[i])
+        phase[i], k, ll[r, 0], ll[r, 1] = _step_in(p, t[r] == 0, prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1,
+                                                   bin_a, kappa, kappa_g, nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack,
+                                                   cos, sin, live, live_stats, zf[i], zsd[i], style[i], fs, ix)
         t[r] += 1
         if cond:  # (on the filter's support: ix[:k], until the next stream's _step_in)
             correct1(p, ix[:k], z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows,

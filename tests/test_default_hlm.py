@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from default_small import train_small
 
-from blend.withhlm import ROOT_POS, WithHLMModel, shipped, train_model
+from blend.withhlm import ROOT_POS, WithHLMModel, shipped
 from lacuna import jit, modelfile
 from lacuna.cli import main as cli_main
 from lacuna.filler import Fill, FillerState, Model, check_frame
@@ -19,16 +20,11 @@ from mocap.rootrot import wrap180 as wrap
 
 pytestmark = pytest.mark.realdata
 
-TRAIN_TAKES = ["07_02", "07_09", "35_01", "35_06", "35_07", "35_08", "walking_13", "walking_14",
-               "basketball_1", "soccer_1", "basketball_signal_1"]
-SMALL_HLM = {"restarts": 1, "n_iter": 6, "screen_iters": None, "cycle_frames": 140}
 
 
 @pytest.fixture(scope="module")
 def model(data):
-    names = TRAIN_TAKES
-    ts = protocols.named_training_set(names)
-    return train_model(ts, **SMALL_HLM)
+    return train_small()
 
 
 def _pan2009(truth: np.ndarray, channels: list[str]) -> np.ndarray:

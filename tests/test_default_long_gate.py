@@ -11,9 +11,10 @@ import math
 
 import numpy as np
 import pytest
+from default_small import remix, train_small
 
 from blend import withhlm
-from blend.withhlm import WithHLMModel, shipped, train_model
+from blend.withhlm import WithHLMModel
 from lacuna import jit, modelfile
 from lacuna.filler import FillerError, Model
 from mocap import protocols, splits
@@ -21,26 +22,17 @@ from mocap.rootrot import wrap180 as wrap
 
 pytestmark = pytest.mark.realdata
 
-TRAIN_TAKES = ["07_02", "07_09", "35_01", "35_06", "35_07", "35_08", "walking_13", "walking_14",
-               "basketball_1", "soccer_1", "basketball_signal_1"]
-SMALL_HLM = {"restarts": 1, "n_iter": 6, "screen_iters": None, "cycle_frames": 140}
 GATE = (120, 1.1, 0.0, 0)
 
 
 @pytest.fixture(scope="module")
 def model(data):
-    ts = protocols.named_training_set(TRAIN_TAKES)
-    return train_model(ts, **SMALL_HLM)
+    return train_small()
 
 
 def _twin(model, gate=None, compiled=True) -> WithHLMModel:
     """The model's experts mixed anew, the leg gate set to ``gate`` (None: off)."""
-    W, S, chosen = shipped()
-    meta = {"long_gate": list(gate)} if gate else {}
-    m = WithHLMModel(model.default, model.hlm, W, S, meta, tau=model.tau, cal=model.calib, smooth=model.smooth,
-                     rate_ref=model.rate_ref, band_q=model.band_q, band_gate=model.band_gate)
-    m.compiled = compiled and jit.enabled()
-    return m
+    return remix(model, {"long_gate": list(gate)} if gate else {}, compiled)
 
 
 def _pan2009(truth, channels):
