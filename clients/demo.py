@@ -238,7 +238,8 @@ def run(args: Any) -> int:
                  "answer in time were filled late, not dropped (a live deployment's default drops them)")
     runs: dict[str, rp.ReplayResult] = {}
     try:
-        say(f"starting lacuna serve on {daemon.endpoint} ...")
+        say(f"starting lacuna serve on {daemon.endpoint} (the first start after an install compiles the fill "
+            "kernels: about a minute) ...")
         daemon.start()
         for name in live:
             say(f"replaying {test_name} through the daemon with {name} (speed x{args.speed:g}) ...")

@@ -110,7 +110,7 @@ class Daemon(Dispatch, Tick, Control, Reloading, Waiting):
 
     # ---- start ------------------------------------------------------------------------------
     def start(self) -> None:
-        table, errors = load_all(self.cfg)
+        table, errors = load_all(self.cfg, progress=lambda ev, f: self.log("info", ev, **f))
         if errors:
             raise config_mod.ConfigError("; ".join(f"model {n}: {e}" for n, e in errors.items()))
         self._install(table)

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -87,9 +89,14 @@ def load_one(spec: ModelSpec, budget_ms: float) -> Loaded:
     return Loaded(spec.name, model, spec, stamp, now, tmp.costs)
 
 
-def load_all(cfg: Config, old: dict[str, Loaded] | None = None) -> tuple[dict[str, Loaded], dict[str, str]]:
+def load_all(cfg: Config, old: dict[str, Loaded] | None = None,
+             progress: Callable[[str, dict[str, Any]], None] | None = None) -> tuple[dict[str, Loaded], dict[str, str]]:
     """Load every model of ``cfg``.  With ``old`` (a reload), unchanged files keep their loaded
-    model and a file that fails keeps the old model; returns (table, {name: error})."""
+    model and a file that fails keeps the old model; returns (table, {name: error}).
+
+    ``progress(event, fields)`` (the daemon's log) hears ``loading`` before each model it loads and
+    ``loaded`` (with the seconds taken) after: the first start after an install compiles the
+    numba kernels in the warm-up, about a minute on a busy 2-core machine, cached afterwards."""
     table: dict[str, Loaded] = {}
     errors: dict[str, str] = {}
     for name, spec in cfg.models.items():
@@ -97,8 +104,13 @@ def load_all(cfg: Config, old: dict[str, Loaded] | None = None) -> tuple[dict[st
         if prev is not None and prev.spec == spec and (spec.builtin or prev.stamp == file_stamp(spec.file or "")):
             table[name] = prev
             continue
+        t0 = time.monotonic()
+        if progress is not None:
+            progress("loading", {"model": name, "file": spec.file, "builtin": spec.builtin})
         try:
             table[name] = load_one(spec, cfg.budget_ms)
+            if progress is not None:
+                progress("loaded", {"model": name, "seconds": round(time.monotonic() - t0, 3)})
         except (ModelFileError, ValueError, OSError, KeyError, TypeError) as e:
             errors[name] = str(e)
             if prev is not None:

@@ -835,6 +835,20 @@ def test_serve_check_validates_config_and_models(tmp_path):
     assert r.returncode == 2 and r.stderr.startswith("lacuna: error:") and "missing.toml" in r.stderr
 
 
+def test_start_logs_each_model_loading_and_loaded_before_ready(tmp_path, daemons):
+    # the first start after an install compiles kernels for a minute: the log says which model
+    cfg = write_config(tmp_path, {"walk": {"file": hold_file(tmp_path / "h.npz", 0.0)}, "floor": {"builtin": "passthrough"}},
+                       default="walk")
+    d = daemons(cfg)
+    recs = d.records()
+    events = [(r["event"], r.get("model")) for r in recs if r["event"] in ("loading", "loaded", "ready")]
+    assert events == [("loading", "walk"), ("loaded", "walk"), ("loading", "floor"), ("loaded", "floor"),
+                      ("ready", None)]
+    loaded = [r for r in recs if r["event"] == "loaded"]
+    assert all(isinstance(r["seconds"], float) and r["seconds"] >= 0 for r in loaded)
+    assert recs[0]["file"] == str(tmp_path / "h.npz") and recs[2]["builtin"] == "passthrough"
+
+
 def test_osc_answers_go_to_the_configured_send_address(tmp_path, daemons):
     out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     out.bind(("127.0.0.1", 0))
