@@ -16,7 +16,17 @@ from typing import Any
 
 import numpy as np
 
-from daemon.schema import F32, MAX_CHANNELS, MAX_SEQ, MAX_STREAM_ID, SCHEMA_VERSION, FrameBlock
+from daemon.schema import (
+    F32,
+    MAX_CHANNELS,
+    MAX_SEQ,
+    MAX_STREAM_ID,
+    SCHEMA_VERSION,
+    Bundle,
+    Frame,
+    FrameBlock,
+    WireError,
+)
 
 _ADD = np.add.reduce
 _PINF, _NINF = np.array([np.inf], F32).tobytes(), np.array([-np.inf], F32).tobytes()
@@ -84,3 +94,22 @@ def read_block(frames: list[Any]) -> FrameBlock | None:
     if not (all(map(math.isfinite, stamps)) and all(map(str.isprintable, sids))):
         return None
     return FrameBlock(sids, seqs, stamps, values, mask)
+
+
+class BlockBundle(Bundle):
+    """A regular bundle (``block`` is set): its ``items``, one :class:`Frame` per row, are made
+    only when something asks for them (the daemon's array path, daemon/blockpath.py, never does)."""
+
+    def __init__(self, block: FrameBlock):  # (not the dataclass's: items come from the block)
+        self.block: FrameBlock = block
+        self._items: list[Frame | WireError] | None = None
+
+    @property
+    def items(self) -> list[Frame | WireError]:
+        if self._items is None:
+            self._items = list(self.block.frames())
+        return self._items
+
+    @items.setter
+    def items(self, v: list[Frame | WireError]) -> None:
+        self._items = v

@@ -17,7 +17,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from daemon.block import no_inf, read_block
+from daemon.block import BlockBundle, no_inf, read_block
 from daemon.schema import (
     CONTROL_COMMANDS,
     F32,
@@ -37,7 +37,6 @@ from daemon.schema import (
     ErrorMsg,
     FillMsg,
     Frame,
-    FrameBlock,
     Hello,
     HelloAck,
     Message,
@@ -293,25 +292,6 @@ def _decode_bundle(m: Map) -> Bundle:
         except Exception as e:  # noqa: BLE001 - same guarantee as decode(): one element's oddity is its own error
             items.append(WireError("malformed", f"frames[{i}] could not be read ({type(e).__name__})", _sid(f), _seq(f)))
     return Bundle(items)
-
-
-class BlockBundle(Bundle):
-    """A regular bundle (``block`` is set): its ``items``, one :class:`Frame` per row, are made
-    only when something asks for them (the daemon's array path, daemon/blockpath.py, never does)."""
-
-    def __init__(self, block: FrameBlock):  # (not the dataclass's: items come from the block)
-        self.block: FrameBlock = block
-        self._items: list[Frame | WireError] | None = None
-
-    @property
-    def items(self) -> list[Frame | WireError]:
-        if self._items is None:
-            self._items = list(self.block.frames())
-        return self._items
-
-    @items.setter
-    def items(self, v: list[Frame | WireError]) -> None:
-        self._items = v
 
 
 _ANSWERS = ("fill", "drop", "error")

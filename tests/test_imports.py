@@ -121,3 +121,10 @@ def test_lacuna_is_the_ground_floor():
     up = {m: sorted(d for d in deps if not d.startswith("lacuna")) for m, deps in g.items() if m.startswith("lacuna")}
     up = {m: d for m, d in up.items() if d}
     assert not up, f"lacuna/ imports modules above it: {up}"
+
+
+def test_no_file_in_daemon_over_400_lines():
+    # issue 19: each file of daemon/ holds one idea; stop 38 let decode.py reach 405 unnoticed
+    long = {p.name: n for p in sorted((ROOT / "daemon").glob("*.py"))
+            if (n := len(p.read_text().splitlines())) > 400}
+    assert not long, f"daemon/ files over 400 lines: {long}"
