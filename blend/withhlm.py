@@ -204,6 +204,13 @@ pooled drop of 25%, was above what the blend alone gives on its larger regime se
 walk revoked, gaps / stress / pan2009 VALIDATION unchanged; ~1.02x the step outside the regime, ~1.08x in
 it.  TEST, after the choice: -2.8% only, two splices 1.2x worse (the HLM was the better there) and walking_28's
 splices untouched: its whole-body baseline (-28 nats a feature) is not comparable with the legs' level.
+``long_ll_legs`` (a model-file key beside ``long_ll``; files without it: false, the above) puts the baseline
+and the level on the same quantity: the HLM also keeps the normaliser over the observed leg features only
+(hlm.online's "ll" columns 2-3, asked for through ``HLMModel.set_ll_feats``; the features whose every source
+is a leg channel).  bench/notebook/loco-14.md: not eligible on VALIDATION (D in {2, 4, 8} at TAU = 60: the
+pan2009-set model's walking_20 legs swing ~8 nats a feature within the walk, so D <= 4 revokes it (3.2x) and
+D = 8 leaves 0.1 nat; D = 2 leaves < 2.5 nats on every walk; D >= 4 loses revokes the whole-body baseline
+makes), so LONG_LL_LEGS = False; TEST (seen before the round), reported only: walking_28's splices revoked.
 """
 from __future__ import annotations
 
@@ -263,7 +270,7 @@ LONG_GATE_OFF = (0, 0.0, 0.0, 0)   # the leg gate off (module doc, "Long erasure
 LONG_GATE = LONG_GATE_OFF   # what models trained now carry (bench/notebook/loco-12.md)
 LONG_LL_OFF = (0.0, 0.0)    # the legs' predictive likelihood revoke off (module doc, "long_ll"): files without ``long_ll``
 LONG_LL = (4.0, 60.0)       # what models trained now carry: chosen by bench/notebook/loco-13.md's second look
-LONG_LL_LEGS = False        # long_ll's baseline and level on the legs' features only (``long_ll_legs``; loco-14); files without it: whole body
+LONG_LL_LEGS = False        # long_ll's baseline and level on the legs' features only (``long_ll_legs``): not eligible, bench/notebook/loco-14.md
 LL_N0 = 30          # frames of a long erasure before its level may revoke (= SHADOW_SKIP; fixed, not tuned)
 LL_BTAU = 600.0     # frames: the decay of the baseline (5 s; fixed, not tuned)
 LL_BMIN = 60.0      # the baseline's weight (decayed frames) it needs to count (fixed, not tuned)
