@@ -14,6 +14,10 @@ state pool (posteriors, stream-cycle statistics).  Frames: CMU 35_08 (a bench ta
     PYTHONPATH=/tmp/main .venv/bin/python bench/hlm_bits.py dump MODEL.npz /tmp/a.npz
     PYTHONPATH=. .venv/bin/python bench/hlm_bits.py dump MODEL.npz /tmp/b.npz
     .venv/bin/python bench/hlm_bits.py compare /tmp/a.npz /tmp/b.npz
+
+``dump MODEL OUT --ll-legs`` (a tree with ``HLMModel.set_ll_feats``, loco-14): with the "ll" row's partial
+normaliser on the legs' features.  ``compare`` of a 2-column "ll" row against a 4-column one compares the
+first two columns.
 """
 from __future__ import annotations
 
@@ -25,7 +29,7 @@ ARM = ("lhumerus", "lradius", "lwrist", "lhand")
 LEGS = ("lfemur", "ltibia", "lfoot", "ltoes", "rfemur", "rtibia", "rfoot", "rtoes")
 
 
-def dump(model_path: str, out_path: str) -> None:
+def dump(model_path: str, out_path: str, ll_legs: bool = False) -> None:
     from lacuna.modelfile import load_model
     from mocap.datasets import load_trial
 
@@ -37,6 +41,8 @@ def dump(model_path: str, out_path: str) -> None:
     rng = np.random.default_rng(1)
     arm = np.array([c.split(".")[0] in ARM for c in ch])
     legs = np.array([c.split(".")[0] in LEGS for c in ch])
+    if ll_legs:   # the "ll" row's partial normaliser on the legs' features (loco-14; a tree with set_ll_feats)
+        model.set_ll_feats(model.leg_feats(np.flatnonzero(legs)))
     n = 64
     streams = [model.stream() for _ in range(2 * n)][::2]
     order = rng.permutation(n)
@@ -83,6 +89,10 @@ def compare(a_path: str, b_path: str) -> bool:
     same = sorted(a.files) == sorted(b.files)
     for k in a.files:
         x, y = a[k], b[k] if k in b.files else None
+        if k == "pool_ll" and y is not None and x.shape[1:] != y.shape[1:] and x.shape[0] == y.shape[0]:
+            w = min(x.shape[1], y.shape[1])   # (a tree before loco-14 keeps 2 columns, after it 4: the first 2 compared)
+            print(f"pool_ll: {x.shape[1]} vs {y.shape[1]} columns, the first {w} compared")
+            x, y = np.ascontiguousarray(x[:, :w]), np.ascontiguousarray(y[:, :w])
         ok = y is not None and x.shape == y.shape and x.dtype == y.dtype and x.tobytes() == y.tobytes()
         same &= ok
         if not ok:
@@ -93,8 +103,8 @@ def compare(a_path: str, b_path: str) -> bool:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 4 and sys.argv[1] == "dump":
-        dump(sys.argv[2], sys.argv[3])
+    if len(sys.argv) in (4, 5) and sys.argv[1] == "dump" and sys.argv[4:] in ([], ["--ll-legs"]):
+        dump(sys.argv[2], sys.argv[3], sys.argv[4:] == ["--ll-legs"])
     elif len(sys.argv) == 4 and sys.argv[1] == "compare":
         sys.exit(0 if compare(sys.argv[2], sys.argv[3]) else 1)
     else:

@@ -11,7 +11,8 @@ walking_ takes and one of subject 35).
 set: pan2009's pattern on each take of the split as above, and every walk -> non-locomotion splice whose
 first half is any of the split's locomotion takes (walk, turn, run) and second any of its non-locomotion
 takes, erased but the legs from 30, 90 and 240 frames after the seam (case ``W+T@N``).  ``--ll D,TAU`` (any
-number): each model file also with long_ll (D, TAU) set in-process (blend/withhlm.py), named ``STEM_llD_TAU``.
+number): each model file also with long_ll (D, TAU) set in-process (blend/withhlm.py), named ``STEM_llD_TAU``;
+``--ll D,TAU,legs`` (loco-14): with long_ll_legs (the legs-only baseline), named ``STEM_llD_TAU_legs``.
 
     OPENBLAS_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/loco12_regime.py OFF.npz ON.npz [--split test] [--set loco13] [--ll 4,30] [--json OUT]
 """
@@ -84,7 +85,7 @@ def main() -> int:
     ap.add_argument("models", nargs="+")
     ap.add_argument("--split", choices=("validation", "test"), default="validation")
     ap.add_argument("--set", choices=("loco12", "loco13"), default="loco12")
-    ap.add_argument("--ll", action="append", default=[], help="D,TAU: each model also with long_ll (D, TAU)")
+    ap.add_argument("--ll", action="append", default=[], help="D,TAU[,legs]: each model also with long_ll (D, TAU) [its legs-only baseline]")
     ap.add_argument("--json")
     a = ap.parse_args()
     import blend.methods  # noqa: F401  (loaders)
@@ -93,9 +94,10 @@ def main() -> int:
     names = [Path(p).stem for p in a.models]
     for p in list(a.models):
         for spec in a.ll:
-            d, tau = (float(v) for v in spec.split(","))
+            d, tau = (float(v) for v in spec.split(",")[:2])
             m = modelfile.load_model(p)
             m.set_long_ll(d, tau)
+            m.set_long_ll_legs(spec.split(",")[2:] == ["legs"])   # (else the whole-body baseline, even if the file's is the legs')
             models.append(m)
             names.append(f"{Path(p).stem}_ll{spec.replace(',', '_')}")
     ang = np.array([is_angle(c) for c in models[0].channels])

@@ -48,6 +48,8 @@ def main() -> int:
     ap.add_argument("model")
     ap.add_argument("--gate", type=float, nargs="+", default=[60, 0.8], help="K QL [QR [REST]]")
     ap.add_argument("--ll", type=float, nargs=2, help="D TAU: B with long_ll (D, TAU) instead of the gate (loco-13)")
+    ap.add_argument("--legs", action="store_true", help="with --ll: B with the legs-only baseline (long_ll_legs); A "
+                    "then keeps the file's long_ll (loco-14: against the current setting, not off)")
     ap.add_argument("--take", default="walking_20")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--json")
@@ -62,13 +64,14 @@ def main() -> int:
     B.set_long_trust(*withhlm.LONG_TRUST_OFF)
     if a.ll:
         B.set_long_ll(*a.ll)
+        B.set_long_ll_legs(a.legs)
     else:
         B.set_long_gate(int(a.gate[0]), *a.gate[1:3], *[int(v) for v in a.gate[3:]])
     gobs, _ = protocols.Gaps(seed=0, split="validation").occlusion(a.take, m.n_frames, m.channels, m.fps)
     legs = np.isin(withhlm.group_index(list(m.channels)), withhlm.LEG_GROUPS)
     pobs = np.ones(m.frames.shape, bool)
     pobs[m.n_frames // 2:, ~legs] = False
-    out: dict = {"model": a.model, "take": a.take, "gate": None if a.ll else a.gate, "ll": a.ll, "load": list(os.getloadavg()), "cases": {}}
+    out: dict = {"model": a.model, "take": a.take, "gate": None if a.ll else a.gate, "ll": a.ll, "legs": a.legs, "load": list(os.getloadavg()), "cases": {}}
     for name, obs, start in (("gaps", gobs, 50), ("pan2009", pobs, m.n_frames // 2)):
         F = np.where(obs, m.frames, np.nan)
         t = step3(A, B, F, obs, start, a.reps)

@@ -3,7 +3,7 @@
 frozen at the erasure's onset, the lowest erasure level from LL_N0 frames on, and how far above the revoke
 bound B - D it stayed (negative: revoked).
 
-    OPENBLAS_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/loco13_margin.py MODEL.npz --ll 4,60 TAKE...
+    OPENBLAS_NUM_THREADS=1 nice -n 10 .venv/bin/python bench/loco13_margin.py MODEL.npz --ll 4,60 [--legs] TAKE...
 """
 from __future__ import annotations
 
@@ -25,12 +25,14 @@ def main() -> int:
     ap.add_argument("model")
     ap.add_argument("takes", nargs="+")
     ap.add_argument("--ll", default="4,60")
+    ap.add_argument("--legs", action="store_true", help="the legs-only baseline (long_ll_legs, loco-14)")
     a = ap.parse_args()
     import blend.methods  # noqa: F401  (loaders)
 
     d, tau = (float(v) for v in a.ll.split(","))
     m = load_model(a.model)
     m.set_long_ll(d, tau)
+    m.set_long_ll_legs(a.legs)
     legs = np.isin(withhlm.group_index(list(m.channels)), withhlm.LEG_GROUPS)
     for t in a.takes:
         x = np.array(protocols.load_take(t).frames)

@@ -204,6 +204,13 @@ pooled drop of 25%, was above what the blend alone gives on its larger regime se
 walk revoked, gaps / stress / pan2009 VALIDATION unchanged; ~1.02x the step outside the regime, ~1.08x in
 it.  TEST, after the choice: -2.8% only, two splices 1.2x worse (the HLM was the better there) and walking_28's
 splices untouched: its whole-body baseline (-28 nats a feature) is not comparable with the legs' level.
+``long_ll_legs`` (a model-file key beside ``long_ll``; files without it: false, the above) puts the baseline
+and the level on the same quantity: the HLM also keeps the normaliser over the observed leg features only
+(hlm.online's "ll" columns 2-3, asked for through ``HLMModel.set_ll_feats``; the features whose every source
+is a leg channel).  bench/notebook/loco-14.md: not eligible on VALIDATION (D in {2, 4, 8} at TAU = 60: the
+pan2009-set model's walking_20 legs swing ~8 nats a feature within the walk, so D <= 4 revokes it (3.2x) and
+D = 8 leaves 0.1 nat; D = 2 leaves < 2.5 nats on every walk; D >= 4 loses revokes the whole-body baseline
+makes), so LONG_LL_LEGS = False; TEST (seen before the round), reported only: walking_28's splices revoked.
 """
 from __future__ import annotations
 
@@ -263,6 +270,7 @@ LONG_GATE_OFF = (0, 0.0, 0.0, 0)   # the leg gate off (module doc, "Long erasure
 LONG_GATE = LONG_GATE_OFF   # what models trained now carry (bench/notebook/loco-12.md)
 LONG_LL_OFF = (0.0, 0.0)    # the legs' predictive likelihood revoke off (module doc, "long_ll"): files without ``long_ll``
 LONG_LL = (4.0, 60.0)       # what models trained now carry: chosen by bench/notebook/loco-13.md's second look
+LONG_LL_LEGS = False        # long_ll's baseline and level on the legs' features only (``long_ll_legs``): not eligible, bench/notebook/loco-14.md
 LL_N0 = 30          # frames of a long erasure before its level may revoke (= SHADOW_SKIP; fixed, not tuned)
 LL_BTAU = 600.0     # frames: the decay of the baseline (5 s; fixed, not tuned)
 LL_BMIN = 60.0      # the baseline's weight (decayed frames) it needs to count (fixed, not tuned)
@@ -359,9 +367,11 @@ class WithHLMModel(Model):
         self._lg_rest = 0
         self._lg_on = False
         self.long_ll, self._ll_on, self._ll_a, self._ll_d = LONG_LL_OFF, False, 0.0, 0.0
+        self.long_ll_legs, self._ll_c = False, 0
         self.set_long_trust(*_pair("long_trust", self.meta.get("long_trust", LONG_TRUST_OFF)))
         self.set_long_gate(*_pair("long_gate", self.meta.get("long_gate", LONG_GATE_OFF), 4))
         self.set_long_ll(*_pair("long_ll", self.meta.get("long_ll", LONG_LL_OFF)))
+        self.set_long_ll_legs(self.meta.get("long_ll_legs", False))
         self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
         self.rate_ref: np.ndarray | None = None   # the training data's mean |dx| a frame per channel ("Rate")
         self._ref = np.zeros(C)
@@ -433,13 +443,40 @@ class WithHLMModel(Model):
             self.meta["long_ll"] = list(self.long_ll)
         else:
             self.meta.pop("long_ll", None)
+        self._ll_feats()
+
+    def set_long_ll_legs(self, on: bool) -> None:
+        """long_ll's baseline and erasure level on the legs' features only (``long_ll_legs``; loco-14): the HLM
+        also keeps the normaliser over the observed leg features (its "ll" row's columns 2-3: the features whose
+        every source channel is a leg channel, the channels the regime's "every leg channel observed" reads), and
+        both the baseline and the level are that per observed leg feature, so they are the same quantity.  False
+        (files without the key): both on every observed feature (loco-13, the fills of files written before)."""
+        if not isinstance(on, bool):
+            raise FillerError(f"{METHOD}: long_ll_legs must be true or false (got {on!r})")
+        if on and not hasattr(self.hlm, "set_ll_feats"):
+            raise FillerError(f"{METHOD}: long_ll_legs needs the HLM's partial normaliser, which {self.hlm.method} has not")
+        self.long_ll_legs = on
+        self._ll_c = 2 if on else 0   # the "ll" row's columns long_ll reads
+        if on:
+            self.meta["long_ll_legs"] = True
+        else:
+            self.meta.pop("long_ll_legs", None)
+        self._ll_feats()
+
+    def _ll_feats(self) -> None:
+        """The HLM's partial normaliser on the leg features where long_ll reads it.  Never cleared here: the HLM
+        may be shared by twins mixed anew (tests/default_small.py's remix), and its other outputs do not depend
+        on it; an HLM loaded from a file without ``long_ll_legs`` never computes it (no extra work)."""
+        hlm = self.hlm
+        if self._ll_on and getattr(self, "long_ll_legs", False):
+            hlm.set_ll_feats(hlm.leg_feats(self._legs))   # type: ignore[attr-defined]
 
     def _ll_track(self, s: WithHLMState, o: np.ndarray) -> None:
         """long_ll (module doc): the stream's level and baseline from this frame's HLM step (its normaliser,
         ``hlm.online.init_state``'s "ll"), and the revoke.  After the HLM's step, before the q bin is read."""
         if s.ll_busy and bool(o[self._legs].all()):   # the regime: no ordinary window runs
-            ll, r = self._hcore["ll"], s.hs.slot   # type: ignore[attr-defined]
-            lln, no = ll.item(r, 0), ll.item(r, 1)
+            ll, r, c = self._hcore["ll"], s.hs.slot, self._ll_c   # type: ignore[attr-defined]
+            lln, no = ll.item(r, c), ll.item(r, c + 1)
             if not s.ll_in:   # the erasure's onset: its own level, the baseline frozen
                 s.ll_in, s.ll_age, s.ll_S, s.ll_N, s.ll_rev = True, 0, 0.0, 0.0, False
                 s.ll_B = s.ll_bS / s.ll_bN if s.ll_bN >= LL_BMIN else math.nan
@@ -456,10 +493,10 @@ class WithHLMModel(Model):
             s.ll_in = s.ll_rev = False
         if s.ll_busy or s._lq >= LOGQ_YIELD:
             return
-        ll, r = self._hcore["ll"], s.hs.slot   # the baseline: the HLM's share earned, ordinary windows run
-        no = ll.item(r, 1)
+        ll, r, c = self._hcore["ll"], s.hs.slot, self._ll_c   # the baseline: the HLM's share earned, ordinary windows run
+        no = ll.item(r, c + 1)
         if no > 0:
-            e = ll.item(r, 0) / no
+            e = ll.item(r, c) / no
             bS, bN = s.ll_bS, s.ll_bN
             if bN >= 1.0:
                 lo = bS / bN - LL_BCLIP
@@ -1231,6 +1268,8 @@ def train_model(training_set: Any, W: np.ndarray | None = None, S: np.ndarray | 
         meta["long_gate"] = _gate_meta(LONG_GATE)
     if LONG_LL[0] > 0:
         meta["long_ll"] = list(LONG_LL)
+        if LONG_LL_LEGS:
+            meta["long_ll_legs"] = True
     cal = calib.from_json(json.loads(SHIPPED.read_text()).get("calib") if SHIPPED.exists() else None, list(ch),
                           group_index(list(ch)), GROUP_NAMES, len(T_EDGES) + 1)
     return WithHLMModel(d, h, W0 if W is None else W, S0 if S is None else S, meta, tau, cal,

@@ -41,7 +41,7 @@ _I64, _F64, _BOOL = np.dtype(np.int64), np.dtype(np.float64), np.dtype(np.bool_)
 @_jit
 def scratch(CM, F, M):  # pragma: no cover - compiled
     """The step's working arrays, made once per batch (``_step_in``): pr (CM,) all zero between
-    steps; then llp (CM,), v (3F,), num/den/mean/m2 (F,) each, in one float block; rows and the
+    steps; then llp (CM,), v (3F,), num/den/mean/m2 (F,) each, the partial normaliser's terms (CM,), in one float block; rows and the
     touched prediction entries (CM,) each, the observed and the missing features (F,) each, and
     each state's style and phase (CM,) each (s // M, s % M: an integer division costs tens of cycles), in one int
     block."""
@@ -52,7 +52,7 @@ def scratch(CM, F, M):  # pragma: no cover - compiled
             ix[2 * CM + 2 * F + s] = c
             ix[3 * CM + 2 * F + s] = m
             s += 1
-    return np.zeros(2 * CM + 7 * F), ix
+    return np.zeros(3 * CM + 7 * F), ix
 
 
 @_jit_sums
@@ -97,14 +97,16 @@ def _nonzero(x, out, positive):  # pragma: no cover - compiled
 
 @_jit
 def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
-             D, W, G, GW, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, fs, ix):  # pragma: no cover - compiled
+             D, W, G, GW, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, fs, ix, lf):  # pragma: no cover - compiled
     """The step on the posterior's and the prediction's support only, in the working arrays fs,
     ix (``scratch``; fs[:CM] must be zero and is left zero).  The same operations in the same
     order as a pass over all C*M states: the states are visited ascending, and the terms it
     would skip (zero mass, a missing feature's zero emission term) add exactly nothing.
-    Returns (the phase, k, ll, no): the new posterior is exactly 0 outside the k states ix[:k]
+    Returns (the phase, k, ll, no, lll, nl): the new posterior is exactly 0 outside the k states ix[:k]
     (ascending), the support ``condfill.correct1`` visits; ll the step's normaliser, log p(z_t,o | z_<t,o)
-    (0 with nothing observed), and no the features observed (``hlm.online.init_state``'s "ll" row)."""
+    (0 with nothing observed), and no the features observed (``hlm.online.init_state``'s "ll" row); lll, nl
+    the same over the observed features among lf (the table's ll_feats) only, on the same support (0, 0 with
+    none: no extra work where lf is empty)."""
     CM = post.shape[0]
     F = z.shape[0]
     C = CM // M
@@ -116,6 +118,7 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
     den = fs[2 * CM + 4 * F : 2 * CM + 5 * F]
     mean = fs[2 * CM + 5 * F : 2 * CM + 6 * F]
     m2 = fs[2 * CM + 6 * F : 2 * CM + 7 * F]
+    lpl = fs[2 * CM + 7 * F : 3 * CM + 7 * F]
     rows = ix[:CM]
     tch = ix[CM : 2 * CM]
     fo = ix[2 * CM : 2 * CM + F]
@@ -183,6 +186,31 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
         llp[i] *= pr[rows[i]]
         tot += llp[i]
     lln = top + math.log(tot) if no > 0 else 0.0
+    # ---- the partial normaliser over lf's observed features (the diagonal emission's terms of those
+    # features only), on the same support, from the prediction (pr, still whole here)
+    lll = 0.0
+    nl = 0
+    if no > 0:
+        for j in range(lf.shape[0]):
+            if zobs[lf[j]]:
+                nl += 1
+    if nl > 0:
+        topl = -np.inf
+        for i in range(k):
+            s = rows[i]
+            acc = 0.0
+            for j in range(lf.shape[0]):
+                f = lf[j]
+                if zobs[f]:
+                    x = z[f]
+                    acc += fused_t[s, f] * x + fused_t[s, F + f] + fused_t[s, 2 * F + f] * (x * x)
+            lpl[i] = acc
+            if acc > topl:
+                topl = acc
+        totl = 0.0
+        for i in range(k):
+            totl += pr[rows[i]] * math.exp(lpl[i] - topl)
+        lll = topl + math.log(totl)
     for i in range(nt):
         pr[tch[i]] = 0.0
     pmax = 0.0
@@ -290,7 +318,7 @@ def _step_in(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin
             style[cof[s]] += p
             sc += p * cos[mof[s]]
             ss += p * sin[mof[s]]
-    return (math.atan2(ss, sc) / (2.0 * math.pi)) % 1.0, k, lln, no
+    return (math.atan2(ss, sc) / (2.0 * math.pi)) % 1.0, k, lln, no, lll, nl
 
 
 def usable(tab) -> bool:
@@ -300,13 +328,13 @@ def usable(tab) -> bool:
 
 @_jit
 def _step_many(post, first, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb,
-               D, W, G, GW, prow, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, phase, ll):  # pragma: no cover - compiled
+               D, W, G, GW, prow, lam_rows, var_q, pack, cos, sin, live, live_stats, out, sd, style, phase, ll, lf):  # pragma: no cover - compiled
     fs, ix = scratch(post.shape[1], z.shape[1], M)  # (once for the batch)
     for i in range(post.shape[0]):
         r = prow[i]
-        phase[i], k, ll[i, 0], ll[i, 1] = _step_in(post[i], first[i], prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1,
-                                                   bin_a, kappa, kappa_g, nb, D[r], W[r], G[r], GW[r], lam_rows, var_q, pack,
-                                                   cos, sin, live, live_stats, out[i], sd[i], style[i], fs, ix)
+        phase[i], k, ll[i, 0], ll[i, 1], ll[i, 2], ll[i, 3] = _step_in(
+            post[i], first[i], prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, D[r], W[r],
+            G[r], GW[r], lam_rows, var_q, pack, cos, sin, live, live_stats, out[i], sd[i], style[i], fs, ix, lf)
 
 
 def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, rows: np.ndarray | None = None,
@@ -330,11 +358,11 @@ def step(tab, state: dict[str, np.ndarray], z: np.ndarray, zobs: np.ndarray, row
     sd = np.empty((n, F))
     style = np.empty((n, C))
     phase = np.empty(n)
-    ll = state["ll"] if "ll" in state else np.zeros((n, 2))
+    ll = state["ll"] if "ll" in state else np.zeros((n, 4))
     _step_many(post1, first, tab.prior_flat, tab.d_pop, M, np.ascontiguousarray(z, dtype=np.float64),
                np.ascontiguousarray(zobs, dtype=np.bool_), tab.em.fused_t, tab.mu, tab.bin0, tab.bin1, tab.bin_a,
                tab.kappa, tab.kappa_global, tab.n_bins, D, W, G, GW, prow, tab.lam_rows, tab.var_q, tab.pack,
-               tab.cos, tab.sin, live, live_stats, out, sd, style, phase, ll)
+               tab.cos, tab.sin, live, live_stats, out, sd, style, phase, ll, tab.ll_feats)
     if post1 is not post:
         post[...] = post1
     state["t"] += 1
@@ -363,7 +391,7 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
     wait each numpy call of the Python around a lone stream's step costs 10-45 us, so none is left there
     (bench/notebook/hlm9.md)."""
     center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF, root_tau, root_power = rt
-    prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin = ht
+    prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin, lf = ht
     C = frame.shape[0]
     out = np.empty(C)
     sd = np.empty(C)
@@ -385,9 +413,9 @@ def _step_slot(r, frame, observed, prev_u, prev_raw, prev_yaw, started, root_st,
     zsd = np.empty(nF)
     p = post[r].reshape(post.shape[1] * post.shape[2])
     fs, ix = scratch(p.shape[0], nF, M)
-    phase, k, ll[r, 0], ll[r, 1] = _step_in(p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa,
-                                            kappa_g, nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack, cos, sin, live,
-                                            live_stats, zf, zsd, style, fs, ix)
+    phase, k, ll[r, 0], ll[r, 1], ll[r, 2], ll[r, 3] = _step_in(
+        p, t[r] == 0, prior, d_pop, M, z, zobs, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, D[q], W[q], G[q], GW[q],
+        lam_rows, var_q, pack, cos, sin, live, live_stats, zf, zsd, style, fs, ix, lf)
     t[r] += 1
     if cond:  # (on the filter's support: ix[:k])
         correct1(p, ix[:k], z, zobs, zf, M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows, pack,
@@ -408,7 +436,7 @@ def slot_tables(tab, rep) -> tuple:
           t["root_power"])
     ht = (tab.prior_flat, tab.d_pop, int(tab.shape[1]), tab.em.fused_t, tab.mu, tab.bin0, tab.bin1, tab.bin_a,
           float(tab.kappa), float(tab.kappa_global), int(tab.n_bins), tab.lam_rows, tab.var_q, tab.pack, tab.cos,
-          tab.sin)
+          tab.sin, tab.ll_feats)
     z = np.zeros((1, 1, int(rep.n_features)))
     return rt, ht, z
 
@@ -502,7 +530,7 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
     pass keeps its own tables in cache, which interleaving them per stream cost ~6% at 64), the
     filter's working arrays (``scratch``) shared."""
     center, const, dr, df, dang, any_angle, relative, rot, pos, rootf, fsrc, rsrc, normalize, mean, std, nF, root_tau, root_power = rt
-    prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin = ht
+    prior, d_pop, M, fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, lam_rows, var_q, pack, cos, sin, lf = ht
     n, C = frames.shape
     CM = post.shape[1] * post.shape[2]
     x = np.empty((n, C))
@@ -524,9 +552,9 @@ def _step_rows(prow, frames, observed, prev_u, prev_raw, prev_yaw, started, root
         r = prow[i]
         q = r if cyc else 0
         p = post[r].reshape(CM)
-        phase[i], k, ll[r, 0], ll[r, 1] = _step_in(p, t[r] == 0, prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1,
-                                                   bin_a, kappa, kappa_g, nb, D[q], W[q], G[q], GW[q], lam_rows, var_q, pack,
-                                                   cos, sin, live, live_stats, zf[i], zsd[i], style[i], fs, ix)
+        phase[i], k, ll[r, 0], ll[r, 1], ll[r, 2], ll[r, 3] = _step_in(
+            p, t[r] == 0, prior, d_pop, M, z[i], zobs[i], fused_t, mu, bin0, bin1, bin_a, kappa, kappa_g, nb, D[q], W[q], G[q],
+            GW[q], lam_rows, var_q, pack, cos, sin, live, live_stats, zf[i], zsd[i], style[i], fs, ix, lf)
         t[r] += 1
         if cond:  # (on the filter's support: ix[:k], until the next stream's _step_in)
             correct1(p, ix[:k], z[i], zobs[i], zf[i], M, mu, bin0, bin1, bin_a, kappa, kappa_g, D[q], W[q], G[q], GW[q], lam_rows,

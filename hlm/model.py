@@ -120,6 +120,23 @@ class HLMModel(FeatureModel):
         o = HLMOptions(**{**self.options.__dict__, **kw})
         return HLMModel(rep, self.params, o, self.meta, self.cond_cov)
 
+    def set_ll_feats(self, feats: Sequence[int] | np.ndarray) -> None:
+        """The features of the "ll" row's partial normaliser (``hlm.online.init_state``'s columns 2-3; default's
+        long_ll legs baseline, blend/withhlm.py): ascending distinct feature indices; empty: none (the columns
+        stay 0 and the step does no extra work).  Nothing else the step computes changes."""
+        f = np.unique(np.asarray(feats, dtype=np.int64))
+        if f.size and (f[0] < 0 or f[-1] >= self.representation.n_features):
+            raise ValueError(f"ll features must be in [0, {self.representation.n_features}) (got {f.tolist()})")
+        if np.array_equal(f, self.tables.ll_feats):
+            return
+        self.tables.ll_feats = f
+        self.__dict__.pop("_slot_tables", None)   # the compiled step's tables carry it: made again
+
+    def leg_feats(self, channels: np.ndarray) -> np.ndarray:
+        """The features whose every source channel is among ``channels`` (raw channel indices), ascending."""
+        fsrc = self.representation._source_index()[0]
+        return np.flatnonzero(np.isin(fsrc, np.asarray(channels, dtype=np.int64)).all(1)).astype(np.int64)
+
     # ---- online core (FeatureModel hooks) ------------------------------------------------------
     def core_init(self, n: int) -> dict[str, np.ndarray]:
         return online.init_state(self.tables, n)

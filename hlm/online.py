@@ -67,8 +67,10 @@ def init_state(tab: FilterTables, n: int) -> dict[str, np.ndarray]:
         "counts": np.zeros((n, J)),           # forgotten expected jump counts (adaptation)
         # the last frame's one-step predictive log-likelihood of the observed features, log p(z_t,o | z_<t,o)
         # (the forward step's normaliser, the emission's constants kept), and how many features were observed
-        # (0: a pure prediction step); read by default's long-erasure evidence (blend/withhlm.py, "long_ll")
-        "ll": np.zeros((n, 2)),
+        # (0: a pure prediction step); read by default's long-erasure evidence (blend/withhlm.py, "long_ll");
+        # columns 2-3 the same over the observed features of tab.ll_feats only (the legs, where default asks:
+        # the emission is diagonal, so a partial sum of the same terms on the same support; 0, 0 where none)
+        "ll": np.zeros((n, 4)),
     }
     if tab.kappa > 0.0:
         F = tab.mu.shape[1]
@@ -145,6 +147,7 @@ def _update_one(tab: FilterTables, state: dict[str, np.ndarray], pr: np.ndarray,
     the same arithmetic with fewer numpy calls.  r: the stream's row of D, W.  keep: receives the
     support and its offsets for ``fill`` (see there)."""
     rows = np.flatnonzero(pr)
+    off: np.ndarray | None = None   # the adapted emission's offsets on rows (else the population emission)
     if zobs.any():
         if _adapted(tab, state):
             G = group_stats(state)
@@ -162,7 +165,8 @@ def _update_one(tab: FilterTables, state: dict[str, np.ndarray], pr: np.ndarray,
     newp = pr[rows] * wp
     if "ll" in state:   # the step's normaliser (init_state's "ll"), before any pruning
         nz = float(zobs[0].sum())
-        state["ll"][0] = (float(llp.max() + np.log(newp.sum())) if nz > 0 else 0.0, nz)   # ("ll" is not sparse: row 0)
+        state["ll"][0, :2] = (float(llp.max() + np.log(newp.sum())) if nz > 0 else 0.0, nz)   # ("ll" is not sparse: row 0)
+        state["ll"][0, 2:] = _part_ll(tab, pr[rows], z, zobs, rows, off)
     if tab.style_switch > 0.0:
         newp[newp < PRUNE * newp.max()] = 0.0
     post = state["post"].reshape(-1)
@@ -174,6 +178,27 @@ def _update_one(tab: FilterTables, state: dict[str, np.ndarray], pr: np.ndarray,
     ll = np.full(pr.shape[0], -np.inf)
     ll[rows] = llp
     return ll.reshape(state["post"].shape)
+
+
+def _part_ll(tab: FilterTables, p: np.ndarray, z: np.ndarray, zobs: np.ndarray,
+             rows: np.ndarray, off: np.ndarray | None) -> tuple[float, float]:
+    """A lone stream's partial normaliser (init_state's "ll" columns 2-3): log sum_s p(s) b_s(z_t, o ∩ ll_feats)
+    over the support rows (p: the prediction there) and the count of those features; (0, 0) with none.
+    off: the adapted emission's offsets on rows (``_update_one``'s), None for the population emission."""
+    lf = tab.ll_feats
+    if lf.size == 0:
+        return 0.0, 0.0
+    zl = np.zeros_like(zobs)
+    zl[:, lf] = zobs[:, lf]
+    nl = float(zl[0].sum())
+    if nl == 0:
+        return 0.0, 0.0
+    if off is not None:
+        lq = adapted_loglik(tab, np.where(zl[0], z[0], 0.0), zl[0], rows, off)
+    else:
+        lq = tab.em.fused_t[rows] @ tab.em.terms(z, zl)[0]
+    top = lq.max()
+    return float(top + np.log((p * np.exp(lq - top)).sum())), nl
 
 
 def _predict_one(tab: FilterTables, post: np.ndarray) -> np.ndarray:
@@ -250,6 +275,20 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
         lln = np.maximum.reduceat(llp, starts) + np.log(np.add.reduceat(newp, starts))
         state["ll"][si[starts], 0] = np.where(nz[si[starts]] > 0, lln, 0.0)
         state["ll"][:, 1] = nz
+        lf = tab.ll_feats   # columns 2-3: the same over the observed features of ll_feats only (_part_ll)
+        zl = np.zeros_like(zobs)
+        zl[:, lf] = zobs[:, lf]
+        nl = zl.sum(1).astype(float)
+        state["ll"][:, 2] = 0.0
+        if nl.any():
+            if adapted:
+                lq = adapted_loglik(tab, np.where(zl, z, 0.0)[si], zl[si], rows, off)
+            else:
+                lq = tab.em.loglik_at(tab.em.terms(z, zl), si, rows)
+            top = np.maximum.reduceat(lq, starts)
+            lnl = top + np.log(np.add.reduceat(p * np.exp(lq - top[which]), starts))
+            state["ll"][si[starts], 2] = np.where(nl[si[starts]] > 0, lnl, 0.0)
+        state["ll"][:, 3] = nl
     if tab.style_switch > 0.0:
         newp[newp < PRUNE * np.maximum.reduceat(newp, starts)[which]] = 0.0
     tot = np.add.reduceat(newp, starts)

@@ -70,6 +70,9 @@ class FilterTables:
         self.emit_a = np.ascontiguousarray(np.repeat(self.em.log_norm, M, axis=0) - 0.5 * self.lam_rows * self.var)
         self.emit_pack = np.ascontiguousarray(np.hstack([self.mu, 0.5 * self.lam_rows, self.emit_a]))
         self.prior_flat = np.exp(self.log_prior).reshape(-1)   # (C M,) the first frame's prediction
+        # the features of the "ll" row's second, partial normaliser (columns 2-3: ``hlm.online.init_state``);
+        # none (the columns stay 0, no extra work) unless the model's owner asks (HLMModel.set_ll_feats)
+        self.ll_feats = np.zeros(0, np.int64)
 
     @property
     def shape(self) -> tuple[int, int]:
