@@ -48,7 +48,6 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
     time by the scheduler tick, and a thread that wakes on a timer is running when ticks land."""
     out: list[bytes] = []
     held: list[dict] = []
-    rows: list[bytes] = []
 
     def send(o, m, publish=False):  # what Transports.send does: a bundle's answers are packed at the flush
         if len(o) == 3:
@@ -62,20 +61,11 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
             out.append(replies_of(held) if replies_of else wire.join_replies([msgpack.packb(m, use_bin_type=True)
                                                                               for m in held]))
             held.clear()
-        if rows:  # (a tree whose bundles' fills come encoded, daemon/rowpack.py: the flush joins them)
-            out.append(wire.join_replies(rows))
-            rows.clear()
         out.clear()
 
-    def send_fills(o, fills):
-        if hasattr(fills, "rows"):
-            rows.extend(fills.rows)
-        else:
-            held.extend(fills)
-
     d._send = send  # type: ignore[method-assign]
-    if hasattr(d, "_send_fills"):  # a bundle served as arrays hands its fills over as maps or encoded rows (daemon/tickblock.py)
-        d._send_fills = send_fills  # type: ignore[method-assign]
+    if hasattr(d, "_send_fills"):  # a bundle served as arrays hands its fills over as maps (daemon/tickblock.py)
+        d._send_fills = lambda o, maps: held.extend(maps)  # type: ignore[method-assign]
     sids = [f"{model}-{n_streams}-{time.monotonic_ns()}-{i}" for i in range(n_streams)]
     for sid in sids:
         d._handle(wire.encode(wire.Hello(sid, channels, model)), ("router", [b"x"]), time.perf_counter())

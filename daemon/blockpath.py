@@ -146,33 +146,19 @@ def inputs(block: FrameBlock, rows: list[int] | None) -> tuple[np.ndarray, np.nd
     return np.where(mo, v.astype(np.float64), np.nan), mo
 
 
-def fill_arrays(block: FrameBlock, rows: list[int] | None, frames: np.ndarray, std: np.ndarray | None,
-                filled: np.ndarray | None, sent: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """The replies' (n, C) arrays: float32 angles (observed values exactly as sent), the filled
-    mask (filled and not sent) and float32 deviations; both None for a pass-through's zeros."""
-    given = block.values if rows is None else block.values[rows]
-    angles = np.where(sent, given, frames.astype(np.float32, copy=False))
-    if filled is None or std is None:
-        return angles, None, None
-    return angles, filled & ~sent, np.ascontiguousarray(std, dtype=np.float32)
-
-
 def fill_maps(block: FrameBlock, rows: list[int] | None, frames: np.ndarray, std: np.ndarray | None,
               filled: np.ndarray | None, sent: np.ndarray) -> tuple[list[bytes], list[bytes], list[bytes]]:
     """The replies' arrays, encoded at once: (angle bytes, filled bytes, std bytes) per row, as
-    :func:`daemon.encode.fill_messages` and :func:`daemon.pack.fill_map` give them."""
-    return split_rows(*fill_arrays(block, rows, frames, std, filled, sent))
-
-
-def split_rows(angles: np.ndarray, fm: np.ndarray | None, sd: np.ndarray | None) -> tuple[list[bytes], list[bytes], list[bytes]]:
-    """:func:`fill_arrays`' arrays as bytes a row; ``fm`` and ``sd`` None: zero everywhere (a
-    pass-through's), one bytes object for every row."""
+    :func:`daemon.encode.fill_messages` and :func:`daemon.pack.fill_map` give them.  ``std``
+    and ``filled`` None: zero everywhere (a pass-through's), one bytes object for every row."""
+    given = block.values if rows is None else block.values[rows]
+    angles = np.where(sent, given, frames.astype(np.float32, copy=False))  # observed values exactly as sent
     n, C = angles.shape
     k4 = 4 * C
     ab = angles.tobytes()
-    if fm is None or sd is None:
+    if filled is None or std is None:
         fbs, sbs = [bytes(C)] * n, [bytes(k4)] * n
     else:
-        fb, sb = fm.tobytes(), sd.tobytes()
+        fb, sb = (filled & ~sent).tobytes(), np.ascontiguousarray(std, dtype=np.float32).tobytes()
         fbs, sbs = [fb[i * C:(i + 1) * C] for i in range(n)], [sb[i * k4:(i + 1) * k4] for i in range(n)]
     return [ab[i * k4:(i + 1) * k4] for i in range(n)], fbs, sbs

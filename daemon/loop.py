@@ -40,7 +40,6 @@ from daemon.prewarm import Prewarm
 from daemon.realtime import Realtime
 from daemon.reload import Reloading
 from daemon.reloader import Reloader
-from daemon.rowpack import FillRows
 from daemon.scheduler import Scheduler
 from daemon.session import Origin
 from daemon.sessions import SessionTable
@@ -293,8 +292,8 @@ class Daemon(Dispatch, Tick, Control, Reloading, Waiting):
         if self.net is not None:
             self.net.send(origin, msg, publish)
 
-    def _send_fills(self, origin: Origin, maps: FillRows | list[dict[str, Any]]) -> None:
-        """A bundle's fills, encoded rows or maps (daemon/tickblock.py): what :meth:`_send` of each does."""
+    def _send_fills(self, origin: Origin, maps: list[dict[str, Any]]) -> None:
+        """A bundle's fills as maps (daemon/tickblock.py): what :meth:`_send` of each does."""
         if self.net is not None:
             self.net.send_fill_maps(origin, maps)
 

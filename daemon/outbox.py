@@ -17,7 +17,6 @@ import msgpack
 import zmq
 
 from daemon import osc, oscblock, wire
-from daemon.rowpack import FillRows
 
 if TYPE_CHECKING:
     from daemon.config import Config
@@ -43,9 +42,8 @@ class Outbox:
 
     def __init__(self, cfg: Config) -> None:
         self._held: list[tuple[Socket, list[bytes], str]] | None = None
-        # ROUTER envelope -> held answers to bundled frames, each an encoded map: joined into one
-        # `replies` at the flush (daemon/rowpack.py writes a bundle's fills as such bytes at once)
-        self._bundles: dict[tuple[bytes, ...], list[bytes]] = {}
+        # ROUTER envelope -> held answers to bundled frames, as maps: packed in one pass at the flush
+        self._bundles: dict[tuple[bytes, ...], list[dict[str, Any]]] = {}
         self._pack = msgpack.Packer(use_bin_type=True).pack  # one for the daemon's thread (packb builds one per call)
         self._flush_every = max(1, min(FLUSH_MAX, cfg.zmq_hwm // 4))
 
@@ -75,10 +73,12 @@ class Outbox:
             n = len(held)
         if self._bundles:
             bundles, self._bundles = self._bundles, {}
-            for envelope, bodies in bundles.items():
-                for i in range(0, len(bodies), wire.MAX_BUNDLE):
-                    chunk = bodies[i:i + wire.MAX_BUNDLE]
-                    self._zsend(self.router, [*envelope, wire.join_replies(chunk)], "router")  # type: ignore[arg-type]
+            pack = self._pack
+            for envelope, maps in bundles.items():
+                for i in range(0, len(maps), wire.MAX_BUNDLE):
+                    chunk = maps[i:i + wire.MAX_BUNDLE]
+                    # one msgpack pass over the chunk's answers: the bytes join_replies would give
+                    self._zsend(self.router, [*envelope, wire.replies_of(chunk, pack)], "router")  # type: ignore[arg-type]
                     n += len(chunk)  # (answers, for what an answer costs to send)
         return n
 
@@ -128,33 +128,28 @@ class Outbox:
                 body = self._encode(msg)
                 self._zmq(self.router, [*origin[1], body], kind)
             else:  # an answer to a bundled frame: it goes back in one `replies`, packed at the flush
-                body = self._encode(msg)
+                m = wire.fill_map(msg) if type(msg) is wire.FillMsg else wire.to_map(msg)
                 if self._held is not None:
-                    self._bundles.setdefault(tuple(origin[1]), []).append(body)
+                    self._bundles.setdefault(tuple(origin[1]), []).append(m)
                 else:
-                    self._zsend(self.router, [*origin[1], wire.join_replies([body])], kind)
+                    self._zsend(self.router, [*origin[1], wire.replies_of([m], self._pack)], kind)
         elif kind == "pull" and self.pub is not None and not publish:
             topic = getattr(msg, "stream", None) or ""
             self._zmq(self.pub, [topic.encode(), self._encode(msg)], "pub")
         if publish and self.pub is not None:
             self._zmq(self.pub, [msg.stream.encode(), body or self._encode(msg)], "pub")  # type: ignore[union-attr]
 
-    def send_fill_maps(self, origin: Origin, fills: FillRows | list[dict[str, Any]]) -> None:
-        """:meth:`send` with ``publish`` for each of a bundle's fills (daemon/tickblock.py), in
-        order: encoded rows (daemon/rowpack.py), or maps (OSC, and what rowpack does not write)."""
-        if isinstance(fills, FillRows):
-            sids, bodies = fills.sids, fills.rows
-        else:
-            if origin[0] == "osc":  # (each fill's datagram, then PUB: daemon/oscblock.py)
-                return oscblock.send_fills(self, origin, fills)
-            sids, bodies = [m["stream"] for m in fills], [self._pack(m) for m in fills]
-        pub = self.pub
+    def send_fill_maps(self, origin: Origin, maps: list[dict[str, Any]]) -> None:
+        """:meth:`send` with ``publish`` for each of a bundle's fills given as maps (daemon/tickblock.py), in order."""
+        if origin[0] == "osc":  # (each fill's datagram, then PUB: daemon/oscblock.py)
+            return oscblock.send_fills(self, origin, maps)
+        pub, pack = self.pub, self._pack
         router, envelope = (self.router, tuple(origin[1])) if origin[0] == "router" else (None, ())
-        for sid, body in zip(sids, bodies):
+        for m in maps:
             if router is not None:
                 if self._held is not None:  # (looked up each time: a flush for PUB's sake empties it)
-                    self._bundles.setdefault(envelope, []).append(body)
+                    self._bundles.setdefault(envelope, []).append(m)
                 else:
-                    self._zsend(router, [*origin[1], wire.join_replies([body])], "router")
+                    self._zsend(router, [*origin[1], wire.replies_of([m], pack)], "router")
             if pub is not None:
-                self._zmq(pub, [sid.encode(), body], "pub")
+                self._zmq(pub, [m["stream"].encode(), pack(m)], "pub")

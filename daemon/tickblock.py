@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon import blockpath, rowpack, stepblock, wire
+from daemon import blockpath, stepblock, wire
 from daemon.blockpath import BlockWait
 from daemon.parts import Parts
 from daemon.session import Pending, filled_rows
@@ -63,7 +63,6 @@ class BlockTick(Parts):
         styles: list[Any] | None = None
         phases: list[Any] | None = None
         rowwise = False  # (True: every row has a style's bytes and a finite phase: both go in each map's literal)
-        style_arr: np.ndarray | None = None  # (n, K) float32 style posteriors, when the fills give them as an array
         held: list[bool] | None = None
         std: np.ndarray | None = None
         filled: np.ndarray | None = None
@@ -97,7 +96,9 @@ class BlockTick(Parts):
                 frames, std, filled, statuses = bf.frame[pos], bf.std[pos], bf.filled[pos], [sts[j] for j in pos]
             st, phs, dgr = bf.style, bf.phase, bf.degraded
             if isinstance(st, np.ndarray):  # (n, K) posteriors: as the bytes daemon/pack.py writes, a row each
-                style_arr = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
+                a = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
+                yb, k4 = a.tobytes(), 4 * a.shape[1]  # (slices of one bytes object: no array view a row)
+                styles = [yb[i * k4:(i + 1) * k4] for i in range(n)]
             elif st is not None:
                 styles = _styles(st if ident else [st[j] for j in pos], n)
             if phs is not None:
@@ -115,7 +116,7 @@ class BlockTick(Parts):
         self.metrics.step_time(self.clock() - t0)
         t1 = self.clock()
         gaps = [0 if s.last_seq is None else q - s.last_seq - 1 for s, q in zip(so, qo)]  # (None: a first frame)
-        arrays = blockpath.fill_arrays(block, ro, frames, std, filled, sent)
+        ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
         t1e = self.clock()
         now = self.clock()
         budget, drop, origin = sched.budget_s, self._drop_overdue, bw.origin
@@ -151,62 +152,6 @@ class BlockTick(Parts):
         proc_us = int((now - arrived) * 1e6)
         name = S[0].model_name
         status = "passthrough"
-        fills_out: rowpack.FillRows | list[dict[str, Any]]
-        if origin[0] != "osc" and not any(gaps) and (rowwise or (style_arr is None and styles is None and phases is None)):
-            # the usual bundle: each row's map written from the arrays (daemon/rowpack.py), the same bytes
-            ang, fm, sd = arrays
-            if not whole:
-                sel = list(ks)
-                ang, fm, sd = ang[sel], None if fm is None else fm[sel], None if sd is None else sd[sel]
-            if fm is None or sd is None:  # (a pass-through's zeros)
-                fm, sd = np.zeros(ang.shape, np.bool_), np.zeros(ang.shape, np.float32)
-            sids = [s.sid for s in out]
-            sk = stamps if whole else [stamps[k] for k in ks]
-            stk = status if statuses is None else (statuses if whole else [statuses[k] for k in ks])
-            if rowwise:
-                assert style_arr is not None and phases is not None
-                yk, pk = (style_arr, phases) if whole else (style_arr[list(ks)], [phases[k] for k in ks])
-                fills_out = rowpack.FillRows(sids, rowpack.fill_rows(sids, qk, sk, ang, fm, sd, stk, name, proc_us, yk, pk))
-            else:
-                fills_out = rowpack.FillRows(sids, rowpack.fill_rows(sids, qk, sk, ang, fm, sd, stk, name, proc_us))
-        else:
-            fills_out = self._fill_maps(arrays, stamps, whole, ks, out, qk, gaps, statuses, style_arr, styles, phases,
-                                        rowwise, name, proc_us)
-        if degs is not None and True in degs:
-            self.metrics.inc("degraded", sum(degs))
-            for k, dg in zip(ks, degs):
-                if dg:
-                    self.metrics.inc("degraded_held" if held is not None and held[k] else "degraded_iterations")
-        if out:
-            self.metrics.inc("frames_out", len(out))
-        self._send_fills(origin, fills_out)
-        te = self.clock()
-        self._send_held(len(out))
-        # (no rehearsal is planned for a bundle: it would run one stream's row path, not this
-        # tick's, and cost the loop an extra wake a tick; live, 64 x 120 Hz, CPU per frame
-        # 0.84x pass-through, 0.94x hlm without it, p50 unchanged: bench/notebook/wire-4.md)
-        t2 = self.clock()
-        sched.observe_replies(n, te - t1e, t2 - t1)
-        wait = t2 - arrived
-        self.metrics.latencies(wait, len(out))
-        if out and wait > budget:
-            for s in out:
-                s.count("over_budget")
-            self.metrics.inc("over_budget", len(out))
-        return True
-
-    @staticmethod
-    def _fill_maps(arrays: tuple[np.ndarray, np.ndarray | None, np.ndarray | None], stamps: list[float], whole: bool,
-                   ks: range | list[int], out: list[Any], qk: list[int], gaps: list[int], statuses: list[str] | None,
-                   style_arr: np.ndarray | None, styles: list[Any] | None, phases: list[Any] | None, rowwise: bool,
-                   name: str, proc_us: int) -> list[dict[str, Any]]:
-        """The fills as maps, for what daemon/rowpack.py does not write: OSC's datagrams, gaps
-        (a ``gap`` key), styles or phases on some rows only."""
-        ab, fb, sb = blockpath.split_rows(*arrays)
-        if style_arr is not None:  # (slices of one bytes object: no array view a row)
-            yb, k4 = style_arr.tobytes(), 4 * style_arr.shape[1]
-            styles = [yb[i * k4:(i + 1) * k4] for i in range(len(ab))]
-        status = "passthrough"
         cols: list[list[Any]] = [stamps, ab, fb, sb] if whole else [[c[k] for k in ks] for c in (stamps, ab, fb, sb)]
         maps: list[dict[str, Any]]
         one_pass = rowwise and not any(gaps)
@@ -230,7 +175,28 @@ class BlockTick(Parts):
                     m["phase"] = float(ph)
                 if gaps[k] > 0:
                     m["gap"] = gaps[k]
-        return maps
+        if degs is not None and True in degs:
+            self.metrics.inc("degraded", sum(degs))
+            for k, dg in zip(ks, degs):
+                if dg:
+                    self.metrics.inc("degraded_held" if held is not None and held[k] else "degraded_iterations")
+        if out:
+            self.metrics.inc("frames_out", len(out))
+        self._send_fills(origin, maps)
+        te = self.clock()
+        self._send_held(len(out))
+        # (no rehearsal is planned for a bundle: it would run one stream's row path, not this
+        # tick's, and cost the loop an extra wake a tick; live, 64 x 120 Hz, CPU per frame
+        # 0.84x pass-through, 0.94x hlm without it, p50 unchanged: bench/notebook/wire-4.md)
+        t2 = self.clock()
+        sched.observe_replies(n, te - t1e, t2 - t1)
+        wait = t2 - arrived
+        self.metrics.latencies(wait, len(out))
+        if out and wait > budget:
+            for s in out:
+                s.count("over_budget")
+            self.metrics.inc("over_budget", len(out))
+        return True
 
 
 def _styles(styles: list[Any], n: int) -> list[Any]:

@@ -15,7 +15,6 @@ import pytest
 from daemon import config, server, wire
 from daemon.models import Loaded, load_all
 from daemon.pack import fill_map, to_map
-from daemon.rowpack import FillRows
 from lacuna.filler import Fill
 from mocap.baselines import HoldModel
 
@@ -57,10 +56,8 @@ class Recording(server.Daemon):
         self.sent.append((repr(origin), msgpack.packb(m, use_bin_type=True)))
 
     def _send_fills(self, origin, maps):
-        # encoded rows (daemon/rowpack.py) must be the very bytes the row path's maps pack to
-        bodies = maps.rows if isinstance(maps, FillRows) else [msgpack.packb(m, use_bin_type=True) for m in maps]
-        for b in bodies:
-            self.sent.append((repr(origin), b))
+        for m in maps:
+            self.sent.append((repr(origin), msgpack.packb(m, use_bin_type=True)))
 
 
 def _daemon(clock, arrays: bool, overdue: str, model):
