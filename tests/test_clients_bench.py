@@ -111,7 +111,10 @@ def test_bench_streams_multiplexed_on_one_connection_are_all_answered(tmp_path, 
 
     g = synth.gait(2.0, seed=5)
     HoldModel.fit([g.frames], g.channels).save(str(tmp_path / "hold.npz"))
-    rc = main(["bench", "--streams", "12", "--connections", "2", "--rate", "120", "--seconds", "1",
+    # (overdue = "serve": a frame a loaded machine answers after the 4 ms budget is answered late, not
+    # dropped, so what is checked is the multiplexing, not this machine's speed: CI's busy 2 cores
+    # had dropped over 10% as overdue)
+    rc = main(["bench", "--streams", "12", "--connections", "2", "--rate", "120", "--seconds", "1", "--overdue", "serve",
                "--model", str(tmp_path / "hold.npz"), "--json", str(tmp_path / "m.json"), "-q"])
     assert rc == 0
     out = json.loads((tmp_path / "m.json").read_text())
@@ -136,7 +139,7 @@ def test_bench_bundles_carry_every_stream_of_a_connection_in_one_message(tmp_pat
     g = synth.gait(2.0, seed=6)
     HoldModel.fit([g.frames], g.channels).save(str(tmp_path / "hold.npz"))
     rc = main(["bench", "--streams", "12", "--connections", "3", "--bundle", "--cpu-latency", "0", "--rate", "120",
-               "--seconds", "1", "--model", str(tmp_path / "hold.npz"), "--json", str(tmp_path / "b.json"), "-q"])
+               "--seconds", "1", "--overdue", "serve", "--model", str(tmp_path / "hold.npz"), "--json", str(tmp_path / "b.json"), "-q"])
     assert rc == 0
     r = json.loads((tmp_path / "b.json").read_text())["runs"]["model"]
     assert r["bundle"] is True and r["connections"] == 3 and r["sent"] == 12 * 120
