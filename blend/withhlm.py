@@ -468,13 +468,13 @@ class WithHLMModel(Model):
         may be shared by twins mixed anew (tests/default_small.py's remix), and its other outputs do not depend
         on it; an HLM loaded from a file without ``long_ll_legs`` never computes it (no extra work)."""
         hlm = self.hlm
-        if self._ll_on and getattr(self, "long_ll_legs", False):
+        if self._ll_on and self.long_ll_legs:
             hlm.set_ll_feats(hlm.leg_feats(self._legs))   # type: ignore[attr-defined]
 
     def _ll_track(self, s: WithHLMState, o: np.ndarray) -> None:
         """long_ll (module doc): the stream's level and baseline from this frame's HLM step (its normaliser,
         ``hlm.online.init_state``'s "ll"), and the revoke.  After the HLM's step, before the q bin is read."""
-        if s.ll_busy and bool(o[self._legs].all()):   # the regime: no ordinary window runs
+        if s.busy and bool(o[self._legs].all()):   # the regime: no ordinary window runs
             ll, r, c = self._hcore["ll"], s.hs.slot, self._ll_c   # type: ignore[attr-defined]
             lln, no = ll.item(r, c), ll.item(r, c + 1)
             if not s.ll_in:   # the erasure's onset: its own level, the baseline frozen
@@ -491,7 +491,7 @@ class WithHLMModel(Model):
             return
         if s.ll_in:
             s.ll_in = s.ll_rev = False
-        if s.ll_busy or s._lq >= LOGQ_YIELD:
+        if s.busy or s._lq >= LOGQ_YIELD:
             return
         ll, r, c = self._hcore["ll"], s.hs.slot, self._ll_c   # the baseline: the HLM's share earned, ordinary windows run
         no = ll.item(r, c + 1)
@@ -672,8 +672,6 @@ class WithHLMModel(Model):
             g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
             if self._lg_on:   # the leg gate's long window ("Long erasures")
                 self._long(s, F[i], O[i], nm > SHADOW_MAX_MISS, s.gm, True)
-            if self._ll_on:
-                s.ll_busy = nm > SHADOW_MAX_MISS
             if g >= 0:
                 HO = O.copy() if HO is O else HO
                 HO[i, self._cols[g]] = False
@@ -725,8 +723,6 @@ class WithHLMModel(Model):
             g = s._plan(bool(busy[i]), gmiss[i])
             if self._lg_on:   # the leg gate's long window ("Long erasures")
                 self._long(s, F[i], O[i], bool(busy[i]), gmiss[i], False)
-            if self._ll_on:
-                s.ll_busy = bool(busy[i])
             self._open(s, g, i, HO, win)
         if win:
             dst = [s.ds for s in states] + [t for t in (states[i].twin for i in win) if t is not None]   # (_open set them)
@@ -751,8 +747,6 @@ class WithHLMModel(Model):
             g = s._plan(nm > SHADOW_MAX_MISS, s.gm)
             if self._lg_on:   # the leg gate's long window ("Long erasures")
                 self._long(s, F[i], O[i], nm > SHADOW_MAX_MISS, s.gm, True)
-            if self._ll_on:
-                s.ll_busy = nm > SHADOW_MAX_MISS
             if g >= 0:
                 HO = O.copy() if HO is O else HO
                 HO[i, self._cols[g]] = False
@@ -1070,8 +1064,9 @@ class WithHLMState(FillerState):
         self.n_lwin = 0
         self.ltwin: FillerState | None = None   # the blend under the long window's mask
         self.lhs: FillerState | None = None     # the HLM under it (its slot kept between windows)
-        # long_ll (module doc): this frame's busy, the erasure's level, the baseline, the revoke
-        self.ll_busy = self.ll_in = self.ll_rev = False
+        # long_ll (module doc): the erasure's level, the baseline, the revoke
+        self.busy = False   # this frame: more than SHADOW_MAX_MISS channels missing (set by _plan)
+        self.ll_in = self.ll_rev = False
         self.ll_age, self.n_llrev = 0, 0
         self.ll_S = self.ll_N = self.ll_bS = self.ll_bN = 0.0
         self.ll_B = math.nan
@@ -1103,6 +1098,7 @@ class WithHLMState(FillerState):
         """This frame's hidden group (index into SHADOW_GROUPS) or -1; opens and closes windows.
         ``busy``: more than SHADOW_MAX_MISS channels really missing; ``gmiss``: each shadow group's
         missing channels."""
+        self.busy = busy   # (read by long_ll's _ll_track later in the step)
         if self.sh >= 0:
             if busy or gmiss[self.sh] > 0 or self.sh_n >= SHADOW_LEN:
                 self._close()

@@ -276,19 +276,20 @@ def update(tab: FilterTables, state: dict[str, np.ndarray], z: np.ndarray, zobs:
         state["ll"][si[starts], 0] = np.where(nz[si[starts]] > 0, lln, 0.0)
         state["ll"][:, 1] = nz
         lf = tab.ll_feats   # columns 2-3: the same over the observed features of ll_feats only (_part_ll)
-        zl = np.zeros_like(zobs)
-        zl[:, lf] = zobs[:, lf]
-        nl = zl.sum(1).astype(float)
-        state["ll"][:, 2] = 0.0
-        if nl.any():
-            if adapted:
-                lq = adapted_loglik(tab, np.where(zl, z, 0.0)[si], zl[si], rows, off)
-            else:
-                lq = tab.em.loglik_at(tab.em.terms(z, zl), si, rows)
-            top = np.maximum.reduceat(lq, starts)
-            lnl = top + np.log(np.add.reduceat(p * np.exp(lq - top[which]), starts))
-            state["ll"][si[starts], 2] = np.where(nl[si[starts]] > 0, lnl, 0.0)
-        state["ll"][:, 3] = nl
+        state["ll"][:, 2:] = 0.0
+        if lf.size:   # (none asked for: no extra work, as the compiled step)
+            zl = np.zeros_like(zobs)
+            zl[:, lf] = zobs[:, lf]
+            nl = zl.sum(1).astype(float)
+            if nl.any():
+                if adapted:
+                    lq = adapted_loglik(tab, np.where(zl, z, 0.0)[si], zl[si], rows, off)
+                else:
+                    lq = tab.em.loglik_at(tab.em.terms(z, zl), si, rows)
+                top = np.maximum.reduceat(lq, starts)
+                lnl = top + np.log(np.add.reduceat(p * np.exp(lq - top[which]), starts))
+                state["ll"][si[starts], 2] = np.where(nl[si[starts]] > 0, lnl, 0.0)
+            state["ll"][:, 3] = nl
     if tab.style_switch > 0.0:
         newp[newp < PRUNE * np.maximum.reduceat(newp, starts)[which]] = 0.0
     tot = np.add.reduceat(newp, starts)
