@@ -35,8 +35,8 @@ from clients.configfile import Config, free_port, write_config
 from lacuna.errors import LacunaError
 
 # The first start after an install compiles the numba kernels in the models' warm-up (the daemon
-# logs ``loading`` and ``loaded`` per model): 53 s for default-hlm on a fresh checkout here on a quiet
-# day, over 60 s on CI's busy machine (stop 38's run failed there).  Cached afterwards (~2 s).
+# logs ``loading`` and ``loaded`` per model): 53 s and 64 s for the demo's default on two fresh clones
+# here, over 60 s on CI's machine (stop 38's run failed there).  Cached afterwards (~2 s).
 START_TIMEOUT_S = 300.0
 STOP_TIMEOUT_S = 10.0  # SIGTERM drains; after this, SIGKILL
 POLL_S = 0.01
