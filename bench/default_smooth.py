@@ -48,6 +48,8 @@ def seeds(spec: str) -> list[int]:
 
 
 def setting(spec: str) -> tuple[str, dict]:
+    if spec == "file":   # the model file's own mixing settings, untouched (the only setting of its run)
+        return "file", {"file": True, "bq": "0"}
     name, knots, pop, *rest = spec.split(":")
     out = {"knots": knots == "1", "std_knots": knots == "s", "pop": float(pop)}
     for key, v in zip(("pop_tau", "pop_rel", "band_tau", "rate_a"), rest):
@@ -58,6 +60,18 @@ def setting(spec: str) -> tuple[str, dict]:
     for key, v in zip(("pace_tau", "pace_k", "pace_a"), rest[5:]):
         out[key] = float(v)
     return name, {**out, "bq": bq}
+
+
+def with_settings(blend, **changes: float):
+    """The blend (blend.model.DefaultModel) with other ``Settings`` values: built again (its
+    regression matrices and shadow checks solved again), its arrays and weights the same."""
+    from dataclasses import replace
+
+    from blend.model import DefaultModel
+
+    return DefaultModel(blend.channels, blend.mean_, blend.std_, blend.reg_idx, blend.mu_, blend.cov_,
+                        replace(blend.settings, **changes), blend.weights, blend.meta, blend.vrms_, blend.vgain_,
+                        blend.group)
 
 
 def band_kinks(std: np.ndarray, observed: np.ndarray) -> np.ndarray:
@@ -91,6 +105,8 @@ def main() -> int:
     ap.add_argument("--json")
     ap.add_argument("--band-q", help="bench/default_band_q.py's fit (JSON), for settings with BQ g or u")
     ap.add_argument("--gate-n0", type=float, help="the blend's gate_n0 instead of the file's (blend/model.py Settings)")
+    ap.add_argument("--blend-setting", action="append", default=[], metavar="KEY=VALUE",
+                    help="a blend/model.py Settings value instead of the file's (e.g. pmean_s=0.5, ridge=0.01; repeatable)")
     a = ap.parse_args()
     if a.model:
         model = load_model(a.model)
@@ -104,7 +120,11 @@ def main() -> int:
     if a.gate_n0 is not None:
         model.default.settings.gate_n0 = a.gate_n0
         model.default._par[12] = a.gate_n0
+    if a.blend_setting:
+        model.default = with_settings(model.default, **{k: float(v) for k, v in (x.split("=", 1) for x in a.blend_setting)})
     sets = [setting(s) for s in a.settings]
+    if any(sm.get("file") for _, sm in sets) and len(sets) > 1:
+        raise SystemExit("'file' must be the only setting (the others change the model's mixing settings)")
     fitted = json.loads(Path(a.band_q).read_text()) if a.band_q else None
     if any(sm["bq"] in ("g", "u") for _, sm in sets) and fitted is None:
         raise SystemExit("settings with BQ g or u need --band-q")
@@ -128,6 +148,11 @@ def main() -> int:
     for i, c in enumerate(cases):
         given = np.where(c.observed, c.truth, np.nan)
         for name, sm in sets:
+            if sm.get("file"):
+                fill, std = model.fill_offline(given, c.observed)
+                tables[name][splits.ACTIVITY[c.test]].append(metrics.values(c, fill, std, c.info["groups"]))
+                bends[name][splits.ACTIVITY[c.test]].append(band_kinks(std, c.observed))
+                continue
             model.set_smooth(**{k: v for k, v in sm.items() if k != "bq"})
             if sm["bq"] == "m":
                 if own is not None:

@@ -73,9 +73,10 @@ def _features_all(x, ri, mean, mu, Ls, hist, pos, zf):
 
 @jit
 def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
-                  h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
+                  h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
                   ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin):
-    """blend.guard.guard_update, channel by channel (``gbuf``: the state's scratch, 2 C + len(mu))."""
+    """blend.guard.guard_update, channel by channel (``gbuf``: the state's scratch, 2 C + len(mu);
+    ``mean``: the regression's centre, the state's ``pm``)."""
     G = GS.shape[0]
     B = GS.shape[1]
     for g in range(G):
@@ -144,8 +145,9 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
                 r += mu[mi]
                 c = ri[mi]
                 if new:
-                    voff[c] = _wrap(vh[c] - (mean[c] + r))
-                Qb[c] = wq * _wrap(mean[c] + r + voff[c] * a ** kk - vh[c])
+                    vpm[c] = mean[c]
+                    voff[c] = _wrap(vh[c] - (vpm[c] + r))
+                Qb[c] = wq * _wrap(vpm[c] + r + voff[c] * a ** kk - vh[c])
         pp = 0.0
         pq = 0.0
         qq2 = 0.0
@@ -226,10 +228,12 @@ def reg_missing(obs, ri, out):
 @jit
 def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
                 last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
-                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, NE, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, GL, gbuf, gbin):
+                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, NE, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, GL, gbuf, gbin):
+    """``mean``: the regression's centre, the state's ``pm`` (the stream's mean pose, updated here while
+    ``par[13]`` > 0; else the training mean, untouched)."""
     _beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
                                                                  par[6], par[7], par[8])
-    gate_rho, gate_decay, gate_weak, gate_n0 = par[9], par[10], par[11], par[12]
+    gate_rho, gate_decay, gate_weak, gate_n0, pm_eta = par[9], par[10], par[11], par[12], par[13]
     C = f.shape[0]
     n = hist.shape[0]
     pos = int(sv[3])
@@ -240,6 +244,8 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
             if obs[j]:
                 for rr in range(n):
                     hist[rr, j] = f[j]
+                if pm_eta > 0.0:
+                    mean[j] = f[j]
     Lm = 0
     for b in range(Ls.shape[0]):
         Lm = max(Lm, Ls[b])
@@ -288,7 +294,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
     guard_on = gpar[3] > 0.0
     if guard_on:
         _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
-                      h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
+                      h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
                       ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin)
     anyobs = False
     anymiss = False
@@ -313,6 +319,11 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 da = _wrap(da)
             amean[j] = amean[j] + eta * da
             avar[j] = (1 - eta) * avar[j] + eta * da * da
+            if pm_eta > 0.0:
+                dp = f[j] - mean[j]
+                if ang[j]:
+                    dp = _wrap(dp)
+                mean[j] = mean[j] + pm_eta * dp
             h[j] = f[j]
             if k[j] > 0:
                 e = f[j] - last[j]

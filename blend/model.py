@@ -96,6 +96,11 @@ class Settings:
     guard_s: float = 0.0      # the guard (blend.guard): decay time constant of its evidence, seconds (0: off)
     guard_n0: float = 120.0   # ... its ridge toward lambda = 1: guard_n0 / n times the diagonal (n: virtual gaps seen)
     guard_max: float = 1.0    # ... the largest lambda (1: the guard only shrinks toward hold)
+    pmean_s: float = 0.0      # the regression's pose features and R taken about the stream's own mean pose (each
+                              # channel's exponentially weighted mean over about this many seconds while observed)
+                              # instead of the training takes' mean, so a performer who stands, carries an arm or
+                              # crouches unlike them is not pulled toward their poses as the anchoring offset
+                              # decays; 0: the training mean (files written before it load so)
 
     def per_frame(self) -> dict[str, float]:
         f = self.fps
@@ -165,6 +170,9 @@ class DefaultModel(Model):
         self._none_i = np.zeros(0, np.int64)
         self._none_B = np.zeros((0, 0))
         self._shadow()
+        # the stream's mean pose: its update per observed frame (0: off, the training mean)
+        self.pmean_eta = 1.0 - float(np.exp(-1.0 / (settings.pmean_s * settings.fps))) if settings.pmean_s > 0 else 0.0
+        self._par = np.append(self._par, self.pmean_eta)
         self.guard_on = settings.guard_s > 0
         self.guard_h = guard.horizons(settings.fps)
         self.guard_hf = self.guard_h.astype(float)
