@@ -74,7 +74,7 @@ def _features_all(x, ri, mean, mu, Ls, hist, pos, zf):
 @jit
 def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
                   h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
-                  ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin):
+                  sh_V, cond_p, ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin):
     """blend.guard.guard_update, channel by channel (``gbuf``: the state's scratch, 2 C + len(mu);
     ``mean``: the regression's centre, the state's ``pm``)."""
     G = GS.shape[0]
@@ -147,7 +147,10 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
                 if new:
                     vpm[c] = mean[c]
                     voff[c] = _wrap(vh[c] - (vpm[c] + r))
-                Qb[c] = wq * _wrap(vpm[c] + r + voff[c] * a ** kk - vh[c])
+                if cond_p > 0.0:
+                    Qb[c] = (wq * sh_V[si, i] ** cond_p) * _wrap(vpm[c] + r + voff[c] * a ** kk - vh[c])
+                else:
+                    Qb[c] = wq * _wrap(vpm[c] + r + voff[c] * a ** kk - vh[c])
         pp = 0.0
         pq = 0.0
         qq2 = 0.0
@@ -226,14 +229,14 @@ def reg_missing(obs, ri, out):
 
 
 @jit
-def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
-                last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
-                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, NE, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, GL, gbuf, gbin):
+def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, E, has_reg, changed,
+                last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv, Ps,
+                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, sh_V, ER, EH, NE, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, GL, gbuf, gbin):
     """``mean``: the regression's centre, the state's ``pm`` (the stream's mean pose, updated here while
     ``par[13]`` > 0; else the training mean, untouched)."""
     _beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
                                                                  par[6], par[7], par[8])
-    gate_rho, gate_decay, gate_weak, gate_n0, pm_eta = par[9], par[10], par[11], par[12], par[13]
+    gate_rho, gate_decay, gate_weak, gate_n0, pm_eta, cond_p = par[9], par[10], par[11], par[12], par[13], par[14]
     C = f.shape[0]
     n = hist.shape[0]
     pos = int(sv[3])
@@ -295,7 +298,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
     if guard_on:
         _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
                       h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
-                      ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin)
+                      sh_V, cond_p, ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin)
     anyobs = False
     anymiss = False
     for j in range(C):
@@ -350,6 +353,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                     R[j] = h[j]
                 k[j] += 1
                 Rv[j] = h[j]
+                Ps[j] = 1.0
         if has_reg:
             nO = O.shape[0]
             z = np.empty(nO)
@@ -384,6 +388,8 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 val = mean[c] + r + off[c]
                 R[c] = val
                 Rv[c] = h[c] + _wrap(val - h[c])  # R on the branch of the last value: never 360 away
+                if cond_p > 0.0:
+                    Ps[c] = E[i] ** cond_p
         L = GL
         if guard_on:
             _guard_solve(GS, gpar[1], gpar[2], L)
@@ -402,6 +408,9 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
             rho = _rho(ER, EH, NE, g, gate_n0)
             gate = 1.0 / (1.0 + (rho / gate_rho) ** 2)
             weak = 1.0 / (1.0 + (rho / gate_weak) ** 2)
+            if cond_p > 0.0:
+                gate = gate * Ps[j]
+                weak = weak * Ps[j]
             wrj = _knot(wr, g, t, knots) * weak + _knot(wg, g, t, knots) * gate
             lv = 1.0
             lr = 1.0

@@ -139,6 +139,8 @@ def guard_update(st: FillerState, f: np.ndarray, obs: np.ndarray) -> None:
             gi = np.array([g])
             wq = (m.knot_weights(m.weights.wr, gg, t)[0] * st.gate(gi, weak=True)[0]
                   + m.knot_weights(m.weights.wg, gg, t)[0] * st.gate(gi)[0])
+            if m.settings.cond_p > 0:  # as a real gap's regression yields (Settings.cond_p)
+                wq = wq * m.sh_V[si, :len(mm)] ** m.settings.cond_p
             Q[m.guard_pos[rc]] = wq * wrap(Rk - st.vh[rc])
         st.GS[g, b] += np.array([P @ P, P @ Q, Q @ Q, y @ P, y @ Q, 1.0])
 

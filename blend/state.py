@@ -67,6 +67,7 @@ class DefaultState(FillerState):
         self.miss_key: bytes | None = None
         self.mreg = np.zeros(len(model.reg_idx), bool)   # _step_fast's scratch: the regression channels missing
         self.Rv = np.zeros(C)
+        self.Ps = np.ones(C)                 # _step_fast's scratch: each missing channel's cond_p factor
         self.collect = False                 # blend.fit sets it and reads ``comp`` after each step
         self.comp: Components | None = None
 
@@ -104,16 +105,17 @@ class DefaultState(FillerState):
         if reg_missing(obs, m.reg_idx, miss_reg):
             key = miss_reg.tobytes()
             mm, O, B = m.regression(miss_reg, key)
+            E = m.explained(miss_reg, key) if m.settings.cond_p > 0 else m._none_V
             changed = key != self.miss_key
             self.miss_key = key
             has = True
         else:
             self.miss_key = None
-            mm, O, B, changed, has = m._none_i, m._none_i, m._none_B, False, False
+            mm, O, B, E, changed, has = m._none_i, m._none_i, m._none_B, m._none_V, False, False
         step_kernel(f, obs, m.ang, m.group, self.pm, m.std_, m.reg_idx, m.mu_, m.knots, m.weights.wv, m.weights.wl,
-                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, has, changed, self.last, self.h, self.vel,
+                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, E, has, changed, self.last, self.h, self.vel,
                     self.v0, self.k, self.R, self.off, self.amean, self.avar, self.lstd, self.hist, self.sv, out, std,
-                    self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH, self.NE,
+                    self.Rv, self.Ps, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, m.sh_V, self.ER, self.EH, self.NE,
                     m.guard_h, m.guard_hf, m.guard_par, m.guard_cols_flat, m.guard_cols_ptr, m.guard_sh, m.guard_pos,
                     self.vk, self.vh, self.vv, self.voff, self.vpm, self.GS, self.GL, self.gbuf, m.guard_bin)
 
@@ -201,17 +203,20 @@ class DefaultState(FillerState):
             V = H + self.v0[idx] * (d * (1.0 - d ** kk) / (1.0 - d))
             d2 = pf["d2"]
             W = H + self.v0[idx] * (d2 * (1.0 - d2 ** kk) / (1.0 - d2))
-            Rv = self._regress(f, obs, miss, prev, idx)
+            Rv, vc = self._regress(f, obs, miss, prev, idx)
             t = kk / m.settings.fps
             g = m.group[idx]
             wv = m.knot_weights(m.weights.wv, g, t)
             wl = m.knot_weights(m.weights.wl, g, t)
             gate = self.gate(g)
             weak = self.gate(g, weak=True)
+            amp = np.sqrt(self.avar[idx] + (m.settings.amp_floor * m.std_[idx]) ** 2)
+            if m.settings.cond_p > 0:  # the regression yields where what is seen says little (Settings.cond_p)
+                psi = np.where(np.isnan(vc), 1.0, np.nan_to_num(vc) ** m.settings.cond_p)
+                gate, weak = gate * psi, weak * psi
             wr = m.knot_weights(m.weights.wr, g, t) * weak + m.knot_weights(m.weights.wg, g, t) * gate
             lv, lr = guard_lambda(self, g, kk) if m.guard_on else (np.ones(len(idx)), np.ones(len(idx)))
             out[idx] = H + lv * (wv * (V - H) + wl * (W - H)) + lr * wr * (Rv - H)
-            amp = np.sqrt(self.avar[idx] + (m.settings.amp_floor * m.std_[idx]) ** 2)
             P = m.settings.cal_prior
             scale = min(max(np.sqrt((P + self.sv[0]) / (P + self.sv[1])), 0.33), 3.0) if self.sv[1] else 1.0
             std[idx] = m.knot_weights(m.weights.sc, g, t) * amp * scale
@@ -229,14 +234,16 @@ class DefaultState(FillerState):
         return Fill(out, std, miss)
 
     def _regress(self, f, obs, miss, prev, idx) -> np.ndarray:
-        """R for the missing channels idx (root and non-angle channels: R = h)."""
+        """(R, e) for the missing channels idx: R (root and non-angle channels: R = h) and the
+        share of each one's variance the channels seen explain (NaN: no regression)."""
         m = self.m
         ri = m.reg_idx
         Rout = self.h[idx].copy()
+        Vout = np.full(len(idx), np.nan)
         miss_reg = miss[ri]
         if not miss_reg.any():
             self.miss_key = None
-            return Rout
+            return Rout, Vout
         key = miss_reg.tobytes()
         mm, O, B = m.regression(miss_reg, key)
         x = np.where(obs, f, self.last)
@@ -253,4 +260,5 @@ class DefaultState(FillerState):
         self.R[cols] = val
         pos = np.searchsorted(idx, cols)
         Rout[pos] = self.h[cols] + wrap(val - self.h[cols])  # on the branch of the last value: never 360 away
-        return Rout
+        Vout[pos] = m.explained(miss_reg, key)
+        return Rout, Vout
