@@ -73,10 +73,9 @@ def _features_all(x, ri, mean, mu, Ls, hist, pos, zf):
 
 @jit
 def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
-                  h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
-                  sh_V, cond_p, ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin):
-    """blend.guard.guard_update, channel by channel (``gbuf``: the state's scratch, 2 C + len(mu);
-    ``mean``: the regression's centre, the state's ``pm``)."""
+                  h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
+                  ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin):
+    """blend.guard.guard_update, channel by channel (``gbuf``: the state's scratch, 2 C + len(mu))."""
     G = GS.shape[0]
     B = GS.shape[1]
     for g in range(G):
@@ -145,12 +144,8 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
                 r += mu[mi]
                 c = ri[mi]
                 if new:
-                    vpm[c] = mean[c]
-                    voff[c] = _wrap(vh[c] - (vpm[c] + r))
-                if cond_p > 0.0:
-                    Qb[c] = (wq * sh_V[si, i] ** cond_p) * _wrap(vpm[c] + r + voff[c] * a ** kk - vh[c])
-                else:
-                    Qb[c] = wq * _wrap(vpm[c] + r + voff[c] * a ** kk - vh[c])
+                    voff[c] = _wrap(vh[c] - (mean[c] + r))
+                Qb[c] = wq * _wrap(mean[c] + r + voff[c] * a ** kk - vh[c])
         pp = 0.0
         pq = 0.0
         qq2 = 0.0
@@ -229,14 +224,12 @@ def reg_missing(obs, ri, out):
 
 
 @jit
-def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, E, has_reg, changed,
-                last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv, Ps,
-                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, sh_V, ER, EH, NE, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, GL, gbuf, gbin):
-    """``mean``: the regression's centre, the state's ``pm`` (the stream's mean pose, updated here while
-    ``par[13]`` > 0; else the training mean, untouched)."""
+def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
+                last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
+                sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, NE, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, GL, gbuf, gbin):
     _beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
                                                                  par[6], par[7], par[8])
-    gate_rho, gate_decay, gate_weak, gate_n0, pm_eta, cond_p = par[9], par[10], par[11], par[12], par[13], par[14]
+    gate_rho, gate_decay, gate_weak, gate_n0 = par[9], par[10], par[11], par[12]
     C = f.shape[0]
     n = hist.shape[0]
     pos = int(sv[3])
@@ -247,8 +240,6 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
             if obs[j]:
                 for rr in range(n):
                     hist[rr, j] = f[j]
-                if pm_eta > 0.0:
-                    mean[j] = f[j]
     Lm = 0
     for b in range(Ls.shape[0]):
         Lm = max(Lm, Ls[b])
@@ -297,8 +288,8 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
     guard_on = gpar[3] > 0.0
     if guard_on:
         _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
-                      h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, vpm, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
-                      sh_V, cond_p, ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin)
+                      h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
+                      ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin)
     anyobs = False
     anymiss = False
     for j in range(C):
@@ -322,11 +313,6 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 da = _wrap(da)
             amean[j] = amean[j] + eta * da
             avar[j] = (1 - eta) * avar[j] + eta * da * da
-            if pm_eta > 0.0:
-                dp = f[j] - mean[j]
-                if ang[j]:
-                    dp = _wrap(dp)
-                mean[j] = mean[j] + pm_eta * dp
             h[j] = f[j]
             if k[j] > 0:
                 e = f[j] - last[j]
@@ -353,7 +339,6 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                     R[j] = h[j]
                 k[j] += 1
                 Rv[j] = h[j]
-                Ps[j] = 1.0
         if has_reg:
             nO = O.shape[0]
             z = np.empty(nO)
@@ -388,8 +373,6 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 val = mean[c] + r + off[c]
                 R[c] = val
                 Rv[c] = h[c] + _wrap(val - h[c])  # R on the branch of the last value: never 360 away
-                if cond_p > 0.0:
-                    Ps[c] = E[i] ** cond_p
         L = GL
         if guard_on:
             _guard_solve(GS, gpar[1], gpar[2], L)
@@ -408,9 +391,6 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
             rho = _rho(ER, EH, NE, g, gate_n0)
             gate = 1.0 / (1.0 + (rho / gate_rho) ** 2)
             weak = 1.0 / (1.0 + (rho / gate_weak) ** 2)
-            if cond_p > 0.0:
-                gate = gate * Ps[j]
-                weak = weak * Ps[j]
             wrj = _knot(wr, g, t, knots) * weak + _knot(wg, g, t, knots) * gate
             lv = 1.0
             lr = 1.0

@@ -133,14 +133,11 @@ def guard_update(st: FillerState, f: np.ndarray, obs: np.ndarray) -> None:
             r = m.mu_[mm] + m.sh_B[si, :len(mm), :len(O)] @ zf[O]
             rc = m.reg_idx[mm]
             if new:  # the regression's anchoring offset, decaying from the onset as a real gap's
-                st.vpm[rc] = st.pm[rc]  # (the centre as the onset left it: a missing channel's is not updated)
-                st.voff[rc] = wrap(st.vh[rc] - (st.vpm[rc] + r))  # the short way round, as a real gap's
-            Rk = st.vpm[rc] + r + st.voff[rc] * pf["a"] ** kk
+                st.voff[rc] = wrap(st.vh[rc] - (m.mean_[rc] + r))  # the short way round, as a real gap's
+            Rk = m.mean_[rc] + r + st.voff[rc] * pf["a"] ** kk
             gi = np.array([g])
             wq = (m.knot_weights(m.weights.wr, gg, t)[0] * st.gate(gi, weak=True)[0]
                   + m.knot_weights(m.weights.wg, gg, t)[0] * st.gate(gi)[0])
-            if m.settings.cond_p > 0:  # as a real gap's regression yields (Settings.cond_p)
-                wq = wq * m.sh_V[si, :len(mm)] ** m.settings.cond_p
             Q[m.guard_pos[rc]] = wq * wrap(Rk - st.vh[rc])
         st.GS[g, b] += np.array([P @ P, P @ Q, Q @ Q, y @ P, y @ Q, 1.0])
 

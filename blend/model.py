@@ -96,16 +96,6 @@ class Settings:
     guard_s: float = 0.0      # the guard (blend.guard): decay time constant of its evidence, seconds (0: off)
     guard_n0: float = 120.0   # ... its ridge toward lambda = 1: guard_n0 / n times the diagonal (n: virtual gaps seen)
     guard_max: float = 1.0    # ... the largest lambda (1: the guard only shrinks toward hold)
-    cond_p: float = 0.0       # the regression's share of a missing channel scaled by e^p, e the share of its variance
-                              # that the channels seen now explain under the fitted Gaussian (1 - Var(x_j | seen) /
-                              # Var(x_j)): where what is seen says little about it (a crouching leg with only an arm
-                              # seen), the regression, which would drift to the training takes' poses as its anchoring
-                              # offset decays, yields to hold and velocity; 0: off (files written before it load so)
-    pmean_s: float = 0.0      # the regression's pose features and R taken about the stream's own mean pose (each
-                              # channel's exponentially weighted mean over about this many seconds while observed)
-                              # instead of the training takes' mean, so a performer who stands, carries an arm or
-                              # crouches unlike them is not pulled toward their poses as the anchoring offset
-                              # decays; 0: the training mean (files written before it load so)
 
     def per_frame(self) -> dict[str, float]:
         f = self.fps
@@ -167,7 +157,6 @@ class DefaultModel(Model):
         self._is_reg[self.reg_idx] = True
         self._ridge = settings.ridge * np.mean(np.diag(self.cov_)) if R else 0.0
         self._cache: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        self._vcache: dict[bytes, np.ndarray] = {}  # the explained share of each pattern's missing pose (cond_p)
         pf = self._pf
         self._par = np.array([pf["beta"], pf["d"], pf["d2"], pf["a"], pf["eta"], settings.fps, settings.amp_floor,
                               settings.cal_prior, settings.cal_decay, settings.gate_rho, settings.gate_decay, settings.gate_rho_weak,
@@ -175,11 +164,7 @@ class DefaultModel(Model):
         self._Ls = np.array(pf["L"], np.int64)
         self._none_i = np.zeros(0, np.int64)
         self._none_B = np.zeros((0, 0))
-        self._none_V = np.zeros(0)
         self._shadow()
-        # the stream's mean pose: its update per observed frame (0: off, the training mean)
-        self.pmean_eta = 1.0 - float(np.exp(-1.0 / (settings.pmean_s * settings.fps))) if settings.pmean_s > 0 else 0.0
-        self._par = np.append(self._par, [self.pmean_eta, settings.cond_p])
         self.guard_on = settings.guard_s > 0
         self.guard_h = guard.horizons(settings.fps)
         self.guard_hf = self.guard_h.astype(float)
@@ -220,9 +205,7 @@ class DefaultModel(Model):
         self.sh_O = np.zeros((G, mx_o), np.int64)
         self.sh_nO = np.zeros(G, np.int64)
         self.sh_B = np.zeros((G, mx_m, mx_o))
-        self.sh_V = np.zeros((G, mx_m))
         for i, (_g, m, O, B) in enumerate(mats):
-            self.sh_V[i, :len(m)] = self._explained(m, O, B)
             self.sh_m[i, :len(m)] = m
             self.sh_nm[i] = len(m)
             self.sh_O[i, :len(O)] = O
@@ -253,26 +236,6 @@ class DefaultModel(Model):
             # streams' masks would otherwise all be solved again on the serving thread together
             del self._cache[next(iter(self._cache))]
         hit = self._cache[key] = (m, O, np.ascontiguousarray(B))
-        return hit
-
-    def _explained(self, m: np.ndarray, O: np.ndarray, B: np.ndarray) -> np.ndarray:
-        """1 - Var(x_m | x_O) / Var(x_m) of each missing pose feature m under the fitted Gaussian, in [0, 1]."""
-        v0 = np.diag(self.cov_)[m]
-        v = v0.copy()
-        if len(O) and len(m):
-            v -= np.einsum("ij,ji->i", B, self.cov_[np.ix_(O, m)])
-        return np.clip(1.0 - v / np.maximum(v0, 1e-12), 0.0, 1.0)
-
-    def explained(self, miss_reg: np.ndarray, key: bytes | None = None) -> np.ndarray:
-        """``_explained`` of the pattern ``regression`` solves for ``miss_reg`` (cached alike)."""
-        if key is None:
-            key = miss_reg.tobytes()
-        hit = self._vcache.get(key)
-        if hit is None:
-            m, O, B = self.regression(miss_reg, key)
-            if len(self._vcache) >= CACHE_PATTERNS:
-                del self._vcache[next(iter(self._vcache))]
-            hit = self._vcache[key] = self._explained(m, O, B)
         return hit
 
     def knot_weights(self, W: np.ndarray, g: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -42,7 +42,6 @@ class DefaultState(FillerState):
         self.k = np.zeros(C, np.int64)      # frames since onset (0 = observed)
         self.R = model.mean_.copy()         # regression component (continuous across mask changes)
         self.off = np.zeros(C)              # anchoring offset of R
-        self.pm = model.mean_.copy()        # the regression's centre: the stream's mean pose (Settings.pmean_s), else the training mean
         self.amean = model.mean_.copy()
         self.avar = (model.std_ * 0.5) ** 2
         self.lstd = np.zeros(C)             # the std given with the last output
@@ -55,7 +54,6 @@ class DefaultState(FillerState):
         self.vh = np.zeros(C)
         self.vv = np.zeros(C)
         self.voff = np.zeros(C)
-        self.vpm = np.zeros(C)              # the centre at the virtual gap's onset (frozen, as a real gap's is)
         self.GS = np.zeros((G, len(model.guard_h), NS))
         self.GL = np.ones((G, len(model.guard_h), 2))      # the compiled step's scales and scratch
         self.gbuf = np.zeros(2 * C + len(model.mu_))
@@ -67,7 +65,6 @@ class DefaultState(FillerState):
         self.miss_key: bytes | None = None
         self.mreg = np.zeros(len(model.reg_idx), bool)   # _step_fast's scratch: the regression channels missing
         self.Rv = np.zeros(C)
-        self.Ps = np.ones(C)                 # _step_fast's scratch: each missing channel's cond_p factor
         self.collect = False                 # blend.fit sets it and reads ``comp`` after each step
         self.comp: Components | None = None
 
@@ -78,7 +75,7 @@ class DefaultState(FillerState):
         xr = x[ri]
         n = self.hist.shape[0]
         pos = int(self.sv[3])
-        parts = [xr - self.pm[ri]] + [xr - self.hist[(pos - L + 1 - back) % n, ri] for L in m._pf["L"]]
+        parts = [xr - m.mean_[ri]] + [xr - self.hist[(pos - L + 1 - back) % n, ri] for L in m._pf["L"]]
         return wrap(np.concatenate(parts))[O] - m.mu_[O]
 
     def step(self, frame, observed=None) -> Fill:
@@ -105,19 +102,18 @@ class DefaultState(FillerState):
         if reg_missing(obs, m.reg_idx, miss_reg):
             key = miss_reg.tobytes()
             mm, O, B = m.regression(miss_reg, key)
-            E = m.explained(miss_reg, key) if m.settings.cond_p > 0 else m._none_V
             changed = key != self.miss_key
             self.miss_key = key
             has = True
         else:
             self.miss_key = None
-            mm, O, B, E, changed, has = m._none_i, m._none_i, m._none_B, m._none_V, False, False
-        step_kernel(f, obs, m.ang, m.group, self.pm, m.std_, m.reg_idx, m.mu_, m.knots, m.weights.wv, m.weights.wl,
-                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, E, has, changed, self.last, self.h, self.vel,
+            mm, O, B, changed, has = m._none_i, m._none_i, m._none_B, False, False
+        step_kernel(f, obs, m.ang, m.group, m.mean_, m.std_, m.reg_idx, m.mu_, m.knots, m.weights.wv, m.weights.wl,
+                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, has, changed, self.last, self.h, self.vel,
                     self.v0, self.k, self.R, self.off, self.amean, self.avar, self.lstd, self.hist, self.sv, out, std,
-                    self.Rv, self.Ps, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, m.sh_V, self.ER, self.EH, self.NE,
+                    self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH, self.NE,
                     m.guard_h, m.guard_hf, m.guard_par, m.guard_cols_flat, m.guard_cols_ptr, m.guard_sh, m.guard_pos,
-                    self.vk, self.vh, self.vv, self.voff, self.vpm, self.GS, self.GL, self.gbuf, m.guard_bin)
+                    self.vk, self.vh, self.vv, self.voff, self.GS, self.GL, self.gbuf, m.guard_bin)
 
     def _shadow(self, f: np.ndarray, obs: np.ndarray) -> None:
         """Predict one observed regression group from the others, as if it were missing."""
@@ -141,7 +137,7 @@ class DefaultState(FillerState):
         n = self.hist.shape[0]
         g = m.sh_g[q]
         lam = m.settings.gate_decay
-        self.ER[g] = lam * self.ER[g] + float(np.sum(wrap(x[cols] - self.pm[cols] - r) ** 2))
+        self.ER[g] = lam * self.ER[g] + float(np.sum(wrap(x[cols] - m.mean_[cols] - r) ** 2))
         self.EH[g] = lam * self.EH[g] + float(np.sum(wrap(x[cols] - self.hist[(int(self.sv[3]) - Lm + 1) % n, cols]) ** 2))
         self.NE[g] = min(self.NE[g] + 1.0, m.settings.gate_n0)
 
@@ -162,8 +158,6 @@ class DefaultState(FillerState):
         n = self.hist.shape[0]
         if self.sv[2] == 0 and obs.any():  # the first frame: the ring starts from it, not from the training mean
             self.hist[:] = np.where(obs, f, self.hist[0])
-            if m.pmean_eta > 0:  # (and so does the stream's mean pose)
-                self.pm = np.where(obs, f, self.pm)
         self._shadow(f, obs)
         prev = self.hist[int(self.sv[3])]
         if m.guard_on:
@@ -176,9 +170,6 @@ class DefaultState(FillerState):
             da = np.where(m.ang, wrap(f - self.amean), f - self.amean)
             self.amean = np.where(obs, self.amean + pf["eta"] * da, self.amean)
             self.avar = np.where(obs, (1 - pf["eta"]) * self.avar + pf["eta"] * da * da, self.avar)
-            if m.pmean_eta > 0:
-                dp = np.where(m.ang, wrap(f - self.pm), f - self.pm)
-                self.pm = np.where(obs, self.pm + m.pmean_eta * dp, self.pm)
             self.h = np.where(obs, f, self.h)
             # online calibration: where a gap just ended, how far off was the last fill, in its std?
             back = obs & (self.k > 0)
@@ -203,20 +194,17 @@ class DefaultState(FillerState):
             V = H + self.v0[idx] * (d * (1.0 - d ** kk) / (1.0 - d))
             d2 = pf["d2"]
             W = H + self.v0[idx] * (d2 * (1.0 - d2 ** kk) / (1.0 - d2))
-            Rv, vc = self._regress(f, obs, miss, prev, idx)
+            Rv = self._regress(f, obs, miss, prev, idx)
             t = kk / m.settings.fps
             g = m.group[idx]
             wv = m.knot_weights(m.weights.wv, g, t)
             wl = m.knot_weights(m.weights.wl, g, t)
             gate = self.gate(g)
             weak = self.gate(g, weak=True)
-            amp = np.sqrt(self.avar[idx] + (m.settings.amp_floor * m.std_[idx]) ** 2)
-            if m.settings.cond_p > 0:  # the regression yields where what is seen says little (Settings.cond_p)
-                psi = np.where(np.isnan(vc), 1.0, np.nan_to_num(vc) ** m.settings.cond_p)
-                gate, weak = gate * psi, weak * psi
             wr = m.knot_weights(m.weights.wr, g, t) * weak + m.knot_weights(m.weights.wg, g, t) * gate
             lv, lr = guard_lambda(self, g, kk) if m.guard_on else (np.ones(len(idx)), np.ones(len(idx)))
             out[idx] = H + lv * (wv * (V - H) + wl * (W - H)) + lr * wr * (Rv - H)
+            amp = np.sqrt(self.avar[idx] + (m.settings.amp_floor * m.std_[idx]) ** 2)
             P = m.settings.cal_prior
             scale = min(max(np.sqrt((P + self.sv[0]) / (P + self.sv[1])), 0.33), 3.0) if self.sv[1] else 1.0
             std[idx] = m.knot_weights(m.weights.sc, g, t) * amp * scale
@@ -234,16 +222,14 @@ class DefaultState(FillerState):
         return Fill(out, std, miss)
 
     def _regress(self, f, obs, miss, prev, idx) -> np.ndarray:
-        """(R, e) for the missing channels idx: R (root and non-angle channels: R = h) and the
-        share of each one's variance the channels seen explain (NaN: no regression)."""
+        """R for the missing channels idx (root and non-angle channels: R = h)."""
         m = self.m
         ri = m.reg_idx
         Rout = self.h[idx].copy()
-        Vout = np.full(len(idx), np.nan)
         miss_reg = miss[ri]
         if not miss_reg.any():
             self.miss_key = None
-            return Rout, Vout
+            return Rout
         key = miss_reg.tobytes()
         mm, O, B = m.regression(miss_reg, key)
         x = np.where(obs, f, self.last)
@@ -253,12 +239,11 @@ class DefaultState(FillerState):
         if key != self.miss_key:
             # the pattern changed: re-anchor so R continues from where it was on the previous frame
             r_prev = m.mu_[mm] + B @ self._features(self.hist[int(self.sv[3])], 1, O)
-            self.off[cols] = wrap(self.R[cols] - (self.pm[cols] + r_prev))  # the short way round (an angle)
+            self.off[cols] = wrap(self.R[cols] - (m.mean_[cols] + r_prev))  # the short way round (an angle)
             self.miss_key = key
         self.off[cols] *= a
-        val = self.pm[cols] + r + self.off[cols]
+        val = m.mean_[cols] + r + self.off[cols]
         self.R[cols] = val
         pos = np.searchsorted(idx, cols)
         Rout[pos] = self.h[cols] + wrap(val - self.h[cols])  # on the branch of the last value: never 360 away
-        Vout[pos] = m.explained(miss_reg, key)
-        return Rout, Vout
+        return Rout
