@@ -105,8 +105,6 @@ def main() -> int:
     ap.add_argument("--json")
     ap.add_argument("--band-q", help="bench/default_band_q.py's fit (JSON), for settings with BQ g or u")
     ap.add_argument("--gate-n0", type=float, help="the blend's gate_n0 instead of the file's (blend/model.py Settings)")
-    ap.add_argument("--ll-floor", type=float, nargs=2, metavar=("L", "TAU"),
-                    help="the HLM's floor on its predictive likelihood (blend/withhlm.py set_ll_floor) instead of the file's")
     ap.add_argument("--blend-setting", action="append", default=[], metavar="KEY=VALUE",
                     help="a blend/model.py Settings value instead of the file's (e.g. pmean_s=0.5, ridge=0.01; repeatable)")
     a = ap.parse_args()
@@ -122,8 +120,6 @@ def main() -> int:
     if a.gate_n0 is not None:
         model.default.settings.gate_n0 = a.gate_n0
         model.default._par[12] = a.gate_n0
-    if a.ll_floor is not None:
-        model.set_ll_floor(*a.ll_floor)
     if a.blend_setting:
         model.default = with_settings(model.default, **{k: float(v) for k, v in (x.split("=", 1) for x in a.blend_setting)})
     sets = [setting(s) for s in a.settings]

@@ -116,8 +116,6 @@ def main() -> int:
     ap.add_argument("--json", help="write the per-case figures here")
     ap.add_argument("--policy", type=float, nargs=2, metavar=("Q_PRIOR_N", "SHADOW_REVOKE"),
                     help="run under this check instead of the module's (0 0: main 5b13b52's)")
-    ap.add_argument("--ll-floor", type=float, nargs=2, metavar=("L", "TAU"),
-                    help="the HLM's floor on its predictive likelihood (blend/withhlm.py set_ll_floor) instead of the file's")
     ap.add_argument("--gate-n0", type=float, help="run with this gate_n0 (checks before the regression's whole gate) instead of the file's")
     ap.add_argument("--n0", type=float, help="run with this guard_n0 (the ridge's strength) instead of the file's")
     ap.add_argument("--pace", type=float, nargs=3, metavar=("PACE_TAU", "PACE_K", "PACE_A"),
@@ -135,8 +133,6 @@ def main() -> int:
     if a.n0 is not None:
         model.default.settings.guard_n0 = a.n0
         model.default.guard_par[1] = a.n0
-    if a.ll_floor is not None:
-        model.set_ll_floor(*a.ll_floor)
     if a.pace is not None:
         model.set_smooth(**{**model.smooth, "pace_tau": a.pace[0], "pace_k": a.pace[1], "pace_a": a.pace[2]})
     rows = []

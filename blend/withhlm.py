@@ -271,7 +271,6 @@ LONG_GATE = LONG_GATE_OFF   # what models trained now carry (bench/notebook/loco
 LONG_LL_OFF = (0.0, 0.0)    # the legs' predictive likelihood revoke off (module doc, "long_ll"): files without ``long_ll``
 LONG_LL = (4.0, 60.0)       # what models trained now carry: chosen by bench/notebook/loco-13.md's second look
 LONG_LL_LEGS = False        # long_ll's baseline and level on the legs' features only (``long_ll_legs``): not eligible, bench/notebook/loco-14.md
-LL_FLOOR_OFF = (0.0, 0.0)  # the HLM's floor on its own predictive likelihood off ("ll_floor"): files without it
 LL_N0 = 30          # frames of a long erasure before its level may revoke (= SHADOW_SKIP; fixed, not tuned)
 LL_BTAU = 600.0     # frames: the decay of the baseline (5 s; fixed, not tuned)
 LL_BMIN = 60.0      # the baseline's weight (decayed frames) it needs to count (fixed, not tuned)
@@ -372,8 +371,6 @@ class WithHLMModel(Model):
         self.set_long_trust(*_pair("long_trust", self.meta.get("long_trust", LONG_TRUST_OFF)))
         self.set_long_gate(*_pair("long_gate", self.meta.get("long_gate", LONG_GATE_OFF), 4))
         self.set_long_ll(*_pair("long_ll", self.meta.get("long_ll", LONG_LL_OFF)))
-        self.ll_floor, self._lf_on, self._lf_a, self._lf_L = LL_FLOOR_OFF, False, 0.0, 0.0
-        self.set_ll_floor(*_pair("ll_floor", self.meta.get("ll_floor", LL_FLOOR_OFF)))
         self.set_long_ll_legs(self.meta.get("long_ll_legs", False))
         self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
         self.rate_ref: np.ndarray | None = None   # the training data's mean |dx| a frame per channel ("Rate")
@@ -466,36 +463,6 @@ class WithHLMModel(Model):
             self.meta.pop("long_ll_legs", None)
         self._ll_feats()
 
-    def set_ll_floor(self, L: float, tau: float) -> None:
-        """The HLM's floor on its own predictive likelihood ("ll_floor"): while the stream's decayed mean (over
-        ``tau`` frames) of the HLM's one-step predictive log-likelihood per observed feature (its forward step's
-        normaliser, ``hlm.online.init_state``'s "ll") is below ``L`` nats a feature, the HLM has no share (the
-        last q bin), whatever its windows said: motion the locomotion model finds improbable (a jump, basketball,
-        a crouch) is not its to fill.  L = 0: off (the fills of files written before)."""
-        bad = any(isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x) for x in (L, tau))
-        if bad or L > 0 or (L < 0 and tau <= 0):
-            raise FillerError(f"{METHOD}: ll_floor must be (L <= 0 nats a feature, tau > 0 frames where L < 0) (got {(L, tau)!r})")
-        core = getattr(getattr(self.hlm, "pool", None), "core", {})
-        if L < 0 and "ll" not in core:
-            raise FillerError(f"{METHOD}: ll_floor needs the HLM's predictive likelihood (hlm.online's \"ll\"), which {self.hlm.method} has not")
-        self._hcore = core
-        self.ll_floor = (float(L), float(tau)) if L < 0 else LL_FLOOR_OFF
-        self._lf_on = L < 0
-        self._lf_a = math.exp(-1.0 / tau) if L < 0 else 0.0
-        self._lf_L = float(L)
-        if L < 0:
-            self.meta["ll_floor"] = list(self.ll_floor)
-        else:
-            self.meta.pop("ll_floor", None)
-
-    def _lf_track(self, s: WithHLMState) -> None:
-        """ll_floor: the stream's decayed mean of the HLM's predictive log-likelihood per observed feature."""
-        ll, r = self._hcore["ll"], s.hs.slot   # type: ignore[attr-defined]
-        no = ll.item(r, 1)
-        if no > 0:
-            s.lf_S = self._lf_a * s.lf_S + ll.item(r, 0) / no
-            s.lf_N = self._lf_a * s.lf_N + 1.0
-
     def _ll_feats(self) -> None:
         """The HLM's partial normaliser on the leg features where long_ll reads it.  Never cleared here: the HLM
         may be shared by twins mixed anew (tests/default_small.py's remix), and its other outputs do not depend
@@ -553,8 +520,6 @@ class WithHLMModel(Model):
         where the long-erasure trust holds (q+ <= qmax) or the leg gate does (in a long erasure, q_long+ <=
         qlong), every leg channel observed."""
         if s.ll_rev:   # long_ll's revoke: the blend alone, whatever else would open
-            return len(self._qe)
-        if self._lf_on and s.lf_N > 0 and s.lf_S < self._lf_L * s.lf_N:   # ll_floor: the blend alone
             return len(self._qe)
         logq = s._lq
         if s.lbusy and self._lr_min < s.lg_lq < LOGQ_UNSCORED:   # the leg gate's revoke
@@ -727,8 +692,6 @@ class WithHLMModel(Model):
             j += has
             if self._ll_on:   # long_ll, from this frame's HLM step
                 self._ll_track(s, O[i])
-            if self._lf_on:
-                self._lf_track(s)
             qb = self._qb(s, O[i])
             eh, e0, nh = mix_row(F[i], O[i], HO[i], D[i], Dsd[i], H[i], Hsd[i], T[i] if has else D[i],   # type: ignore[index]
                                  has, self.ang, self._rows, self._kW, self._kS, T_EDGES, qb,
@@ -818,8 +781,6 @@ class WithHLMModel(Model):
             d, h = dfills[i], hfills[i]
             if self._ll_on:   # long_ll, from this frame's HLM step
                 self._ll_track(s, O[i])
-            if self._lf_on:
-                self._lf_track(s)
             logq = s.logq
             T = twin.get(i)
             out, std = np.empty(C), np.empty(C)
@@ -856,9 +817,6 @@ class WithHLMModel(Model):
         if self._ll_on:   # long_ll, from this frame's HLM step
             for i, s in enumerate(states):
                 self._ll_track(s, O[i])
-        if self._lf_on:
-            for s in states:
-                self._lf_track(s)
         logq = np.array([s.logq for s in states])
         raw = np.where(self.ang, wrap(Hf - Df), Hf - Df)
         off = np.where(K == 1, -raw, np.stack([s.o for s in states]))
@@ -1112,7 +1070,6 @@ class WithHLMState(FillerState):
         self.ll_age, self.n_llrev = 0, 0
         self.ll_S = self.ll_N = self.ll_bS = self.ll_bN = 0.0
         self.ll_B = math.nan
-        self.lf_S = self.lf_N = 0.0   # ll_floor's decayed sums (module doc)
         self.collect = False         # bench/default_hlm_tune.py reads ``comp`` after each step
         self.comp: dict[str, np.ndarray] | None = None
 
