@@ -57,7 +57,10 @@ import sys
 from hlm.methods import train_model
 from mocap.datasets import load_trial
 train = [load_trial(t) for t in sys.argv[2].split(",")]
-model = train_model([m.frames for m in train], list(train[0].channels), n_iter=3, restarts=1, styles=2)
+import json
+# (--hlm-option: a tree whose train_model does not know an option ignores it, as hlm.methods does)
+model = train_model([m.frames for m in train], list(train[0].channels), n_iter=3, restarts=1, styles=2,
+                    **json.loads(sys.argv[3]))
 model.save(sys.argv[1])
 '''
 
@@ -76,17 +79,20 @@ def rotated(names: list[str], k: int) -> list[str]:
     return names[k % len(names):] + names[:k % len(names)]
 
 
-def tree_hlm(root: Path, cache: Path) -> Path:
-    """The HLM file of this tree (trained by its own code once, then cached by commit)."""
+def tree_hlm(root: Path, cache: Path, options: dict[str, Any] | None = None) -> Path:
+    """The HLM file of this tree (trained by its own code once, then cached by commit and ``options``,
+    extra keyword arguments of ``hlm.methods.train_model``)."""
     rev = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
                          text=True, check=True).stdout.strip()
     dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "hlm"], check=False,
                            capture_output=True,
                            text=True).stdout.strip()
-    out = cache / f"hlm-{rev}{'-dirty' if dirty else ''}.npz"
+    opts = "".join(f"-{k}={v}" for k, v in sorted((options or {}).items()))
+    out = cache / f"hlm-{rev}{'-dirty' if dirty else ''}{opts}.npz"
     if not out.exists():
         print(f"training the HLM of {root} ({rev}) ...", file=sys.stderr, flush=True)
-        subprocess.run([sys.executable, "-c", TRAIN_HLM, str(out), ",".join(TRAIN)], cwd=root, env=tree_env(root),
+        subprocess.run([sys.executable, "-c", TRAIN_HLM, str(out), ",".join(TRAIN), json.dumps(options or {})],
+                       cwd=root, env=tree_env(root),
                        check=True)
     return out
 
@@ -170,6 +176,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget-ms", type=float, default=4.0, help="the daemons' budget_ms (the default config's)")
     ap.add_argument("--cases", default="single,bundled")
     ap.add_argument("--models", default="floor,hlm")
+    ap.add_argument("--hlm-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a keyword of hlm.methods.train_model (JSON value) for every tree's HLM, e.g. cond_shrink=0 "
+                         "(the HLM as `lacuna train default` trains its expert); a tree that does not know it ignores it")
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "lacuna-echo-vs-daemon"))
     ap.add_argument("--json", dest="json_out", default=str(ROOT / "bench/results/echo_vs_daemon.json"))
     args = ap.parse_args(argv)
@@ -182,7 +191,8 @@ def main(argv: list[str] | None = None) -> int:
     channels = list(load_trial(TRAIN[0]).channels)
     frames = test.frames[:, test.index(channels)].astype(np.float32)
     observed = np.broadcast_to(~np.array([c.split(".")[0] in MISSING for c in channels]), frames.shape).copy()
-    hlms = {name: tree_hlm(root, cache) for name, root in roots.items()} if "hlm" in args.models else {}
+    hopts = {k: json.loads(v) for k, v in (x.split("=", 1) for x in args.hlm_option)}
+    hlms = {name: tree_hlm(root, cache, hopts) for name, root in roots.items()} if "hlm" in args.models else {}
     models = args.models.split(",")
     cases = args.cases.split(",")
     rows: list[dict[str, Any]] = []
@@ -216,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
            "roots": {k: {"dir": str(v), "commit": _rev(v)} for k, v in roots.items()},
            "frames": f"CMU {TEST}, left arm ({', '.join(MISSING)}) missing; HLM trained on {', '.join(TRAIN)}",
            "seconds": args.seconds, "rate": args.rate, "repeats": args.repeats, "budget_ms": args.budget_ms,
-           "at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "loadavg": os.getloadavg(),
+           "hlm_options": hopts, "at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "loadavg": os.getloadavg(),
            "summary": summary, "runs": rows}
     print(json.dumps(summary, indent=1))
     Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
