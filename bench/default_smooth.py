@@ -148,19 +148,15 @@ def main() -> int:
     for i, c in enumerate(cases):
         given = np.where(c.observed, c.truth, np.nan)
         for name, sm in sets:
-            if sm.get("file"):
-                fill, std = model.fill_offline(given, c.observed)
-                tables[name][splits.ACTIVITY[c.test]].append(metrics.values(c, fill, std, c.info["groups"]))
-                bends[name][splits.ACTIVITY[c.test]].append(band_kinks(std, c.observed))
-                continue
-            model.set_smooth(**{k: v for k, v in sm.items() if k != "bq"})
-            if sm["bq"] == "m":
-                if own is not None:
-                    model.set_band_q(*own)
-            elif sm["bq"] != "0":
-                model.set_band_q(np.array(fitted["M"]), fitted["gate"] if sm["bq"] == "g" else None)   # type: ignore[index]
-            elif ones is not None:
-                model.set_band_q(ones)
+            if not sm.get("file"):   # ("file": the model's own mixing settings, untouched)
+                model.set_smooth(**{k: v for k, v in sm.items() if k != "bq"})
+                if sm["bq"] == "m":
+                    if own is not None:
+                        model.set_band_q(*own)
+                elif sm["bq"] != "0":
+                    model.set_band_q(np.array(fitted["M"]), fitted["gate"] if sm["bq"] == "g" else None)   # type: ignore[index]
+                elif ones is not None:
+                    model.set_band_q(ones)
             fill, std = model.fill_offline(given, c.observed)
             tables[name][splits.ACTIVITY[c.test]].append(metrics.values(c, fill, std, c.info["groups"]))
             bends[name][splits.ACTIVITY[c.test]].append(band_kinks(std, c.observed))

@@ -14,8 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -24,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
+START_S = 300  # a first start after an install compiles the kernels (clients/harness.py)
 
 CHILD = r'''
 import sys, os, json, atexit, time
@@ -70,8 +69,7 @@ def main() -> int:
     from bench.echo_vs_daemon import MISSING, TEST, TRAIN, tree_env
     from clients import loadgen
     from clients.client import control
-    from clients.configfile import free_port, write_config
-    from clients.session import DaemonUnavailable
+    from clients.harness import DaemonProcess
     from mocap.datasets import load_trial
 
     test = load_trial(TEST)
@@ -79,30 +77,17 @@ def main() -> int:
     frames = test.frames[:, test.index(channels)].astype(np.float32)
     observed = np.broadcast_to(~np.array([c.split(".")[0] in MISSING for c in channels]), frames.shape).copy()
     work = Path(tempfile.mkdtemp(prefix="single-turn-"))
-    endpoint = f"tcp://127.0.0.1:{free_port()}"
     extra = {k: json.loads(v) for k, v in (x.split("=", 1) for x in a.config)}
-    cfg = work / "lacuna.toml"
-    write_config(cfg, {"daemon": {"default_model": "floor", "budget_ms": 4.0, "log_level": "warning", **extra},
-                       "zmq": {"router": endpoint}, "models.floor": {"builtin": "passthrough", "channels": channels}})
-    trace = work / "trace.json"
-    with open(work / "daemon.log", "ab") as log:
-        proc = subprocess.Popen([sys.executable, "-c", CHILD, str(trace), str(cfg)], cwd=ROOT, env=tree_env(ROOT),
-                                stdin=subprocess.DEVNULL, stdout=log, stderr=log)
-        deadline = time.monotonic() + 300
-        while True:
-            try:
-                control(endpoint, "status", timeout_s=0.5)
-                break
-            except DaemonUnavailable:
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError((work / "daemon.log").read_text()[-2000:]) from None
-                time.sleep(0.1)
+    child, trace = work / "child.py", work / "trace.json"
+    child.write_text(CHILD)
+    d = DaemonProcess({"floor": {"builtin": "passthrough", "channels": channels}}, workdir=str(work),
+                      daemon={"budget_ms": 4.0, "log_level": "warning", **extra}, env=tree_env(ROOT),
+                      argv=[sys.executable, str(child), str(trace)])
+    with d.start(START_S):
         load0 = os.getloadavg()[0]
-        res = loadgen.run_load(endpoint, channels, frames, observed, n_streams=1, rate=120.0, seconds=a.seconds,
+        res = loadgen.run_load(d.endpoint, channels, frames, observed, n_streams=1, rate=120.0, seconds=a.seconds,
                                model="floor", prefix="st", progress=False)
-        st = control(endpoint, "status", timeout_s=5.0).result
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(30)
+        st = control(d.endpoint, "status", timeout_s=5.0).result
     tr = json.loads(trace.read_text())
     read = [t for t in tr["turns"] if t[2]]
     out = {"command": " ".join(sys.argv), "at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

@@ -27,7 +27,7 @@ import sys
 import tempfile
 import time
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +65,8 @@ class DaemonProcess:
     env : extra environment of the child; log_path : where its output goes
         (``daemon.log`` in workdir with models, a fresh file beside the config otherwise).
     python : the interpreter that runs ``-m lacuna.cli serve``.
+    argv : what runs instead of ``python -m lacuna.cli serve --config`` (the config's path is appended),
+        e.g. a benchmark's wrapper around ``daemon.loop.serve`` that times its parts.
     """
 
     def __init__(self, config: str | os.PathLike[str] | Mapping[str, Any], default_model: str | None = None, *,
@@ -72,12 +74,13 @@ class DaemonProcess:
                  workdir: str | os.PathLike[str] | None = None, port: int | None = None,
                  daemon: dict[str, Any] | None = None, zmq: dict[str, Any] | None = None,
                  osc: dict[str, Any] | None = None, metrics: dict[str, Any] | None = None,
-                 python: str = sys.executable):
+                 python: str = sys.executable, argv: Sequence[str] | None = None):
         self.env = dict(os.environ, PYTHONUNBUFFERED="1")
         self.env.pop("NOTIFY_SOCKET", None)  # not ours to notify, unless the caller says so
         self.env.update(env or {})
         self.env[OWNER_ENV] = _owner_tag(os.getpid())
         self.python = python
+        self.argv = list(argv) if argv is not None else [python, "-m", "lacuna.cli", "serve", "--config"]
         self._cfg: Config | None = None
         if isinstance(config, Mapping):
             self.workdir = Path(workdir or tempfile.mkdtemp(prefix="lacuna-daemon-"))
@@ -138,7 +141,7 @@ class DaemonProcess:
         self._seen.update(range(len(self._log)))  # a restart waits for its own records only
         self._run_from = len(self._log)
         with open(self.log_path, "ab") as fh:
-            self.proc = subprocess.Popen([self.python, "-m", "lacuna.cli", "serve", "--config", str(self.config_path)],
+            self.proc = subprocess.Popen([*self.argv, str(self.config_path)],
                                          stdin=subprocess.DEVNULL, stdout=fh, stderr=fh, env=self.env,
                                          # own session: a terminal's Ctrl-C reaches only us, and stop()
                                          # drains the daemon with SIGTERM
