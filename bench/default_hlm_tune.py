@@ -261,10 +261,12 @@ def main() -> int:
     ap.add_argument("--max-miss", type=int, nargs="+", default=[withhlm.SHADOW_MAX_MISS], help="SHADOW_MAX_MISS values to try")
     ap.add_argument("--warm", type=int, nargs="+", default=[withhlm.SHADOW_WARM], help="SHADOW_WARM values to try")
     ap.add_argument("--eager", type=int, nargs="+", default=[withhlm.SHADOW_EAGER], help="SHADOW_EAGER values to try")
+    ap.add_argument("--prior-at", type=float, default=withhlm.Q_PRIOR_AT, help="Q_PRIOR_AT (log r of the prior windows)")
     ap.add_argument("--prior", type=float, nargs="+", default=[withhlm.Q_PRIOR_N], help="Q_PRIOR_N values to try")
     ap.add_argument("--revoke", type=float, nargs="+", default=[withhlm.SHADOW_REVOKE], help="SHADOW_REVOKE values to try (0: off)")
     ap.add_argument("--stress", metavar="SEEDS", help="also run bench/default_stress.py's cases (gaps seeds SEEDS) per policy")
     a = ap.parse_args()
+    withhlm.Q_PRIOR_AT = a.prior_at
     import blend.methods  # noqa: F401  (loaders)
 
     if a.default and a.hlm:

@@ -249,6 +249,7 @@ SHADOW_EAGER = 0      # windows back to back (no rest) until this many have coun
 Q_DECAY = 0.85
 Q_Z = 0.5             # how pessimistic the bound on log q is, in standard errors (chosen on VALIDATION among 0, 0.5, 1)
 Q_V0 = 1.0            # the prior variance of a window's log r (one prior window's worth)
+Q_PRIOR_AT = 0.0      # the log r of those pseudo-windows (0: "the HLM is not better"; math.log(1.1): "not clearly better")
 Q_PRIOR_N = 1.0       # pseudo-windows at log r = 0 ("the HLM is not better") in the bound (VALIDATION among 0, 1, 2: robust-5.md)
 SHADOW_REVOKE = 1.5   # a window with r above this (and 1.1) sets the bound to at least its log r (VALIDATION among 0, 1, 1.5, 2, 4)
 LOGQ_UNSCORED = math.log(100.0)   # no window scored yet: the bound is "no evidence", the last q bin (W = 0)
@@ -1163,9 +1164,9 @@ def _bound(lr_sum: float, lr_ss: float, lr_n: float, eh: float, e0: float) -> tu
     lr_sum = Q_DECAY * lr_sum + r
     lr_ss = Q_DECAY * lr_ss + r * r
     lr_n = Q_DECAY * lr_n + 1.0
-    n = lr_n + Q_PRIOR_N       # Q_PRIOR_N pseudo-windows at log r = 0: "the HLM is not better"
-    mean = lr_sum / n
-    var = (Q_V0 + max(lr_ss - n * mean * mean, 0.0)) / (1.0 + n)
+    n = lr_n + Q_PRIOR_N       # Q_PRIOR_N pseudo-windows at log r = Q_PRIOR_AT ("the HLM is not better")
+    mean = (lr_sum + Q_PRIOR_N * Q_PRIOR_AT) / n
+    var = (Q_V0 + max(lr_ss + Q_PRIOR_N * Q_PRIOR_AT * Q_PRIOR_AT - n * mean * mean, 0.0)) / (1.0 + n)
     lq = mean + Q_Z * math.sqrt(var / n)
     if SHADOW_REVOKE > 0 and r > max(math.log(SHADOW_REVOKE), Q_EDGES[-1]):
         lq = max(lq, r)   # a window that finds the HLM worse revokes its share at once
