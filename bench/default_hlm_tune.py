@@ -296,10 +296,14 @@ def main() -> int:
         chosen = {"fitted_on": "VALIDATION: gaps bursts seeds " + ",".join(map(str, SEEDS)) + " + pan2009 pattern on its walks",
                   "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "tau": tau, "validation": res,
                   "policy": {"Q_Z": z, "SHADOW_SKIP": skip, "SHADOW_MAX_MISS": mm, "SHADOW_WARM": warm,
-                             "SHADOW_EAGER": eager, "Q_PRIOR_N": prior, "SHADOW_REVOKE": revoke,
-                             "worst_take": [round(bad, 4), where]}}
+                             "SHADOW_EAGER": eager, "Q_PRIOR_N": prior, "Q_PRIOR_AT": withhlm.Q_PRIOR_AT,
+                             "SHADOW_REVOKE": revoke, "worst_take": [round(bad, 4), where]}}
         out = {"W": W.round(4).tolist(), "S": S.round(4).tolist(), "chosen": chosen}
         old = json.loads(withhlm.SHIPPED.read_text()) if withhlm.SHIPPED.exists() else {}
+        for key, val in old.get("chosen", {}).items():   # choices this tune does not make (the smoothing's): kept
+            if key not in chosen:
+                chosen[key] = val
+                print(f"kept chosen \"{key}\" as it was")
         for key, how in (("calib", "bench/default_calib.py fit --write"), ("band_q", "bench/default_band_q.py --write")):
             if key in old:   # kept as it was, fitted on the old W/S: refit it after a W/S change
                 out[key] = old[key]

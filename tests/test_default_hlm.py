@@ -262,6 +262,31 @@ def test_an_hlm_right_for_seconds_then_wrong_loses_its_share_at_the_first_window
     assert tot[0] <= tot[1]
 
 
+def test_one_window_that_finds_the_hlm_somewhat_better_is_not_enough_evidence():
+    """The bound's prior window sits at the share's cut (Q_PRIOR_AT = log 1.1, bench/notebook/loao-41.md):
+    one shadow window where the HLM's error is 25% under the blend's (the chance win that handed it
+    held-out jumps and subject 49) leaves the bound above the cut, one where it is half the blend's
+    gives it a share at once, and a second 25%-better window does too (the prior's pull fades)."""
+    import math
+
+    from blend import withhlm
+
+    cut = float(withhlm.Q_EDGES[-1])
+    assert withhlm.Q_PRIOR_AT == pytest.approx(math.log(1.1)) and cut == pytest.approx(math.log(1.1))
+    one = withhlm._bound(0.0, 0.0, 0.0, 0.75, 1.0)
+    assert one[3] > cut                                        # no share on one 0.75 window
+    assert withhlm._bound(0.0, 0.0, 0.0, 0.5, 1.0)[3] < cut    # a clear win: a share at once
+    two = withhlm._bound(one[0], one[1], one[2], 0.75, 1.0)
+    assert two[3] < cut                                        # the same evidence twice: a share
+    # under the old prior (log r = 0) the single 0.75 window was already enough
+    old = withhlm.Q_PRIOR_AT
+    try:
+        withhlm.Q_PRIOR_AT = 0.0
+        assert withhlm._bound(0.0, 0.0, 0.0, 0.75, 1.0)[3] < cut
+    finally:
+        withhlm.Q_PRIOR_AT = old
+
+
 def test_the_shipped_weights_were_fitted_under_the_check_the_code_runs():
     """blend/withhlm.json's W and S are only right for the policy they were fitted under: the policy
     it records is the module's."""
@@ -269,9 +294,9 @@ def test_the_shipped_weights_were_fitted_under_the_check_the_code_runs():
 
     pol = shipped()[2]["policy"]
     assert (pol["Q_Z"], pol["SHADOW_SKIP"], pol["SHADOW_MAX_MISS"], pol["SHADOW_WARM"], pol["SHADOW_EAGER"],
-            pol["Q_PRIOR_N"], pol["SHADOW_REVOKE"]) == \
+            pol["Q_PRIOR_N"], pol.get("Q_PRIOR_AT", 0.0), pol["SHADOW_REVOKE"]) == \
         (withhlm.Q_Z, withhlm.SHADOW_SKIP, withhlm.SHADOW_MAX_MISS, withhlm.SHADOW_WARM, withhlm.SHADOW_EAGER,
-         withhlm.Q_PRIOR_N, withhlm.SHADOW_REVOKE)
+         withhlm.Q_PRIOR_N, withhlm.Q_PRIOR_AT, withhlm.SHADOW_REVOKE)
 
 
 def _long_erasure(model, trust, q, legs_out=False, compiled=True, take="35_30"):
