@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     rows["  the filter kernel _step_many alone"] = timed(lambda r: fast._step_many(
         post, first, tab.prior_flat, tab.d_pop, M, zz, zo, tab.em.fused_t, tab.mu, tab.bin0, tab.bin1, tab.bin_a,
         tab.kappa, tab.kappa_global, tab.n_bins, cs["D"], cs["W"], cs["G"], cs["GW"], prow, tab.lam_rows, tab.var_q,
-        tab.pack, tab.cos, tab.sin, online.LIVE, LIVE_STATS, o1, s1, sty, ph, np.zeros((n, 2))))
+        tab.pack, tab.cos, tab.sin, online.LIVE, LIVE_STATS, o1, s1, sty, ph, np.zeros((n, 4)), tab.ll_feats))
     tabs = fast.slot_tables(tab, model.representation)
     slots = np.array([s.slot for s in streams])
     rows["one call: hlm.fast.step_rows"] = timed(
