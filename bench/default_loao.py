@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     for p in a.policy:
         name, qz, pa, tau, col = p.split(":", 4)
         if float(pa) != 0.0 and not hasattr(withhlm, "Q_PRIOR_AT"):
-            ap.error(f"{name}: Q_PRIOR_AT is not a constant of {root}/blend/withhlm.py (branch prior-at has it)")
+            ap.error(f"{name}: Q_PRIOR_AT is not a constant of {root}/blend/withhlm.py")
         policies.append((name, float(qz), float(pa), float(tau), col))
     jobs: list[tuple[str, list[str], list[str]]] = []  # (group, takes, training takes)
     for g in [x for x in a.groups.split(",") if x]:
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
             if hasattr(withhlm, "Q_PRIOR_AT"):
                 withhlm.Q_PRIOR_AT = pa
             W, S = T.fit(dict(np.load(col)), tau)
-            mm = withhlm.WithHLMModel(m.default, m.hlm, W, S, dict(m.meta), tau=tau, cal=m.calib, smooth=m.smooth,
+            mm = withhlm.WithHLMModel(m.default, m.hlm, W, S, {**m.meta, "prior_at": pa}, tau=tau, cal=m.calib, smooth=m.smooth,
                                       rate_ref=m.rate_ref, band_q=m.band_q, band_gate=m.band_gate)
             fills[name] = [mm.fill_offline(np.where(c.observed, c.truth, np.nan), c.observed) for c in cases]
         del ang

@@ -379,6 +379,12 @@ class WithHLMModel(Model):
         self.set_long_gate(*_pair("long_gate", self.meta.get("long_gate", LONG_GATE_OFF), 4))
         self.set_long_ll(*_pair("long_ll", self.meta.get("long_ll", LONG_LL_OFF)))
         self.set_long_ll_legs(self.meta.get("long_ll_legs", False))
+        # the shadow bound's prior window (Q_PRIOR_AT), kept with the model: its W/S were fitted under it
+        pa = self.meta.get("prior_at", Q_PRIOR_AT)
+        if isinstance(pa, bool) or not isinstance(pa, int | float) or not math.isfinite(pa):
+            raise FillerError(f"{METHOD}: 'prior_at' must be a finite number (got {pa!r})")
+        self.prior_at = float(pa)
+        self.meta["prior_at"] = self.prior_at
         self._kS = np.ascontiguousarray(self.S[self.group] * self.calib)
         self.rate_ref: np.ndarray | None = None   # the training data's mean |dx| a frame per channel ("Rate")
         self._ref = np.zeros(C)
@@ -1029,9 +1035,10 @@ class WithHLMModel(Model):
             smooth = {**{k: v for k, v in SMOOTH_SINCE.items() if k not in smooth}, **smooth}
         if not isinstance(smooth, dict) or set(smooth) != set(NO_SMOOTH):
             raise modelfile.ModelFileError(f"{path}: {METHOD} 'smooth' must be a table of {sorted(NO_SMOOTH)} (got {smooth!r})")
+        kept = {k: v for k, v in meta.items() if k not in ("experts", "bins", "channels", "method", "tau", "smooth")}
+        kept.setdefault("prior_at", 0.0)   # files written before the prior moved to the cut: as they filled
         try:
-            return cls(d, h, W, S, {k: v for k, v in meta.items() if k not in ("experts", "bins", "channels", "method", "tau", "smooth")},
-                       float(tau), cal, smooth, ref, bq, bg)
+            return cls(d, h, W, S, kept, float(tau), cal, smooth, ref, bq, bg)
         except FillerError as e:
             raise modelfile.ModelFileError(f"{path}: {e}") from None
 
@@ -1096,7 +1103,8 @@ class WithHLMState(FillerState):
 
     def _close(self) -> None:
         if self.sh_n - SHADOW_SKIP >= SHADOW_MIN and self.e0 > 0:
-            self.lr_sum, self.lr_ss, self.lr_n, self._lq = _bound(self.lr_sum, self.lr_ss, self.lr_n, self.eh, self.e0)
+            self.lr_sum, self.lr_ss, self.lr_n, self._lq = _bound(self.lr_sum, self.lr_ss, self.lr_n, self.eh, self.e0,
+                                                                   self.m.prior_at)
             self.n_win += 1
         rest = SHADOW_PAUSE if self.n_win >= SHADOW_EAGER else 0
         self.sh, self.sh_n, self.eh, self.e0, self.twin = -1, rest, 0.0, 0.0, None
@@ -1128,7 +1136,8 @@ class WithHLMState(FillerState):
 
     def _lclose(self) -> None:
         if self.lsh_n - SHADOW_SKIP >= SHADOW_MIN and self.le0 > 0:
-            self.llr_sum, self.llr_ss, self.llr_n, self.lg_lq = _bound(self.llr_sum, self.llr_ss, self.llr_n, self.leh, self.le0)
+            self.llr_sum, self.llr_ss, self.llr_n, self.lg_lq = _bound(self.llr_sum, self.llr_ss, self.llr_n, self.leh, self.le0,
+                                                                       self.m.prior_at)
             self.n_lwin += 1
         self.lsh, self.lsh_n, self.leh, self.le0, self.ltwin = -1, self.m._lg_rest, 0.0, 0.0, None
 
@@ -1164,15 +1173,16 @@ class WithHLMState(FillerState):
         return self.m._step([self], f[None], obs[None])[0]
 
 
-def _bound(lr_sum: float, lr_ss: float, lr_n: float, eh: float, e0: float) -> tuple[float, float, float, float]:
-    """A window's r = eh / e0 into the decayed sums; (sums, the bound on log q) (module doc)."""
+def _bound(lr_sum: float, lr_ss: float, lr_n: float, eh: float, e0: float, prior_at: float) -> tuple[float, float, float, float]:
+    """A window's r = eh / e0 into the decayed sums; (sums, the bound on log q) (module doc); ``prior_at``:
+    the log r of the Q_PRIOR_N prior windows (the model's ``prior_at``, Q_PRIOR_AT for a new one)."""
     r = min(max(math.log(max(eh, 1e-9) / max(e0, 1e-9)), -4.0), 4.0)
     lr_sum = Q_DECAY * lr_sum + r
     lr_ss = Q_DECAY * lr_ss + r * r
     lr_n = Q_DECAY * lr_n + 1.0
-    n = lr_n + Q_PRIOR_N       # Q_PRIOR_N pseudo-windows at log r = Q_PRIOR_AT ("the HLM is not clearly better")
-    mean = (lr_sum + Q_PRIOR_N * Q_PRIOR_AT) / n
-    var = (Q_V0 + max(lr_ss + Q_PRIOR_N * Q_PRIOR_AT * Q_PRIOR_AT - n * mean * mean, 0.0)) / (1.0 + n)
+    n = lr_n + Q_PRIOR_N       # Q_PRIOR_N pseudo-windows at log r = prior_at ("the HLM is not clearly better")
+    mean = (lr_sum + Q_PRIOR_N * prior_at) / n
+    var = (Q_V0 + max(lr_ss + Q_PRIOR_N * prior_at * prior_at - n * mean * mean, 0.0)) / (1.0 + n)
     lq = mean + Q_Z * math.sqrt(var / n)
     if SHADOW_REVOKE > 0 and r > max(math.log(SHADOW_REVOKE), Q_EDGES[-1]):
         lq = max(lq, r)   # a window that finds the HLM worse revokes its share at once

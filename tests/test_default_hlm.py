@@ -262,29 +262,38 @@ def test_an_hlm_right_for_seconds_then_wrong_loses_its_share_at_the_first_window
     assert tot[0] <= tot[1]
 
 
-def test_one_window_that_finds_the_hlm_somewhat_better_is_not_enough_evidence():
+def test_one_window_that_finds_the_hlm_somewhat_better_is_not_enough_evidence(model, tmp_path):
     """The bound's prior window sits at the share's cut (Q_PRIOR_AT = log 1.1, bench/notebook/loao-41.md):
     one shadow window where the HLM's error is 25% under the blend's (the chance win that handed it
     held-out jumps and subject 49) leaves the bound above the cut, one where it is half the blend's
-    gives it a share at once, and a second 25%-better window does too (the prior's pull fades)."""
+    gives it a share at once, and a second 25%-better window does too (the prior's pull fades).  The
+    model keeps its prior (its W/S were fitted under it); a file written before it fills with 0, as then."""
     import math
 
     from blend import withhlm
 
     cut = float(withhlm.Q_EDGES[-1])
-    assert withhlm.Q_PRIOR_AT == pytest.approx(math.log(1.1)) and cut == pytest.approx(math.log(1.1))
-    one = withhlm._bound(0.0, 0.0, 0.0, 0.75, 1.0)
-    assert one[3] > cut                                        # no share on one 0.75 window
-    assert withhlm._bound(0.0, 0.0, 0.0, 0.5, 1.0)[3] < cut    # a clear win: a share at once
-    two = withhlm._bound(one[0], one[1], one[2], 0.75, 1.0)
-    assert two[3] < cut                                        # the same evidence twice: a share
-    # under the old prior (log r = 0) the single 0.75 window was already enough
-    old = withhlm.Q_PRIOR_AT
-    try:
-        withhlm.Q_PRIOR_AT = 0.0
-        assert withhlm._bound(0.0, 0.0, 0.0, 0.75, 1.0)[3] < cut
-    finally:
-        withhlm.Q_PRIOR_AT = old
+    pa = withhlm.Q_PRIOR_AT
+    assert pa == pytest.approx(math.log(1.1)) and cut == pytest.approx(math.log(1.1))
+    one = withhlm._bound(0.0, 0.0, 0.0, 0.75, 1.0, pa)
+    assert one[3] > cut                                            # no share on one 0.75 window
+    assert withhlm._bound(0.0, 0.0, 0.0, 0.5, 1.0, pa)[3] < cut    # a clear win: a share at once
+    assert withhlm._bound(*one[:3], 0.75, 1.0, pa)[3] < cut        # the same evidence twice: a share
+    assert withhlm._bound(0.0, 0.0, 0.0, 0.75, 1.0, 0.0)[3] < cut  # the old prior: one 0.75 window was enough
+
+    assert model.prior_at == pa
+    path = tmp_path / "d.npz"
+    model.save(str(path))
+    assert modelfile.load_model(str(path)).prior_at == pa
+    meta, arrays = modelfile.load_arrays(str(path))
+    del meta["prior_at"]
+    old = tmp_path / "old.npz"
+    modelfile.save_arrays(str(old), meta, arrays)
+    assert modelfile.load_model(str(old)).prior_at == 0.0
+    meta["prior_at"] = "log 1.1"
+    modelfile.save_arrays(str(old), meta, arrays)
+    with pytest.raises(modelfile.ModelFileError, match="prior_at"):
+        modelfile.load_model(str(old))
 
 
 def test_the_shipped_weights_were_fitted_under_the_check_the_code_runs():
