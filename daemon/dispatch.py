@@ -15,6 +15,7 @@ from typing import Any
 
 from daemon import aside, blockpath, osc, oscblock, wire
 from daemon import budget as budgets
+from daemon.block import BlockBundle
 from daemon.parts import Parts
 from daemon.session import Origin, SessionError, principal
 
@@ -34,12 +35,19 @@ class Dispatch(Parts):
         if not counted:
             self.metrics.inc("messages_in")
         if origin[0] != "osc":
+            lays, maxb = self.layouts, self.cfg.max_message_bytes
+            if lays.known and len(data) <= maxb and (blk := lays.read(data, principal(origin))) is not None:
+                self.metrics.inc("bundles_by_layout")  # (a bundle in a layout seen before: daemon/layout.py)
+                self._dispatch(BlockBundle(blk), origin, arrived)
+                return
             try:
-                m = wire.unpack(data, self.cfg.max_message_bytes)
+                m = wire.unpack(data, maxb)
             except wire.WireError as e:
                 self._reject(origin, e.reason, e.detail, e.stream, e.seq)
                 return
             self._handle_map(m, origin, arrived)
+            if lays.on and m.get("type") == "frames":
+                lays.learn(data, m, principal(origin))
         elif data.startswith(osc.BUNDLE_PREFIX):  # several messages of one instant
             self._osc_in, self._osc_errs = len(data), []
             try:  # (a bundle of frames: as arrays where it can, daemon/oscblock.py)
@@ -53,11 +61,13 @@ class Dispatch(Parts):
             self._osc_in = len(data)
             self._take(osc.decode, data, origin, arrived)
 
-    def _handle_map(self, m: dict[str, Any] | wire.WireError | bytes, origin: Origin, arrived: float) -> None:
+    def _handle_map(self, m: dict[str, Any] | wire.WireError | bytes | BlockBundle, origin: Origin, arrived: float) -> None:
         """:meth:`_take_bytes` for a message already unpacked by :meth:`dispatch` (or its unpack error;
         bytes: an OSC datagram, not unpacked), counted there."""
         if type(m) is bytes:
             self._take_bytes(m, origin, arrived, counted=True)
+        elif type(m) is BlockBundle:  # (read through its layout by dispatch)
+            self._dispatch(m, origin, arrived)
         elif isinstance(m, wire.WireError):
             self._reject(origin, m.reason, m.detail, m.stream, m.seq)
         elif type(m) is dict and m.get("type") == "hello" and (units := budgets.names_cost(m)) and \
@@ -139,14 +149,17 @@ class Dispatch(Parts):
             return self.dispatch_few(items)
         self.metrics.inc("messages_in", len(items))
         maxb = self.cfg.max_message_bytes
-        maps: list[dict[str, Any] | wire.WireError | bytes] = []
+        maps: list[dict[str, Any] | wire.WireError | bytes | BlockBundle] = []
         keys: list[tuple[str, int] | None] = []
         barrier = False
         for data, origin, _ in items:
             k = None
             if origin[0] == "osc":  # OSC is decoded on its own path, in order
-                m: dict[str, Any] | wire.WireError | bytes = data
+                m: dict[str, Any] | wire.WireError | bytes | BlockBundle = data
                 barrier = True
+            elif self.layouts.known and len(data) <= maxb and (blk := self.layouts.read(data, principal(origin))) is not None:
+                m, barrier = BlockBundle(blk), True  # (a bundle: handled in order, as its map would be)
+                self.metrics.inc("bundles_by_layout")
             else:
                 try:
                     m = wire.unpack(data, maxb)

@@ -30,6 +30,7 @@ from daemon import config as config_mod
 from daemon import wire
 from daemon.control import Control
 from daemon.dispatch import BATCH_MIN, OSC_ERRORS_PER_S, Dispatch
+from daemon.layout import Layouts
 from daemon.log import Log
 from daemon.metrics import Metrics
 from daemon.metrics_http import MetricsHTTP
@@ -97,6 +98,7 @@ class Daemon(Dispatch, Tick, Control, Reloading, Waiting):
         self.osc_err_budget = budgets.Budget(OSC_ERRORS_PER_S, OSC_ERRORS_PER_S)  # error answers per OSC source host
         self._osc_in = 0  # bytes of the OSC datagram being handled (its answers may not be larger)
         self._osc_errs: list[tuple[str, str]] | None = None  # errors of the OSC bundle being handled
+        self.layouts = Layouts()  # the bundle layouts of the senders (daemon/layout.py)
 
     # ---- models -----------------------------------------------------------------------------
     def _resolve(self, requested: str | None, sid: str) -> tuple[str, Any]:

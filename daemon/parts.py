@@ -10,6 +10,7 @@ if TYPE_CHECKING:
     from daemon import budget as budgets
     from daemon import config as config_mod
     from daemon import wire
+    from daemon.layout import Layouts
     from daemon.log import Log
     from daemon.metrics import Metrics
     from daemon.metrics_http import MetricsHTTP
@@ -63,6 +64,7 @@ class Parts:
         _rej_suppressed: int
         _osc_in: int
         _osc_errs: list[tuple[str, str]] | None
+        layouts: Layouts
         _reload_args: tuple[str | None, dict[str, Loaded]]
         _switch: float
         _last_rx: float

@@ -61,7 +61,7 @@ def _probe_wx() -> bool:
 
 
 _ROOT = Path(__file__).resolve().parents[1]
-JIT_PACKAGES = ("lacuna", "mocap", "hlm", "blend")  # the packages whose modules compile with ``jit``
+JIT_PACKAGES = ("lacuna", "mocap", "hlm", "blend", "daemon")  # the packages whose modules compile with ``jit``
 
 
 def refresh_stale_caches(package_dirs: Iterable[Path], stamp: Path) -> bool:
