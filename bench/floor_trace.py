@@ -102,6 +102,14 @@ def send_fill_maps(self, origin, maps):
     B.append(("fills", t, pc() - t, len(maps)))
     return r
 outbox.Outbox.send_fill_maps = send_fill_maps
+if hasattr(outbox.Outbox, "send_fill_rows"):  # (fills encoded in the tick, daemon/rowpack.py)
+    _fr = outbox.Outbox.send_fill_rows
+    def send_fill_rows(self, origin, rows):
+        t = pc()
+        r = _fr(self, origin, rows)
+        B.append(("fills", t, pc() - t, len(rows)))
+        return r
+    outbox.Outbox.send_fill_rows = send_fill_rows
 _sh = outbox.Outbox.send_held
 def send_held(self, *a, **k):
     t = pc()

@@ -63,6 +63,7 @@ class BlockTick(Parts):
         styles: list[Any] | None = None
         phases: list[Any] | None = None
         rowwise = False  # (True: every row has a style's bytes and a finite phase: both go in each map's literal)
+        style_arr: np.ndarray | None = None  # (the styles as one (n, K) float32 array, where the model gave one)
         held: list[bool] | None = None
         std: np.ndarray | None = None
         filled: np.ndarray | None = None
@@ -96,7 +97,7 @@ class BlockTick(Parts):
                 frames, std, filled, statuses = bf.frame[pos], bf.std[pos], bf.filled[pos], [sts[j] for j in pos]
             st, phs, dgr = bf.style, bf.phase, bf.degraded
             if isinstance(st, np.ndarray):  # (n, K) posteriors: as the bytes daemon/pack.py writes, a row each
-                a = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
+                style_arr = a = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
                 yb, k4 = a.tobytes(), 4 * a.shape[1]  # (slices of one bytes object: no array view a row)
                 styles = [yb[i * k4:(i + 1) * k4] for i in range(n)]
             elif st is not None:
@@ -116,7 +117,13 @@ class BlockTick(Parts):
         self.metrics.step_time(self.clock() - t0)
         t1 = self.clock()
         gaps = [0 if s.last_seq is None else q - s.last_seq - 1 for s, q in zip(so, qo)]  # (None: a first frame)
-        ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
+        # the replies written from the arrays by one compiled call (daemon/rowpack.py) where they have
+        # nothing per row that is not an array: no style, or the HLM's (n, K) with finite phases
+        rowpack = self.rowpack.on and bw.origin[0] != "osc" and (styles is None or rowwise) and (phases is None or rowwise)
+        if rowpack:
+            angles, fl, sd = blockpath.fill_arrays(block, ro, frames, std, filled, sent)
+        else:
+            ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
         t1e = self.clock()
         now = self.clock()
         budget, drop, origin = sched.budget_s, self._drop_overdue, bw.origin
@@ -152,6 +159,16 @@ class BlockTick(Parts):
         proc_us = int((now - arrived) * 1e6)
         name = S[0].model_name
         status = "passthrough"
+        if rowpack:
+            sel = slice(None) if whole else list(ks)
+            self._send_fills(origin, self.rowpack.encode(
+                [s.sid for s in out], qk, stamps if whole else [stamps[k] for k in ks], angles[sel],
+                None if fl is None else fl[sel], None if sd is None else sd[sel],
+                None if statuses is None else (statuses if whole else [statuses[k] for k in ks]), status, name, proc_us,
+                None if style_arr is None else style_arr[sel],
+                None if phases is None else (phases if whole else [phases[k] for k in ks]),
+                (gaps if whole else [gaps[k] for k in ks]) if any(gaps) else None))
+            return self._after_fills(n, out, degs, held, ks, t1, t1e, arrived, budget)
         cols: list[list[Any]] = [stamps, ab, fb, sb] if whole else [[c[k] for k in ks] for c in (stamps, ab, fb, sb)]
         maps: list[dict[str, Any]]
         one_pass = rowwise and not any(gaps)
@@ -175,6 +192,12 @@ class BlockTick(Parts):
                     m["phase"] = float(ph)
                 if gaps[k] > 0:
                     m["gap"] = gaps[k]
+        self._send_fills(origin, maps)
+        return self._after_fills(n, out, degs, held, ks, t1, t1e, arrived, budget)
+
+    def _after_fills(self, n: int, out: list[Any], degs: list[bool] | None, held: list[bool] | None, ks: Any, t1: float,
+                     t1e: float, arrived: float, budget: float) -> bool:
+        """The tick's accounting once its fills are handed over (either way they were encoded)."""
         if degs is not None and True in degs:
             self.metrics.inc("degraded", sum(degs))
             for k, dg in zip(ks, degs):
@@ -182,14 +205,13 @@ class BlockTick(Parts):
                     self.metrics.inc("degraded_held" if held is not None and held[k] else "degraded_iterations")
         if out:
             self.metrics.inc("frames_out", len(out))
-        self._send_fills(origin, maps)
         te = self.clock()
         self._send_held(len(out))
         # (no rehearsal is planned for a bundle: it would run one stream's row path, not this
         # tick's, and cost the loop an extra wake a tick; live, 64 x 120 Hz, CPU per frame
         # 0.84x pass-through, 0.94x hlm without it, p50 unchanged: bench/notebook/wire-4.md)
         t2 = self.clock()
-        sched.observe_replies(n, te - t1e, t2 - t1)
+        self.sched.observe_replies(n, te - t1e, t2 - t1)
         wait = t2 - arrived
         self.metrics.latencies(wait, len(out))
         if out and wait > budget:

@@ -10,7 +10,7 @@ to bytes through daemon/pack.py (:func:`encode`; a bundle's answers in one msgpa
 from __future__ import annotations
 
 from daemon.decode import decode, decode_map, frame_key, unpack
-from daemon.pack import encode, error_for, fill_map, join_replies, replies_of, to_map
+from daemon.pack import encode, error_for, fill_map, join_replies, replies_joined, replies_of, to_map
 from daemon.schema import (
     CONTROL_COMMANDS,
     F32,
@@ -40,5 +40,5 @@ from daemon.schema import (
 __all__ = ["CONTROL_COMMANDS", "F32", "MAX_BUNDLE", "MAX_CHANNELS", "MAX_CLAIM", "MAX_MESSAGE_BYTES", "MAX_NAME",
            "MAX_SEQ", "MAX_STREAM_ID", "SCHEMA_VERSION", "STATUSES", "Bundle", "Control", "ControlReply", "Drop",
            "ErrorMsg", "FillMsg", "Frame", "Hello", "HelloAck", "Message", "Replies", "WireError",
-           "decode", "decode_map", "encode", "error_for", "fill_map", "frame_key", "join_replies", "replies_of", "to_map",
+           "decode", "decode_map", "encode", "error_for", "fill_map", "frame_key", "join_replies", "replies_joined", "replies_of", "to_map",
            "unpack"]

@@ -190,7 +190,8 @@ def test_a_live_daemon_reads_a_studios_bundles_through_their_layout(tmp_path):
     d = DaemonProcess({"pt": {"builtin": "passthrough", "channels": [f"c{i}" for i in range(C)]}},
                       workdir=str(tmp_path / "d"), daemon={"budget_ms": 200.0})
     d.start()
-    s = zmq.Context.instance().socket(zmq.DEALER)
+    ctx = zmq.Context()  # (its own, ended below: the process keeps no ZeroMQ I/O thread after the test)
+    s = ctx.socket(zmq.DEALER)
     s.setsockopt(zmq.LINGER, 0)
     s.connect(d.endpoint)
     try:
@@ -212,4 +213,5 @@ def test_a_live_daemon_reads_a_studios_bundles_through_their_layout(tmp_path):
         assert counters.get("bundles_by_layout", 0) >= 38 and counters["frames_out"] == 160, counters
     finally:
         s.close()
+        ctx.term()
         d.stop()
