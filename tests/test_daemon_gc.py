@@ -85,11 +85,12 @@ gc.enable()
 for _ in range(11):  # (more than GEN2_EVERY, CPython's default gen-2 threshold: 10)
     gc.collect(1)
 
-# 64 performers join mid-session, with the running streams' next frames
-for i in range(64):
+# 160 performers join mid-session, with the running streams' next frames (enough that young collections
+# run in those turns with margin: 64 gave one, and none when a turn took fewer of them)
+for i in range(160):
     joining.send(wire.encode(wire.Hello(f"join{i}", names, "pt")))
 bundle(1)
-serve_until(4, 64)
+serve_until(4, 160)
 serving = [g for g, mid in runs if mid]
 d._housekeeping(d.clock())  # (the loop runs it every HOUSEKEEPING_S)
 print(json.dumps({"gen2_serving": serving.count(2), "young_serving": len(serving) - serving.count(2),
