@@ -3,9 +3,10 @@ Pure functions on bytes, no sockets.
 
 The data flow is in the file names: bytes from a transport are read by daemon/decode.py
 (:func:`decode`, or :func:`unpack` then :func:`decode_map`; a bundle's frames as arrays by
-daemon/block.py), the message types and limits are daemon/schema.py, and the answers go back
-to bytes through daemon/pack.py (:func:`encode`; a bundle's answers in one msgpack pass by
-:func:`replies_of`).  (daemon/encode.py is the step before: a tick's fills -> fill messages.)  The full schema, with examples, is docs/PROTOCOL.md.
+daemon/block.py, or, laid out as the sender's last bundle, by daemon/layout.py without msgpack),
+the message types and limits are daemon/schema.py, and the answers go back to bytes through
+daemon/pack.py (:func:`encode`; a bundle's answers in one msgpack pass by :func:`replies_of`, or
+written from the tick's arrays by daemon/rowpack.py).  (daemon/encode.py is the step before: a tick's fills -> fill messages.)  The full schema, with examples, is docs/PROTOCOL.md.
 """
 from __future__ import annotations
 
