@@ -35,19 +35,16 @@ class Dispatch(Parts):
         if not counted:
             self.metrics.inc("messages_in")
         if origin[0] != "osc":
-            lays, maxb = self.layouts, self.cfg.max_message_bytes
-            if lays.known and len(data) <= maxb and (blk := lays.read(data, principal(origin))) is not None:
-                self.metrics.inc("bundles_by_layout")  # (a bundle in a layout seen before: daemon/layout.py)
-                self._dispatch(BlockBundle(blk), origin, arrived)
-                return
+            if (bb := self._by_layout(data, origin)) is not None:
+                return self._dispatch(bb, origin, arrived)
             try:
-                m = wire.unpack(data, maxb)
+                m = wire.unpack(data, self.cfg.max_message_bytes)
             except wire.WireError as e:
                 self._reject(origin, e.reason, e.detail, e.stream, e.seq)
                 return
             self._handle_map(m, origin, arrived)
-            if lays.on and m.get("type") == "frames":
-                lays.learn(data, m, principal(origin))
+            if self.layouts.on and m.get("type") == "frames":
+                self.layouts.learn(data, m, principal(origin))
         elif data.startswith(osc.BUNDLE_PREFIX):  # several messages of one instant
             self._osc_in, self._osc_errs = len(data), []
             try:  # (a bundle of frames: as arrays where it can, daemon/oscblock.py)
@@ -60,6 +57,13 @@ class Dispatch(Parts):
         else:
             self._osc_in = len(data)
             self._take(osc.decode, data, origin, arrived)
+
+    def _by_layout(self, data: bytes, origin: Origin) -> BlockBundle | None:
+        """A bundle laid out as one its sender sent before, read without msgpack (daemon/layout.py); None: the usual way."""
+        if not self.layouts.known or (blk := self.layouts.read(data, principal(origin), self.cfg.max_message_bytes)) is None:
+            return None
+        self.metrics.inc("bundles_by_layout")
+        return BlockBundle(blk)
 
     def _handle_map(self, m: dict[str, Any] | wire.WireError | bytes | BlockBundle, origin: Origin, arrived: float) -> None:
         """:meth:`_take_bytes` for a message already unpacked by :meth:`dispatch` (or its unpack error;
@@ -157,9 +161,8 @@ class Dispatch(Parts):
             if origin[0] == "osc":  # OSC is decoded on its own path, in order
                 m: dict[str, Any] | wire.WireError | bytes | BlockBundle = data
                 barrier = True
-            elif self.layouts.known and len(data) <= maxb and (blk := self.layouts.read(data, principal(origin))) is not None:
-                m, barrier = BlockBundle(blk), True  # (a bundle: handled in order, as its map would be)
-                self.metrics.inc("bundles_by_layout")
+            elif (bb := self._by_layout(data, origin)) is not None:
+                m, barrier = bb, True  # (a bundle: handled in order, as its map would be)
             else:
                 try:
                     m = wire.unpack(data, maxb)

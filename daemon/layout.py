@@ -73,11 +73,12 @@ class Layouts:
             _read(np.frombuffer(bytes(1), _U8), z, np.zeros((1, 2), np.int64), e, e, e, e, e, 0, np.zeros((0, 0), _U8),
                   np.zeros((0, 0), _U8), e, np.zeros(0, np.float64))
 
-    def read(self, data: bytes, who: Any) -> FrameBlock | None:
-        """The bundle ``data`` from ``who`` as a block, if it matches a layout learned from them and
-        its values pass :func:`read_block`'s checks; else None (nothing learned or changed)."""
+    def read(self, data: bytes, who: Any, max_bytes: int | None = None) -> FrameBlock | None:
+        """The bundle ``data`` from ``who`` as a block, if it matches a layout learned from them, is
+        at most ``max_bytes`` long (the daemon's cap, which a reload may lower) and its values pass
+        :func:`read_block`'s checks; else None (nothing learned or changed)."""
         lay = self.known.get((who, len(data)))
-        if lay is None:
+        if lay is None or (max_bytes is not None and len(data) > max_bytes):
             return None
         n, C = len(lay.sids), lay.C
         values = np.empty((n, 4 * C), _U8)
@@ -127,8 +128,8 @@ def _layout(data: bytes, msg: dict[str, Any], frames: list[dict[str, Any]]) -> L
     """The layout of ``data``, built by packing ``msg`` again piece by piece; None where a piece
     is not as the layout needs (a seq under 256, a t that is not a double) or the pieces do not
     give back ``data`` exactly."""
-    pack = msgpack.Packer(use_bin_type=True).pack
     head = msgpack.Packer(use_bin_type=True)
+    pack = head.pack
     out = bytearray(head.pack_map_header(len(msg)))
     var: list[tuple[int, int]] = []  # [start, stop) of every variable payload, in order
     seq_at: list[int] = []

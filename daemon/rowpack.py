@@ -66,10 +66,10 @@ class RowPack:
 
     def encode(self, sids: list[str], seqs: list[int], stamps: list[float], angles: np.ndarray, filled: np.ndarray | None,
                std: np.ndarray | None, statuses: list[str] | None, status: str, model: str, proc_us: int,
-               style: np.ndarray | None, phases: list[float] | None, gaps: list[int] | None) -> Rows:
+               style: np.ndarray | None, phases: Any, gaps: list[int] | None) -> Rows:
         """Rows i < n: ``angles`` (n, C) float32, ``filled`` (n, C) bool and ``std`` (n, C)
         float32 or None (zeros: a pass-through's), ``statuses`` one a row or None (``status`` for
-        all), ``style`` (n, K) float32 or None, ``phases`` a finite float a row or None,
+        all), ``style`` (n, K) float32 or None, ``phases`` a finite float a row (list or array) or None,
         ``gaps`` an int a row (written where > 0) or None."""
         n, C = angles.shape
         sp = self._sid
@@ -89,7 +89,7 @@ class RowPack:
         proc = _PACK(int(proc_us))
         K = 0 if style is None else style.shape[1]
         has_phase = phases is not None
-        ph = np.array(phases if has_phase else [0.0], np.float64).view(np.uint64)
+        ph = np.array(phases if has_phase else [0.0], np.float64).view(np.uint64)  # (a copy: the kernel reads its bits)
         gp = np.array(gaps if gaps is not None else [0], np.int64)
         zero = np.zeros((1, 1), _U8)
         size = n * (len(_HEAD) + int(_KEY_AT[-1]) + int(st_at[-1]) + len(proc) + 9 * C + 4 * K + 80) + int(sid_at[-1])
@@ -141,19 +141,31 @@ def _put_uint(out: Any, p: Any, x: Any) -> Any:  # pragma: no cover - compiled
     return p + 1 + w
 
 
-def _put_bin(out: Any, p: Any, src: Any, i: Any, w: Any) -> Any:  # pragma: no cover - compiled
-    """msgpack bin of src[i, :w] at out[p:] (w < 65536 here: MAX_CHANNELS float32s)."""
+def _bin_head(out: Any, p: Any, w: Any) -> Any:  # pragma: no cover - compiled
+    """msgpack's bin header for w bytes (w < 65536 here: MAX_CHANNELS float32s) at out[p:]."""
     if w < 256:
         out[p] = 0xC4
         out[p + 1] = w
-        p += 2
-    else:
-        out[p] = 0xC5
-        out[p + 1] = w >> 8
-        out[p + 2] = w & 255
-        p += 3
+        return p + 2
+    out[p] = 0xC5
+    out[p + 1] = w >> 8
+    out[p + 2] = w & 255
+    return p + 3
+
+
+def _put_bin(out: Any, p: Any, src: Any, i: Any, w: Any) -> Any:  # pragma: no cover - compiled
+    """msgpack bin of src[i, :w] at out[p:]."""
+    p = _bin_head(out, p, w)
     for j in range(w):
         out[p + j] = src[i, j]
+    return p + w
+
+
+def _put_zeros(out: Any, p: Any, w: Any) -> Any:  # pragma: no cover - compiled
+    """msgpack bin of w zero bytes at out[p:] (a pass-through's filled mask and std)."""
+    p = _bin_head(out, p, w)
+    for j in range(w):
+        out[p + j] = 0
     return p + w
 
 
@@ -189,37 +201,9 @@ def _rows(out: Any, ends: Any, head: Any, sid_blob: Any, sid_at: Any, key_blob: 
         p = _copy(out, p, key_blob, key_at[2], key_at[3])  # "angles"
         p = _put_bin(out, p, angles, i, 4 * C)
         p = _copy(out, p, key_blob, key_at[3], key_at[4])  # "filled"
-        if has_std:
-            p = _put_bin(out, p, filled, i, C)
-        else:  # (a pass-through's: zeros)
-            out[p] = 0xC4 if C < 256 else 0xC5
-            if C < 256:
-                out[p + 1] = C
-                p += 2
-            else:
-                out[p + 1] = C >> 8
-                out[p + 2] = C & 255
-                p += 3
-            for j in range(C):
-                out[p + j] = 0
-            p += C
+        p = _put_bin(out, p, filled, i, C) if has_std else _put_zeros(out, p, C)
         p = _copy(out, p, key_blob, key_at[4], key_at[5])  # "std"
-        if has_std:
-            p = _put_bin(out, p, std, i, 4 * C)
-        else:
-            w = 4 * C
-            if w < 256:
-                out[p] = 0xC4
-                out[p + 1] = w
-                p += 2
-            else:
-                out[p] = 0xC5
-                out[p + 1] = w >> 8
-                out[p + 2] = w & 255
-                p += 3
-            for j in range(w):
-                out[p + j] = 0
-            p += w
+        p = _put_bin(out, p, std, i, 4 * C) if has_std else _put_zeros(out, p, 4 * C)
         p = _copy(out, p, key_blob, key_at[5], key_at[6])  # "status"
         k = st_idx[i]
         p = _copy(out, p, st_blob, st_at[k], st_at[k + 1])
@@ -239,7 +223,9 @@ def _rows(out: Any, ends: Any, head: Any, sid_blob: Any, sid_at: Any, key_blob: 
 
 
 _put_uint = jit.jit(_put_uint)
+_bin_head = jit.jit(_bin_head)
 _put_bin = jit.jit(_put_bin)
+_put_zeros = jit.jit(_put_zeros)
 _put_f64 = jit.jit(_put_f64)
 _copy = jit.jit(_copy)
 _rows_kernel = jit.jit(_rows)

@@ -64,6 +64,7 @@ class BlockTick(Parts):
         phases: list[Any] | None = None
         rowwise = False  # (True: every row has a style's bytes and a finite phase: both go in each map's literal)
         style_arr: np.ndarray | None = None  # (the styles as one (n, K) float32 array, where the model gave one)
+        phase_arr: np.ndarray | None = None  # (the phases as one (n,) array, where the model gave one)
         held: list[bool] | None = None
         std: np.ndarray | None = None
         filled: np.ndarray | None = None
@@ -97,15 +98,14 @@ class BlockTick(Parts):
                 frames, std, filled, statuses = bf.frame[pos], bf.std[pos], bf.filled[pos], [sts[j] for j in pos]
             st, phs, dgr = bf.style, bf.phase, bf.degraded
             if isinstance(st, np.ndarray):  # (n, K) posteriors: as the bytes daemon/pack.py writes, a row each
-                style_arr = a = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
-                yb, k4 = a.tobytes(), 4 * a.shape[1]  # (slices of one bytes object: no array view a row)
-                styles = [yb[i * k4:(i + 1) * k4] for i in range(n)]
+                style_arr = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
             elif st is not None:
                 styles = _styles(st if ident else [st[j] for j in pos], n)
-            if phs is not None:
-                phases = (phs if ident else phs[pos]).tolist() if isinstance(phs, np.ndarray) else \
-                    (phs if ident else [phs[j] for j in pos])
-                rowwise = isinstance(st, np.ndarray) and isinstance(phs, np.ndarray) and bool(np.isfinite(phs).all())
+            if isinstance(phs, np.ndarray):
+                phase_arr = phs if ident else phs[pos]
+                rowwise = style_arr is not None and bool(np.isfinite(phs).all())
+            elif phs is not None:
+                phases = phs if ident else [phs[j] for j in pos]
             if dgr is not None:
                 held = dgr if ident else [dgr[j] for j in pos]
         if order is None:  # (answer order = table order)
@@ -119,11 +119,17 @@ class BlockTick(Parts):
         gaps = [0 if s.last_seq is None else q - s.last_seq - 1 for s, q in zip(so, qo)]  # (None: a first frame)
         # the replies written from the arrays by one compiled call (daemon/rowpack.py) where they have
         # nothing per row that is not an array: no style, or the HLM's (n, K) with finite phases
-        rowpack = self.rowpack.on and bw.origin[0] != "osc" and (styles is None or rowwise) and (phases is None or rowwise)
+        rowpack = self.rowpack.on and bw.origin[0] != "osc" and styles is None and phases is None and \
+            (rowwise or (style_arr is None and phase_arr is None))
         if rowpack:
             angles, fl, sd = blockpath.fill_arrays(block, ro, frames, std, filled, sent)
         else:
             ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
+            if style_arr is not None:  # (slices of one bytes object: no array view a row)
+                yb, k4 = style_arr.tobytes(), 4 * style_arr.shape[1]
+                styles = [yb[i * k4:(i + 1) * k4] for i in range(n)]
+            if phase_arr is not None:
+                phases = phase_arr.tolist()
         t1e = self.clock()
         now = self.clock()
         budget, drop, origin = sched.budget_s, self._drop_overdue, bw.origin
@@ -166,7 +172,7 @@ class BlockTick(Parts):
                 None if fl is None else fl[sel], None if sd is None else sd[sel],
                 None if statuses is None else (statuses if whole else [statuses[k] for k in ks]), status, name, proc_us,
                 None if style_arr is None else style_arr[sel],
-                None if phases is None else (phases if whole else [phases[k] for k in ks]),
+                None if phase_arr is None else phase_arr[sel],
                 (gaps if whole else [gaps[k] for k in ks]) if any(gaps) else None))
             return self._after_fills(n, out, degs, held, ks, t1, t1e, arrived, budget)
         cols: list[list[Any]] = [stamps, ab, fb, sb] if whole else [[c[k] for k in ks] for c in (stamps, ab, fb, sb)]
