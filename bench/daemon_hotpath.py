@@ -55,22 +55,17 @@ def measure(d: Daemon, model: str, n_streams: int, ticks: int, frames: np.ndarra
         else:
             out.append(wire.encode(m))
 
-    rows: list = []  # fills a tree encoded in the tick (daemon/rowpack.py): joined as the outbox joins them
-
     def serve():
         d._serve()
         if held:  # (a tree from before wire.replies_of encoded each answer and joined them)
             out.append(replies_of(held) if replies_of else wire.join_replies([msgpack.packb(m, use_bin_type=True)
                                                                               for m in held]))
             held.clear()
-        if rows:
-            out.append(wire.replies_joined(b"".join(r.data for r in rows), sum(len(r) for r in rows)))
-            rows.clear()
         out.clear()
 
     d._send = send  # type: ignore[method-assign]
     if hasattr(d, "_send_fills"):  # a bundle served as arrays hands its fills over as maps (daemon/tickblock.py)
-        d._send_fills = lambda o, maps: held.extend(maps) if isinstance(maps, list) else rows.append(maps)  # type: ignore[method-assign]
+        d._send_fills = lambda o, maps: held.extend(maps)  # type: ignore[method-assign]
     sids = [f"{model}-{n_streams}-{time.monotonic_ns()}-{i}" for i in range(n_streams)]
     for sid in sids:
         d._handle(wire.encode(wire.Hello(sid, channels, model)), ("router", [b"x"]), time.perf_counter())

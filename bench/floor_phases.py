@@ -51,7 +51,7 @@ assert not errors
 d._install(table)
 held = []
 d._send = lambda o, m, publish=False: held.append(wire.to_map(m)) if len(o) == 3 else None
-d._send_fills = lambda o, maps: held.extend(maps) if isinstance(maps, list) else held.append(maps.data)
+d._send_fills = lambda o, maps: held.extend(maps)
 pack = msgpack.Packer(use_bin_type=True).pack
 ids = [f"p{i}" for i in range(64)]
 for sid in ids:

@@ -95,17 +95,13 @@ def overdue_seq(self, s, seq, origin):
     O.append((pc(), s.sid, seq))
     return _ov(self, s, seq, origin)
 sessions_mod.SessionTable.overdue_seq = overdue_seq
-def _timed_fills(name):  # (a bundle's fills handed to the outbox: as maps, or encoded in the tick by daemon/rowpack.py)
-    orig = getattr(outbox.Outbox, name)
-    def send(self, origin, fills):
-        t = pc()
-        r = orig(self, origin, fills)
-        B.append(("fills", t, pc() - t, len(fills)))
-        return r
-    setattr(outbox.Outbox, name, send)
-for _name in ("send_fill_maps", "send_fill_rows"):
-    if hasattr(outbox.Outbox, _name):
-        _timed_fills(_name)
+_fm = outbox.Outbox.send_fill_maps
+def send_fill_maps(self, origin, maps):
+    t = pc()
+    r = _fm(self, origin, maps)
+    B.append(("fills", t, pc() - t, len(maps)))
+    return r
+outbox.Outbox.send_fill_maps = send_fill_maps
 _sh = outbox.Outbox.send_held
 def send_held(self, *a, **k):
     t = pc()

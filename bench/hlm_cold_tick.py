@@ -68,7 +68,7 @@ def child(model: str, gap_s: float, ticks: int, spread: bool = False, busy: bool
     d._install(table)
     held: list = []
     d._send = lambda o, m, publish=False: held.append(wire.to_map(m)) if len(o) == 3 else None
-    d._send_fills = lambda o, maps: held.extend(maps) if isinstance(maps, list) else held.append(maps.data)
+    d._send_fills = lambda o, maps: held.extend(maps)
     sids = [f"hlm-{i}" for i in range(N)]
     for sid in sids:
         d._handle(wire.encode(wire.Hello(sid, ch, "hlm")), ("router", [b"x"]), time.perf_counter())

@@ -146,17 +146,6 @@ def inputs(block: FrameBlock, rows: list[int] | None) -> tuple[np.ndarray, np.nd
     return np.where(mo, v.astype(np.float64), np.nan), mo
 
 
-def fill_arrays(block: FrameBlock, rows: list[int] | None, frames: np.ndarray, std: np.ndarray | None,
-                filled: np.ndarray | None, sent: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """The replies' arrays (daemon/rowpack.py writes them): (n, C) float32 angles (the observed
-    values exactly as sent), filled (not sent) and float32 std, or None, None for a pass-through's."""
-    given = block.values if rows is None else block.values[rows]
-    angles = np.where(sent, given, frames.astype(np.float32, copy=False))
-    if filled is None or std is None:
-        return angles, None, None
-    return angles, filled & ~sent, np.ascontiguousarray(std, dtype=np.float32)
-
-
 def fill_maps(block: FrameBlock, rows: list[int] | None, frames: np.ndarray, std: np.ndarray | None,
               filled: np.ndarray | None, sent: np.ndarray) -> tuple[list[bytes], list[bytes], list[bytes]]:
     """The replies' arrays, encoded at once: (angle bytes, filled bytes, std bytes) per row, as

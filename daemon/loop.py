@@ -41,7 +41,6 @@ from daemon.prewarm import Prewarm
 from daemon.realtime import Realtime
 from daemon.reload import Reloading
 from daemon.reloader import Reloader
-from daemon.rowpack import RowPack, Rows
 from daemon.scheduler import Scheduler
 from daemon.session import Origin
 from daemon.sessions import SessionTable
@@ -99,7 +98,7 @@ class Daemon(Dispatch, Tick, Control, Reloading, Waiting):
         self.osc_err_budget = budgets.Budget(OSC_ERRORS_PER_S, OSC_ERRORS_PER_S)  # error answers per OSC source host
         self._osc_in = 0  # bytes of the OSC datagram being handled (its answers may not be larger)
         self._osc_errs: list[tuple[str, str]] | None = None  # errors of the OSC bundle being handled
-        self.layouts, self.rowpack = Layouts(), RowPack()  # bundles read and answered as arrays (daemon/layout.py, daemon/rowpack.py)
+        self.layouts = Layouts()  # the bundle layouts of the senders (daemon/layout.py)
 
     # ---- models -----------------------------------------------------------------------------
     def _resolve(self, requested: str | None, sid: str) -> tuple[str, Any]:
@@ -295,10 +294,10 @@ class Daemon(Dispatch, Tick, Control, Reloading, Waiting):
         if self.net is not None:
             self.net.send(origin, msg, publish)
 
-    def _send_fills(self, origin: Origin, fills: list[dict[str, Any]] | Rows) -> None:
-        """A bundle's fills as maps, or encoded (daemon/tickblock.py): what :meth:`_send` of each does."""
+    def _send_fills(self, origin: Origin, maps: list[dict[str, Any]]) -> None:
+        """A bundle's fills as maps (daemon/tickblock.py): what :meth:`_send` of each does."""
         if self.net is not None:
-            self.net.send_fill_maps(origin, fills) if isinstance(fills, list) else self.net.send_fill_rows(origin, fills)
+            self.net.send_fill_maps(origin, maps)
 
     # ---- housekeeping / shutdown --------------------------------------------------------------
     def _housekeeping(self, now: float) -> None:

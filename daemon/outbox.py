@@ -17,7 +17,6 @@ import msgpack
 import zmq
 
 from daemon import osc, oscblock, wire
-from daemon.rowpack import Rows
 
 if TYPE_CHECKING:
     from daemon.config import Config
@@ -44,7 +43,7 @@ class Outbox:
     def __init__(self, cfg: Config) -> None:
         self._held: list[tuple[Socket, list[bytes], str]] | None = None
         # ROUTER envelope -> held answers to bundled frames, as maps: packed in one pass at the flush
-        self._bundles: dict[tuple[bytes, ...], list[dict[str, Any] | Rows]] = {}
+        self._bundles: dict[tuple[bytes, ...], list[dict[str, Any]]] = {}
         self._pack = msgpack.Packer(use_bin_type=True).pack  # one for the daemon's thread (packb builds one per call)
         self._flush_every = max(1, min(FLUSH_MAX, cfg.zmq_hwm // 4))
 
@@ -76,46 +75,12 @@ class Outbox:
             bundles, self._bundles = self._bundles, {}
             pack = self._pack
             for envelope, maps in bundles.items():
-                if any(type(m) is Rows for m in maps):  # (a tick's fills already encoded, daemon/rowpack.py)
-                    n += self._flush_rows(envelope, maps)
-                    continue
                 for i in range(0, len(maps), wire.MAX_BUNDLE):
                     chunk = maps[i:i + wire.MAX_BUNDLE]
                     # one msgpack pass over the chunk's answers: the bytes join_replies would give
                     self._zsend(self.router, [*envelope, wire.replies_of(chunk, pack)], "router")  # type: ignore[arg-type]
                     n += len(chunk)  # (answers, for what an answer costs to send)
         return n
-
-    def _flush_rows(self, envelope: tuple[bytes, ...], items: list[Any]) -> int:
-        """:meth:`flush` of one peer's held answers where some are encoded rows: the same messages
-        as the maps would give (every MAX_BUNDLE answers, in order), from the rows' bytes and the maps packed."""
-        n, count, chunk = 0, 0, []
-        for it in items:
-            rows = type(it) is Rows
-            i, left = 0, (len(it) if rows else 1)
-            while left:
-                k = min(left, wire.MAX_BUNDLE - count)
-                chunk.append(it.data[(it.ends[i - 1] if i else 0):it.ends[i + k - 1]] if rows else self._pack(it))
-                i, left, count = i + k, left - k, count + k
-                if count == wire.MAX_BUNDLE:
-                    self._zsend(self.router, [*envelope, wire.replies_joined(b"".join(chunk), count)], "router")  # type: ignore[arg-type]
-                    n, count, chunk = n + count, 0, []
-        if count:
-            self._zsend(self.router, [*envelope, wire.replies_joined(b"".join(chunk), count)], "router")  # type: ignore[arg-type]
-        return n + count
-
-    def send_fill_rows(self, origin: Origin, rows: Rows) -> None:
-        """:meth:`send_fill_maps` for fills already encoded (daemon/rowpack.py; never OSC's)."""
-        pub = self.pub
-        if origin[0] == "router" and self.router is not None:
-            if self._held is not None:
-                self._bundles.setdefault(tuple(origin[1]), []).append(rows)
-            else:
-                for i in range(len(rows)):
-                    self._zsend(self.router, [*origin[1], wire.replies_joined(rows.row(i), 1)], "router")
-        if pub is not None:
-            for i, sid in enumerate(rows.sids):
-                self._zmq(pub, [sid.encode(), rows.row(i)], "pub")
 
     def _zsend(self, sock_: Socket, parts: list[bytes], kind: str) -> None:
         try:

@@ -137,12 +137,6 @@ def join_replies(bodies: list[bytes]) -> bytes:
     return _REPLIES_HEAD + head + b"".join(bodies)
 
 
-def replies_joined(body: bytes, count: int) -> bytes:
-    """``count`` encoded answers back to back (``body``) -> one ``replies`` message."""
-    head: bytes = _PACK.pack_array_header(count)
-    return _REPLIES_HEAD + head + body
-
-
 def replies_of(maps: list[dict[str, Any]], pack: Any = None) -> bytes:
     """Answer maps (each ``to_map(msg)``) -> one ``replies`` message in one msgpack pass; the
     same bytes as ``join_replies([encode(m) for m in msgs])`` (a msgpack array is its header

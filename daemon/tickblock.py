@@ -63,8 +63,6 @@ class BlockTick(Parts):
         styles: list[Any] | None = None
         phases: list[Any] | None = None
         rowwise = False  # (True: every row has a style's bytes and a finite phase: both go in each map's literal)
-        style_arr: np.ndarray | None = None  # (the styles as one (n, K) float32 array, where the model gave one)
-        phase_arr: np.ndarray | None = None  # (the phases as one (n,) array, where the model gave one)
         held: list[bool] | None = None
         std: np.ndarray | None = None
         filled: np.ndarray | None = None
@@ -98,14 +96,15 @@ class BlockTick(Parts):
                 frames, std, filled, statuses = bf.frame[pos], bf.std[pos], bf.filled[pos], [sts[j] for j in pos]
             st, phs, dgr = bf.style, bf.phase, bf.degraded
             if isinstance(st, np.ndarray):  # (n, K) posteriors: as the bytes daemon/pack.py writes, a row each
-                style_arr = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
+                a = np.ascontiguousarray(st if ident else st[pos], dtype=np.float32).reshape(n, -1)
+                yb, k4 = a.tobytes(), 4 * a.shape[1]  # (slices of one bytes object: no array view a row)
+                styles = [yb[i * k4:(i + 1) * k4] for i in range(n)]
             elif st is not None:
                 styles = _styles(st if ident else [st[j] for j in pos], n)
-            if isinstance(phs, np.ndarray):
-                phase_arr = phs if ident else phs[pos]
-                rowwise = style_arr is not None and bool(np.isfinite(phs).all())
-            elif phs is not None:
-                phases = phs if ident else [phs[j] for j in pos]
+            if phs is not None:
+                phases = (phs if ident else phs[pos]).tolist() if isinstance(phs, np.ndarray) else \
+                    (phs if ident else [phs[j] for j in pos])
+                rowwise = isinstance(st, np.ndarray) and isinstance(phs, np.ndarray) and bool(np.isfinite(phs).all())
             if dgr is not None:
                 held = dgr if ident else [dgr[j] for j in pos]
         if order is None:  # (answer order = table order)
@@ -117,19 +116,7 @@ class BlockTick(Parts):
         self.metrics.step_time(self.clock() - t0)
         t1 = self.clock()
         gaps = [0 if s.last_seq is None else q - s.last_seq - 1 for s, q in zip(so, qo)]  # (None: a first frame)
-        # the replies written from the arrays by one compiled call (daemon/rowpack.py) where they have
-        # nothing per row that is not an array: no style, or the HLM's (n, K) with finite phases
-        rowpack = self.rowpack.on and bw.origin[0] != "osc" and styles is None and phases is None and \
-            (rowwise or (style_arr is None and phase_arr is None))
-        if rowpack:
-            angles, fl, sd = blockpath.fill_arrays(block, ro, frames, std, filled, sent)
-        else:
-            ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
-            if style_arr is not None:  # (slices of one bytes object: no array view a row)
-                yb, k4 = style_arr.tobytes(), 4 * style_arr.shape[1]
-                styles = [yb[i * k4:(i + 1) * k4] for i in range(n)]
-            if phase_arr is not None:
-                phases = phase_arr.tolist()
+        ab, fb, sb = blockpath.fill_maps(block, ro, frames, std, filled, sent)
         t1e = self.clock()
         now = self.clock()
         budget, drop, origin = sched.budget_s, self._drop_overdue, bw.origin
@@ -165,16 +152,6 @@ class BlockTick(Parts):
         proc_us = int((now - arrived) * 1e6)
         name = S[0].model_name
         status = "passthrough"
-        if rowpack:
-            sel = slice(None) if whole else list(ks)
-            self._send_fills(origin, self.rowpack.encode(
-                [s.sid for s in out], qk, stamps if whole else [stamps[k] for k in ks], angles[sel],
-                None if fl is None else fl[sel], None if sd is None else sd[sel],
-                None if statuses is None else (statuses if whole else [statuses[k] for k in ks]), status, name, proc_us,
-                None if style_arr is None else style_arr[sel],
-                None if phase_arr is None else phase_arr[sel],
-                (gaps if whole else [gaps[k] for k in ks]) if any(gaps) else None))
-            return self._after_fills(n, out, degs, held, ks, t1, t1e, arrived, budget)
         cols: list[list[Any]] = [stamps, ab, fb, sb] if whole else [[c[k] for k in ks] for c in (stamps, ab, fb, sb)]
         maps: list[dict[str, Any]]
         one_pass = rowwise and not any(gaps)
@@ -198,12 +175,6 @@ class BlockTick(Parts):
                     m["phase"] = float(ph)
                 if gaps[k] > 0:
                     m["gap"] = gaps[k]
-        self._send_fills(origin, maps)
-        return self._after_fills(n, out, degs, held, ks, t1, t1e, arrived, budget)
-
-    def _after_fills(self, n: int, out: list[Any], degs: list[bool] | None, held: list[bool] | None, ks: Any, t1: float,
-                     t1e: float, arrived: float, budget: float) -> bool:
-        """The tick's accounting once its fills are handed over (either way they were encoded)."""
         if degs is not None and True in degs:
             self.metrics.inc("degraded", sum(degs))
             for k, dg in zip(ks, degs):
@@ -211,13 +182,14 @@ class BlockTick(Parts):
                     self.metrics.inc("degraded_held" if held is not None and held[k] else "degraded_iterations")
         if out:
             self.metrics.inc("frames_out", len(out))
+        self._send_fills(origin, maps)
         te = self.clock()
         self._send_held(len(out))
         # (no rehearsal is planned for a bundle: it would run one stream's row path, not this
         # tick's, and cost the loop an extra wake a tick; live, 64 x 120 Hz, CPU per frame
         # 0.84x pass-through, 0.94x hlm without it, p50 unchanged: bench/notebook/wire-4.md)
         t2 = self.clock()
-        self.sched.observe_replies(n, te - t1e, t2 - t1)
+        sched.observe_replies(n, te - t1e, t2 - t1)
         wait = t2 - arrived
         self.metrics.latencies(wait, len(out))
         if out and wait > budget:

@@ -15,7 +15,6 @@ import pytest
 from daemon import config, server, wire
 from daemon.models import Loaded, load_all
 from daemon.pack import fill_map, to_map
-from daemon.rowpack import Rows
 from lacuna.filler import Fill
 from mocap.baselines import HoldModel
 
@@ -52,16 +51,11 @@ class StyledHold(HoldModel):
 
 
 class Recording(server.Daemon):
-    rows = 0  # replies written by daemon/rowpack.py
     def _send(self, origin, msg, publish=False):
         m = fill_map(msg) if type(msg) is wire.FillMsg else to_map(msg)
         self.sent.append((repr(origin), msgpack.packb(m, use_bin_type=True)))
 
     def _send_fills(self, origin, maps):
-        if isinstance(maps, Rows):  # (encoded by daemon/rowpack.py: each row must be msgpack's bytes of its map)
-            self.sent.extend((repr(origin), maps.row(i)) for i in range(len(maps)))
-            self.rows += len(maps)
-            return
         for m in maps:
             self.sent.append((repr(origin), msgpack.packb(m, use_bin_type=True)))
 
@@ -177,8 +171,6 @@ def test_block_path_answers_and_state_equal_row_path(case, seed):
         ref.sent.clear()
     # the array path did serve (not only decline), the overload case too (frames overdue at the tick's start)
     assert fast.sessions.block_served > 0 and ref.sessions.block_served == 0
-    if model is None:  # (a pass-through's replies were written by daemon/rowpack.py; the styled model's phases are not all finite)
-        assert fast.rows > 0 or not fast.rowpack.on
     if overdue == "drop":
         assert fast.sessions.block_overdue > 0
 

@@ -157,8 +157,6 @@ def test_hlm_bundles_as_arrays_equal_the_row_path_bytes(hlm, case, seed, monkeyp
     assert fast.sessions.block_served > 0 and ref.sessions.block_served == 0
     # the HLM's style posteriors and phases went out, and byte for byte alike
     assert styled > 0 or pair[0].method != "hlm"
-    if pair[0].method == "hlm" and overdue == "drop" and not via:  # (the HLM's replies written by daemon/rowpack.py)
-        assert fast.rows > 0 or not fast.rowpack.on
     assert arrays["default"] > 0 or pair[0].method == "hlm"
     assert fast.sched.step_errors == ref.sched.step_errors == 0
 
