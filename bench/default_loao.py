@@ -55,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--validation", action="store_true", help="also VALIDATION with the full TRAIN model")
     ap.add_argument("--seeds", default="0-4")
     ap.add_argument("--json", help="write every cell's sums here")
+    ap.add_argument("--blend-setting", action="append", default=[], metavar="KEY=VALUE",
+                    help="change a per-step setting of every model's blend (e.g. vel_shrink=1; bench/notebook/vshr-42.md)")
     a = ap.parse_args(argv)
     root = Path(a.root).resolve()
     sys.path[:0] = [str(root), str(root / "bench")]
@@ -90,6 +92,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[{time.perf_counter() - t_start:6.0f} s] training {key} on {len(train)} takes", flush=True)
             withhlm.train_model(protocols.named_training_set(train), fps=120.0).save(str(path))
         m = load_model(str(path))
+        if a.blend_setting:
+            m.default = m.default.with_settings(**{k: float(v) for k, v in (x.split("=", 1) for x in a.blend_setting)})
         ang = np.array(m.default.ang)
         cases = [c for s in seeds for c in protocols.Gaps(seed=s, split="validation").cases([str(splits.take_path(t)) for t in takes])]
         fills: dict[str, list] = {"blend": [m.default.fill_offline(np.where(c.observed, c.truth, np.nan), c.observed) for c in cases]}
@@ -115,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         _print(g, cells[g], [p[0] for p in policies])
     if a.json:
         Path(a.json).write_text(json.dumps({"seeds": seeds, "policies": a.policy, "groups": {g: t for g, t, _ in jobs},
-                                            "cells": cells, "command": " ".join(sys.argv)}, indent=1))
+                                            "blend_settings": a.blend_setting, "cells": cells, "command": " ".join(sys.argv)}, indent=1))
     print("cells above hold (default RMS > hold RMS), of the novel-motion groups:")
     for name in [p[0] for p in policies] + ["blend"]:
         bad = [(g, lab) for g in cells if not g.startswith("VALIDATION") for lab, (e, h, n) in cells[g][name].items()
