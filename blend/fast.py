@@ -73,7 +73,7 @@ def _features_all(x, ri, mean, mu, Ls, hist, pos, zf):
 
 @jit
 def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
-                  h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
+                  h, vgap, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
                   ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin):
     """blend.guard.guard_update, channel by channel (``gbuf``: the state's scratch, 2 C + len(mu))."""
     G = GS.shape[0]
@@ -117,7 +117,7 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
             for q in range(c0, c1):
                 j = gcols[q]
                 vh[j] = h[j]
-                vv[j] = min(max(vel[j] * vgain[j], -vcap[j]), vcap[j])
+                vv[j] = min(max(vgap[j] * vgain[j], -vcap[j]), vcap[j])  # vgap: the velocity a gap uses
         vk[g] += 1
         kk = vk[g]
         b0 = gbin[kk]
@@ -169,6 +169,15 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
         GS[g, b0, 3] += yp
         GS[g, b0, 4] += yq
         GS[g, b0, 5] += 1.0
+
+
+@jit
+def _shrunk(v, var, beta, c):
+    """blend.state.shrunk for one channel."""
+    if c <= 0.0:
+        return v
+    den = v * v + c * (var * beta / (2.0 - beta))
+    return v * v * v / den if den > 0.0 else v
 
 
 @jit
@@ -225,11 +234,11 @@ def reg_missing(obs, ri, out):
 
 @jit
 def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, sc, par, Ls, vcap, betas, vgain, mm, O, B, has_reg, changed,
-                last, h, vel, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
+                last, h, vel, vn, v0, k, R, off, amean, avar, lstd, hist, sv, out, std, Rv,
                 sh_g, sh_m, sh_nm, sh_O, sh_nO, sh_B, ER, EH, NE, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, GL, gbuf, gbin):
     _beta, d, d2, a, eta, fps, amp_floor, cal_prior, cal_decay = (par[0], par[1], par[2], par[3], par[4], par[5],
                                                                  par[6], par[7], par[8])
-    gate_rho, gate_decay, gate_weak, gate_n0 = par[9], par[10], par[11], par[12]
+    gate_rho, gate_decay, gate_weak, gate_n0, shrink = par[9], par[10], par[11], par[12], par[13]
     C = f.shape[0]
     n = hist.shape[0]
     pos = int(sv[3])
@@ -288,7 +297,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
     guard_on = gpar[3] > 0.0
     if guard_on:
         _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, wv, wl, wr, wg, d, d2, a, fps, vcap, vgain,
-                      h, vel, k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
+                      h, vn[1], k, gz, gzf, gpar, gcols, gptr, gsh, gpos, vk, vh, vv, voff, GS, sv, sh_m, sh_nm, sh_O, sh_nO, sh_B,
                       ER, EH, NE, gate_rho, gate_weak, gate_n0, Lm, gbuf, gbin)
     anyobs = False
     anymiss = False
@@ -307,7 +316,10 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 dx = f[j] - h[j]
                 if ang[j]:
                     dx = _wrap(dx)
+                r = dx - vel[j]
+                vn[0, j] = (1 - eta) * vn[0, j] + eta * r * r
                 vel[j] = vel[j] + betas[j] * (dx - vel[j])
+                vn[1, j] = _shrunk(vel[j], vn[0, j], betas[j], shrink)
             da = f[j] - amean[j]
             if ang[j]:
                 da = _wrap(da)
@@ -335,7 +347,7 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 k[j] = 0
             else:
                 if k[j] == 0:
-                    v0[j] = min(max(vel[j] * vgain[j], -vcap[j]), vcap[j])
+                    v0[j] = min(max(vn[1, j] * vgain[j], -vcap[j]), vcap[j])
                     R[j] = h[j]
                 k[j] += 1
                 Rv[j] = h[j]

@@ -109,7 +109,7 @@ def guard_update(st: FillerState, f: np.ndarray, obs: np.ndarray) -> None:
         new = st.vk[g] == 0
         if new:
             st.vh[cols] = st.h[cols]
-            st.vv[cols] = np.clip(st.vel[cols] * m.vgain_[cols], -m.vcap[cols], m.vcap[cols])
+            st.vv[cols] = np.clip(st.vn[1, cols] * m.vgain_[cols], -m.vcap[cols], m.vcap[cols])  # the velocity a gap uses
         st.vk[g] += 1
         kk = int(st.vk[g])
         b = m.guard_bin[kk]

@@ -43,7 +43,7 @@ channels (masks recur: a joint group drops out again and again).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -92,6 +92,9 @@ class Settings:
                               # files written before it load so)
     vcap_mult: float = 1e9    # onset velocity capped at this many training RMS changes per frame (1e9: no cap)
     vel_gain: float = 0.0     # 1: each channel's onset velocity scaled by its training gain (vgain); 0: not
+    vel_shrink: float = 0.0   # c: the onset velocity v becomes v^3 / (v^2 + c s^2), s^2 the noise variance of the
+                              # smoothed velocity read off the stream (blend.state.shrunk): a velocity inside the
+                              # capture's jitter is not extrapolated (0: off; files written before it load so)
     knots: tuple = KNOTS
     guard_s: float = 0.0      # the guard (blend.guard): decay time constant of its evidence, seconds (0: off)
     guard_n0: float = 120.0   # ... its ridge toward lambda = 1: guard_n0 / n times the diagonal (n: virtual gaps seen)
@@ -160,7 +163,7 @@ class DefaultModel(Model):
         pf = self._pf
         self._par = np.array([pf["beta"], pf["d"], pf["d2"], pf["a"], pf["eta"], settings.fps, settings.amp_floor,
                               settings.cal_prior, settings.cal_decay, settings.gate_rho, settings.gate_decay, settings.gate_rho_weak,
-                              settings.gate_n0])
+                              settings.gate_n0, settings.vel_shrink])
         self._Ls = np.array(pf["L"], np.int64)
         self._none_i = np.zeros(0, np.int64)
         self._none_B = np.zeros((0, 0))
@@ -260,6 +263,11 @@ class DefaultModel(Model):
         return DefaultModel(self.channels, self.mean_, self.std_, self.reg_idx, self.mu_, self.cov_, self.settings,
                             weights, self.meta, self.vrms_, self.vgain_, self.group)
 
+    def with_settings(self, **changes: Any) -> DefaultModel:
+        """This model with some Settings changed (those read per step, e.g. vel_shrink; not the fitted arrays')."""
+        return DefaultModel(self.channels, self.mean_, self.std_, self.reg_idx, self.mu_, self.cov_, replace(self.settings, **changes),
+                            self.weights, self.meta, self.vrms_, self.vgain_, self.group)
+
     def info(self) -> dict[str, Any]:
         return {**super().info(), "fps": self.settings.fps, "regression_channels": int(len(self.reg_idx))}
 
@@ -283,6 +291,9 @@ class DefaultModel(Model):
                                    "lags_s": tuple(float(k) for k in s.get("lags_s", (0.05,)))})
         except TypeError as e:
             raise modelfile.ModelFileError(f"{path}: default model settings are malformed ({e})") from None
+        if not (isinstance(settings.vel_shrink, (int, float)) and np.isfinite(settings.vel_shrink) and settings.vel_shrink >= 0):
+            raise modelfile.ModelFileError(f"{path}: default model setting vel_shrink must be a finite number >= 0 "
+                                           f"(got {settings.vel_shrink!r})")
         K = len(settings.knots)
         G = len(GROUP_NAMES)
         reg = modelfile.require(path, arrays, "reg_idx", (None,))

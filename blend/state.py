@@ -29,6 +29,17 @@ class Components:
     extra: dict = field(default_factory=dict)
 
 
+def shrunk(v: np.ndarray, var: np.ndarray, beta: np.ndarray, c: float) -> np.ndarray:
+    """The velocity a gap extrapolates (Settings.vel_shrink = c): v^3 / (v^2 + c s^2), with s^2 = var beta /
+    (2 - beta) the variance an exponential average (weight beta) of frame differences scattered by var about
+    it has: a Wiener factor, ~1 for a velocity well above its noise, ~0 for the capture's jitter on a still
+    channel.  c = 0: v itself (blend.fast._shrunk is the same arithmetic)."""
+    if c <= 0:
+        return v.copy()
+    den = v * v + c * (var * beta / (2.0 - beta))
+    return np.where(den > 0, v * v * v / np.where(den > 0, den, 1.0), v)
+
+
 class DefaultState(FillerState):
     # ``model`` is the blend.model.DefaultModel whose stream() made this state, named by its base
     # class: blend.model imports this file, so importing it back would make a circle
@@ -38,6 +49,9 @@ class DefaultState(FillerState):
         self.last = model.mean_.copy()      # last output (observed or filled), raw units
         self.h = model.mean_.copy()         # last observed value
         self.vel = np.zeros(C)              # smoothed per-frame velocity while observed
+        # vel_shrink: the variance of each new frame difference about vel (row 0) and the velocity a gap
+        # extrapolates, vel shrunk by its noise (row 1; = vel where the setting is off)
+        self.vn = np.zeros((2, C))
         self.v0 = np.zeros(C)               # velocity frozen at the gap's onset
         self.k = np.zeros(C, np.int64)      # frames since onset (0 = observed)
         self.R = model.mean_.copy()         # regression component (continuous across mask changes)
@@ -109,7 +123,7 @@ class DefaultState(FillerState):
             self.miss_key = None
             mm, O, B, changed, has = m._none_i, m._none_i, m._none_B, False, False
         step_kernel(f, obs, m.ang, m.group, m.mean_, m.std_, m.reg_idx, m.mu_, m.knots, m.weights.wv, m.weights.wl,
-                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, has, changed, self.last, self.h, self.vel,
+                    m.weights.wr, m.weights.wg, m.weights.sc, m._par, m._Ls, m.vcap, m.beta, m.vgain_, mm, O, B, has, changed, self.last, self.h, self.vel, self.vn,
                     self.v0, self.k, self.R, self.off, self.amean, self.avar, self.lstd, self.hist, self.sv, out, std,
                     self.Rv, m.sh_g, m.sh_m, m.sh_nm, m.sh_O, m.sh_nO, m.sh_B, self.ER, self.EH, self.NE,
                     m.guard_h, m.guard_hf, m.guard_par, m.guard_cols_flat, m.guard_cols_ptr, m.guard_sh, m.guard_pos,
@@ -166,7 +180,10 @@ class DefaultState(FillerState):
             # observed channels: velocity (only across consecutive observations), spread, anchors
             was = (self.k == 0) & obs & (self.sv[2] > 0)
             dx = np.where(m.ang, wrap(f - self.h), f - self.h)
+            r = dx - self.vel
+            self.vn[0] = np.where(was, (1 - pf["eta"]) * self.vn[0] + pf["eta"] * r * r, self.vn[0])
             self.vel = np.where(was, self.vel + m.beta * (dx - self.vel), self.vel)
+            self.vn[1] = np.where(was, shrunk(self.vel, self.vn[0], m.beta, m.settings.vel_shrink), self.vn[1])
             da = np.where(m.ang, wrap(f - self.amean), f - self.amean)
             self.amean = np.where(obs, self.amean + pf["eta"] * da, self.amean)
             self.avar = np.where(obs, (1 - pf["eta"]) * self.avar + pf["eta"] * da * da, self.avar)
@@ -184,7 +201,7 @@ class DefaultState(FillerState):
         std = np.zeros(C)
         if miss.any():
             onset = miss & (self.k == 0)
-            self.v0 = np.where(onset, np.clip(self.vel * m.vgain_, -m.vcap, m.vcap), self.v0)
+            self.v0 = np.where(onset, np.clip(self.vn[1] * m.vgain_, -m.vcap, m.vcap), self.v0)
             self.R = np.where(onset, self.h, self.R)
             self.k = np.where(miss, self.k + 1, 0)
             idx = np.flatnonzero(miss)
