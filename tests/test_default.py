@@ -170,17 +170,16 @@ def test_batched_step_matches_one_stream_at_a_time(small):
     assert solo[0].predict().filled.all()  # a frame that never arrived: everything is filled
 
 
-def test_compiled_step_matches_the_numpy_step_with_the_gate_on(small):
-    """blend.fast against DefaultState.step_numpy on real motion, with the regression gate active."""
-    from dataclasses import replace
-
+@pytest.mark.parametrize("changes", [{"gate_rho": 0.7}, {"gate_rho": 0.7, "vel_shrink": 4.0}, {"gate_rho": 0.7, "vel_shrink": 0.0}])
+def test_compiled_step_matches_the_numpy_step_with_the_gate_on(small, changes):
+    """blend.fast against DefaultState.step_numpy on real motion, with the regression gate active (and the
+    onset velocity's shrink on and off)."""
     from lacuna import jit
 
     if not jit.enabled():
         pytest.skip("numba unavailable or LACUNA_NO_JIT set: only the numpy step runs here")
     model, _ = small
-    gated = DefaultModel(model.channels, model.mean_, model.std_, model.reg_idx, model.mu_, model.cov_,
-                         replace(model.settings, gate_rho=0.7), model.weights, model.meta, model.vrms_, model.vgain_)
+    gated = model.with_settings(**changes)
     for take in ("walking_23", "basketball_4"):
         truth = splits.load_take(take).frames[:300]
         obs, _ = occlusion(take, 300, model.channels, 120.0, seed=102)
@@ -244,6 +243,59 @@ def test_daemon_serves_default_over_a_real_socket(small, tmp_path):
         s.close(0)
         ctx.term()
         d.stop()
+
+
+def test_vel_shrink_extrapolates_a_ramp_and_not_a_jitter():
+    """Settings.vel_shrink (bench/notebook/vshr-42.md): a channel moving at a steady rate keeps its whole
+    velocity at a gap's onset (its frame differences do not scatter about it); a still channel whose
+    value jitters frame to frame gets next to none of its smoothed velocity; off (0) it is the smoothed
+    velocity itself.  Both steps (numpy, compiled)."""
+    from blend.model import Settings, Weights
+    from lacuna import jit
+
+    C = 2
+    ch = ["lfemur.rx", "rfemur.rx"]
+    s = Settings(lags_s=(0.05,), vel_s=0.05, vel_shrink=4.0)
+    m = DefaultModel(ch, np.zeros(C), np.ones(C), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 0)), s, Weights.initial(),
+                     {}, None, None)
+    T = 240
+    t = np.arange(T)
+    x = np.stack([10.0 + 0.3 * t, 5.0 + 0.4 * (-1.0) ** t], 1)  # a ramp of 0.3 deg a frame; +-0.4 deg of jitter
+    for shrink, check in ((4.0, True), (0.0, False)):
+        mm = m.with_settings(vel_shrink=shrink)
+        steps = ["step_numpy"] + (["step"] if jit.enabled() else [])
+        for how in steps:
+            st = mm.stream()
+            for i in range(T):
+                getattr(st, how)(x[i].copy(), np.ones(C, bool))
+            raw = st.vel.copy()
+            getattr(st, how)(np.array([np.nan, np.nan]), np.zeros(C, bool))  # both drop out
+            assert abs(raw[0] - 0.3) < 1e-6 and abs(raw[1]) > 0.05, raw  # the smoothed velocities: the jitter's is not 0
+            if check:
+                assert 0.99 * raw[0] <= st.v0[0] <= raw[0]  # the ramp's is kept (but for its start's decaying trace)
+                assert abs(st.v0[1]) < 0.05 * abs(raw[1]), (st.v0, raw)  # the jitter's is not extrapolated (~2% of it)
+            else:
+                np.testing.assert_array_equal(st.v0, raw)
+
+
+def test_vel_shrink_off_for_old_files_and_refused_when_malformed(small, tmp_path):
+    """A model file written before vel_shrink loads with it off (its fills those of vel_shrink = 0); a
+    negative or non-finite value in a file is refused by name."""
+    model, _ = small
+    p = tmp_path / "m.npz"
+    model.with_settings(vel_shrink=4.0).save(str(p))
+    meta, arrays = modelfile.load_arrays(str(p))
+    assert type(model).load(str(p), meta, arrays).settings.vel_shrink == 4.0
+    old_meta = {**meta, "settings": {k: v for k, v in meta["settings"].items() if k != "vel_shrink"}}
+    old = type(model).load(str(p), old_meta, arrays)
+    assert old.settings.vel_shrink == 0.0
+    truth = splits.load_take("walking_27").frames[:400]
+    obs, _ = occlusion("walking_27", truth.shape[0], model.channels, 120.0, seed=1)
+    given = np.where(obs, truth, np.nan)
+    np.testing.assert_array_equal(old.fill_offline(given, obs)[0], model.with_settings(vel_shrink=0.0).fill_offline(given, obs)[0])
+    for bad in (-1.0, float("nan"), float("inf"), "4"):
+        with pytest.raises(modelfile.ModelFileError, match="vel_shrink"):
+            type(model).load(str(p), {**meta, "settings": {**meta["settings"], "vel_shrink": bad}}, arrays)
 
 
 def _with(model, **over):
