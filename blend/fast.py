@@ -172,11 +172,11 @@ def _guard_update(f, obs, last, ang, group, mean, ri, mu, Ls, hist, pos, knots, 
 
 
 @jit
-def _shrunk(v, var, beta, c):
+def _shrunk(v, q, beta, c):
     """blend.state.shrunk for one channel."""
     if c <= 0.0:
         return v
-    den = v * v + c * (var * beta / (2.0 - beta))
+    den = v * v + c * (beta * beta * q / (3.0 * (2.0 - beta)))
     return v * v * v / den if den > 0.0 else v
 
 
@@ -316,10 +316,15 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 dx = f[j] - h[j]
                 if ang[j]:
                     dx = _wrap(dx)
-                r = dx - vel[j]
-                vn[0, j] = (1 - eta) * vn[0, j] + eta * r * r
+                p2 = vn[2, j]
+                if p2 == p2:  # the frame before was a difference too: the second difference
+                    dd = dx - p2  # (not d2: that is the slower damping)
+                    vn[0, j] = (1 - eta) * vn[0, j] + eta * dd * dd
+                vn[2, j] = dx
                 vel[j] = vel[j] + betas[j] * (dx - vel[j])
                 vn[1, j] = _shrunk(vel[j], vn[0, j], betas[j], shrink)
+            else:
+                vn[2, j] = np.nan
             da = f[j] - amean[j]
             if ang[j]:
                 da = _wrap(da)

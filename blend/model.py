@@ -92,9 +92,10 @@ class Settings:
                               # files written before it load so)
     vcap_mult: float = 1e9    # onset velocity capped at this many training RMS changes per frame (1e9: no cap)
     vel_gain: float = 0.0     # 1: each channel's onset velocity scaled by its training gain (vgain); 0: not
-    vel_shrink: float = 0.0   # c: the onset velocity v becomes v^3 / (v^2 + c s^2), s^2 the noise variance of the
-                              # smoothed velocity read off the stream (blend.state.shrunk): a velocity inside the
-                              # capture's jitter is not extrapolated (0: off; files written before it load so)
+    vel_shrink: float = 0.0   # c: the onset velocity v becomes v^3 / (v^2 + c s^2), s^2 the variance the stream's
+                              # jitter (read off its second differences) leaves in the smoothed velocity
+                              # (blend.state.shrunk): a velocity inside it is not extrapolated (0: off; files
+                              # written before it load so)
     knots: tuple = KNOTS
     guard_s: float = 0.0      # the guard (blend.guard): decay time constant of its evidence, seconds (0: off)
     guard_n0: float = 120.0   # ... its ridge toward lambda = 1: guard_n0 / n times the diagonal (n: virtual gaps seen)

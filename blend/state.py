@@ -29,14 +29,16 @@ class Components:
     extra: dict = field(default_factory=dict)
 
 
-def shrunk(v: np.ndarray, var: np.ndarray, beta: np.ndarray, c: float) -> np.ndarray:
-    """The velocity a gap extrapolates (Settings.vel_shrink = c): v^3 / (v^2 + c s^2), with s^2 = var beta /
-    (2 - beta) the variance an exponential average (weight beta) of frame differences scattered by var about
-    it has: a Wiener factor, ~1 for a velocity well above its noise, ~0 for the capture's jitter on a still
-    channel.  c = 0: v itself (blend.fast._shrunk is the same arithmetic)."""
+def shrunk(v: np.ndarray, q: np.ndarray, beta: np.ndarray, c: float) -> np.ndarray:
+    """The velocity a gap extrapolates (Settings.vel_shrink = c): v^3 / (v^2 + c s^2), a Wiener factor, ~1 for a
+    velocity well above its noise and ~0 for the capture's jitter on a still channel.  ``q`` is the mean square
+    second difference of the channel's values, 6 sigma^2 for white noise of variance sigma^2 on them (a steady
+    acceleration a per frame^2 adds only a^2), and s^2 = 2 beta^2 sigma^2 / (2 - beta) = beta^2 q / (3 (2 - beta))
+    the variance that noise leaves in the exponentially smoothed velocity (weight beta).  c = 0: v itself
+    (blend.fast._shrunk is the same arithmetic; bench/notebook/vshr-42.md)."""
     if c <= 0:
         return v.copy()
-    den = v * v + c * (var * beta / (2.0 - beta))
+    den = v * v + c * (beta * beta * q / (3.0 * (2.0 - beta)))
     return np.where(den > 0, v * v * v / np.where(den > 0, den, 1.0), v)
 
 
@@ -49,9 +51,11 @@ class DefaultState(FillerState):
         self.last = model.mean_.copy()      # last output (observed or filled), raw units
         self.h = model.mean_.copy()         # last observed value
         self.vel = np.zeros(C)              # smoothed per-frame velocity while observed
-        # vel_shrink: the variance of each new frame difference about vel (row 0) and the velocity a gap
-        # extrapolates, vel shrunk by its noise (row 1; = vel where the setting is off)
-        self.vn = np.zeros((2, C))
+        # vel_shrink: the mean square second difference while observed (row 0), the velocity a gap extrapolates,
+        # vel shrunk by its noise (row 1; = vel where the setting is off), the last frame difference (row 2; NaN:
+        # none since the channel came back)
+        self.vn = np.zeros((3, C))
+        self.vn[2] = np.nan
         self.v0 = np.zeros(C)               # velocity frozen at the gap's onset
         self.k = np.zeros(C, np.int64)      # frames since onset (0 = observed)
         self.R = model.mean_.copy()         # regression component (continuous across mask changes)
@@ -180,8 +184,9 @@ class DefaultState(FillerState):
             # observed channels: velocity (only across consecutive observations), spread, anchors
             was = (self.k == 0) & obs & (self.sv[2] > 0)
             dx = np.where(m.ang, wrap(f - self.h), f - self.h)
-            r = dx - self.vel
-            self.vn[0] = np.where(was, (1 - pf["eta"]) * self.vn[0] + pf["eta"] * r * r, self.vn[0])
+            d2 = dx - self.vn[2]  # the second difference, where the frame before was a difference too
+            self.vn[0] = np.where(was & np.isfinite(d2), (1 - pf["eta"]) * self.vn[0] + pf["eta"] * d2 * d2, self.vn[0])
+            self.vn[2] = np.where(obs, np.where(was, dx, np.nan), self.vn[2])
             self.vel = np.where(was, self.vel + m.beta * (dx - self.vel), self.vel)
             self.vn[1] = np.where(was, shrunk(self.vel, self.vn[0], m.beta, m.settings.vel_shrink), self.vn[1])
             da = np.where(m.ang, wrap(f - self.amean), f - self.amean)

@@ -247,21 +247,21 @@ def test_daemon_serves_default_over_a_real_socket(small, tmp_path):
 
 def test_vel_shrink_extrapolates_a_ramp_and_not_a_jitter():
     """Settings.vel_shrink (bench/notebook/vshr-42.md): a channel moving at a steady rate keeps its whole
-    velocity at a gap's onset (its frame differences do not scatter about it); a still channel whose
-    value jitters frame to frame gets next to none of its smoothed velocity; off (0) it is the smoothed
-    velocity itself.  Both steps (numpy, compiled)."""
+    velocity at a gap's onset (its second differences are 0); a still channel whose value jitters frame
+    to frame gets little of its smoothed velocity; off (0) it is the smoothed velocity itself.  Both steps
+    (numpy, compiled)."""
     from blend.model import Settings, Weights
     from lacuna import jit
 
     C = 2
     ch = ["lfemur.rx", "rfemur.rx"]
-    s = Settings(lags_s=(0.05,), vel_s=0.05, vel_shrink=4.0)
+    s = Settings(lags_s=(0.05,), vel_s=0.05, vel_shrink=16.0)
     m = DefaultModel(ch, np.zeros(C), np.ones(C), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 0)), s, Weights.initial(),
                      {}, None, None)
     T = 240
     t = np.arange(T)
     x = np.stack([10.0 + 0.3 * t, 5.0 + 0.4 * (-1.0) ** t], 1)  # a ramp of 0.3 deg a frame; +-0.4 deg of jitter
-    for shrink, check in ((4.0, True), (0.0, False)):
+    for shrink, check in ((16.0, True), (0.0, False)):
         mm = m.with_settings(vel_shrink=shrink)
         steps = ["step_numpy"] + (["step"] if jit.enabled() else [])
         for how in steps:
@@ -272,8 +272,8 @@ def test_vel_shrink_extrapolates_a_ramp_and_not_a_jitter():
             getattr(st, how)(np.array([np.nan, np.nan]), np.zeros(C, bool))  # both drop out
             assert abs(raw[0] - 0.3) < 1e-6 and abs(raw[1]) > 0.05, raw  # the smoothed velocities: the jitter's is not 0
             if check:
-                assert 0.99 * raw[0] <= st.v0[0] <= raw[0]  # the ramp's is kept (but for its start's decaying trace)
-                assert abs(st.v0[1]) < 0.05 * abs(raw[1]), (st.v0, raw)  # the jitter's is not extrapolated (~2% of it)
+                assert st.v0[0] == raw[0]  # the ramp's is kept whole
+                assert abs(st.v0[1]) < 0.1 * abs(raw[1]), (st.v0, raw)  # the jitter's is mostly not extrapolated (~3% of it)
             else:
                 np.testing.assert_array_equal(st.v0, raw)
 
