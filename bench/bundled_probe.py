@@ -58,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("model", help="a model file, or floor (the built-in pass-through)")
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--py-spy", dest="spy", metavar="OUT")
+    ap.add_argument("--pub", action="store_true", help="also a PUB socket (each fill published: a studio's downstream)")
     args = ap.parse_args(argv)
     from mocap.datasets import load_trial
 
@@ -67,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     observed = np.broadcast_to(~np.array([c.split(".")[0] in MISSING for c in channels]), frames.shape).copy()
     spec = {"builtin": "passthrough", "channels": channels} if args.model == "floor" else {"file": args.model}
     d = tempfile.mkdtemp(prefix="bundled-probe-")
-    loopback_config(f"{d}/c.toml", {"m": spec}, daemon={"budget_ms": 4.0, "log_level": "warning"})
+    # ROUTER only, as bench/echo_vs_daemon.py's daemons (--pub adds a PUB socket: every fill published too)
+    loopback_config(f"{d}/c.toml", {"m": spec}, pub=args.pub, daemon={"budget_ms": 4.0, "log_level": "warning"})
     p = DaemonProcess(f"{d}/c.toml")
     p.start()
     load = dict(n_streams=64, rate=120, progress=False, connections=1, bundle=True)
