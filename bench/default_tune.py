@@ -108,7 +108,9 @@ def main() -> int:
             "gate_decay": [0.97], "gate_rho_weak": [16.0], "vcap_mult": [4.0], "vel_s": [0.05],
             "guard_s": [6.0], "guard_n0": [3.0], "gate_n0": [1.0], "vel_shrink": [0.0]} if args.quick else \
         {"lags_s": [(0.3,)], "damp_s": [0.3], "damp2_s": [1.0], "offset_s": [0.3], "vel_s": [0.02, 0.05],
-         "gate_rho": [4.0], "gate_decay": [0.97], "gate_rho_weak": [16.0], "vcap_mult": [4.0], "vel_gain": [0.0, 1.0]}
+         "gate_rho": [4.0], "gate_decay": [0.97], "gate_rho_weak": [16.0], "vcap_mult": [4.0], "vel_gain": [0.0, 1.0],
+         # (the settings chosen since, held at their choice: without them --write would reset each to Settings()'s off)
+         "guard_s": [6.0], "guard_n0": [3.0], "gate_n0": [1.0], "vel_shrink": [0.0]}
     rows = []
     gauss_cache = {}
     for vals in itertools.product(*grid.values()):
