@@ -316,11 +316,12 @@ def step_kernel(f, obs, ang, group, mean, std0, ri, mu, knots, wv, wl, wr, wg, s
                 dx = f[j] - h[j]
                 if ang[j]:
                     dx = _wrap(dx)
-                p2 = vn[2, j]
-                if p2 == p2:  # the frame before was a difference too: the second difference
-                    dd = dx - p2  # (not d2: that is the slower damping)
-                    vn[0, j] = (1 - eta) * vn[0, j] + eta * dd * dd
-                vn[2, j] = dx
+                if shrink > 0.0:  # (the jitter's estimate, read only by vel_shrink)
+                    p2 = vn[2, j]
+                    if p2 == p2:  # the frame before was a difference too: the second difference
+                        dd = dx - p2  # (not d2: that is the slower damping)
+                        vn[0, j] = (1 - eta) * vn[0, j] + eta * dd * dd
+                    vn[2, j] = dx
                 vel[j] = vel[j] + betas[j] * (dx - vel[j])
                 vn[1, j] = _shrunk(vel[j], vn[0, j], betas[j], shrink)
             else:

@@ -184,9 +184,10 @@ class DefaultState(FillerState):
             # observed channels: velocity (only across consecutive observations), spread, anchors
             was = (self.k == 0) & obs & (self.sv[2] > 0)
             dx = np.where(m.ang, wrap(f - self.h), f - self.h)
-            d2 = dx - self.vn[2]  # the second difference, where the frame before was a difference too
-            self.vn[0] = np.where(was & np.isfinite(d2), (1 - pf["eta"]) * self.vn[0] + pf["eta"] * d2 * d2, self.vn[0])
-            self.vn[2] = np.where(obs, np.where(was, dx, np.nan), self.vn[2])
+            if m.settings.vel_shrink > 0:  # (the jitter's estimate, read only by vel_shrink)
+                d2 = dx - self.vn[2]  # the second difference, where the frame before was a difference too
+                self.vn[0] = np.where(was & np.isfinite(d2), (1 - pf["eta"]) * self.vn[0] + pf["eta"] * d2 * d2, self.vn[0])
+                self.vn[2] = np.where(obs, np.where(was, dx, np.nan), self.vn[2])
             self.vel = np.where(was, self.vel + m.beta * (dx - self.vel), self.vel)
             self.vn[1] = np.where(was, shrunk(self.vel, self.vn[0], m.beta, m.settings.vel_shrink), self.vn[1])
             da = np.where(m.ang, wrap(f - self.amean), f - self.amean)
